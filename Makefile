@@ -1,0 +1,27 @@
+# One-command set-up: every target creates .venv and installs the pinned dependencies when missing.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+REQS := requirements/base.txt requirements/nodeps.txt requirements/dev.txt pyproject.toml
+
+.PHONY: test install demo head-show clean-venv
+
+install: $(STAMP)
+
+$(STAMP): $(REQS)
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -r requirements/base.txt -r requirements/dev.txt
+	$(PY) -m pip install -q --no-deps -r requirements/nodeps.txt
+	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+head-show: $(STAMP)
+	$(VENV)/bin/geoavatar head show --out head.png
+
+clean-venv:
+	rm -rf $(VENV)

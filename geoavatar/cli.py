@@ -1,0 +1,74 @@
+"""`geoavatar <command> [<subcommand>] [options]`: one entry point, one typed function per job.
+
+Each command is a plain function with typed, documented arguments living next to the code it drives;
+tyro turns its signature into the option parser. Commands are imported lazily so that `--help` and
+light commands start fast.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from typing import Callable, Union
+
+# name -> "module:function", or a nested table for two-word commands ("head show").
+CommandTable = dict[str, Union[str, "CommandTable"]]
+
+COMMANDS: CommandTable = {
+    "head": {
+        "show": "geoavatar.apps.head_show:head_show",
+    },
+}
+
+_DESCRIPTIONS = {
+    "head": "Head models: inspect the template, expressions and mouth structure.",
+    "head show": "Render a contact sheet of a head model (front/side, expressions, open jaw).",
+}
+
+
+def _resolve(target: str) -> Callable:
+    module_name, func_name = target.split(":")
+    return getattr(importlib.import_module(module_name), func_name)
+
+
+def _print_help(table: CommandTable, prefix: str) -> None:
+    print(f"usage: {prefix} <command> [options]\n")
+    print("commands:")
+    words = prefix.split()[1:]
+    for name in table:
+        key = " ".join([*words, name])
+        print(f"  {name:<12} {_DESCRIPTIONS.get(key, '')}")
+    print(f"\nRun '{prefix} <command> --help' for the options of a command.")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    table: CommandTable = COMMANDS
+    prog = "geoavatar"
+    while True:
+        if not argv or argv[0] in ("-h", "--help"):
+            _print_help(table, prog)
+            return 0
+        name = argv.pop(0)
+        if name not in table:
+            print(f"{prog}: unknown command '{name}'. Known: {', '.join(table)}", file=sys.stderr)
+            return 2
+        prog = f"{prog} {name}"
+        entry = table[name]
+        if isinstance(entry, dict):
+            table = entry
+            continue
+        break
+
+    from geoavatar.runtime import setup_process
+
+    setup_process()
+    import tyro
+
+    func = _resolve(entry)
+    result = tyro.cli(func, args=argv, prog=prog, description=_DESCRIPTIONS.get(prog.split(" ", 1)[1]))
+    return int(result) if isinstance(result, int) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
