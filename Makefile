@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 REQS := requirements/base.txt requirements/nodeps.txt requirements/dev.txt pyproject.toml
 
-.PHONY: test install demo head-show clean-venv
+.PHONY: test install install-cuda head-show clean-venv
 
 install: $(STAMP)
 
@@ -16,6 +16,10 @@ $(STAMP): $(REQS)
 	$(PY) -m pip install -q --no-deps -r requirements/nodeps.txt
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	touch $(STAMP)
+
+# On a machine with CUDA: gsplat is then used automatically for rendering and training.
+install-cuda: $(STAMP)
+	$(PY) -m pip install -q "gsplat==1.5.3" packaging
 
 test: $(STAMP)
 	$(PY) -m pytest -q
