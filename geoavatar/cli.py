@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     import tyro
 
     func = _resolve(entry)
-    result = tyro.cli(func, args=argv, prog=prog, description=_DESCRIPTIONS.get(prog.split(" ", 1)[1]))
+    result = tyro.cli(func, args=argv, prog=prog)  # the function's docstring is the description
     return int(result) if isinstance(result, int) else 0
 
 
