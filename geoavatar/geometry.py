@@ -74,3 +74,29 @@ def quaternion_to_matrix(quat: Tensor) -> Tensor:
         ],
         dim=-1,
     ).reshape(*quat.shape[:-1], 3, 3)
+
+
+def matrix_to_axis_angle(matrix: Tensor) -> Tensor:
+    """Rotation matrices [..., 3, 3] -> axis-angle [..., 3] with angle in [0, pi] (via the quaternion)."""
+    quat = matrix_to_quaternion(matrix)  # [..., 4], w >= 0
+    w, xyz = quat[..., :1], quat[..., 1:]
+    sin_half = xyz.norm(dim=-1, keepdim=True)  # [..., 1]
+    angle = 2.0 * torch.atan2(sin_half, w)
+    # angle / sin(angle/2) -> 2 / w as the angle -> 0 (w -> 1).
+    small = sin_half < 1e-6
+    factor = torch.where(small, 2.0 / w.clamp_min(1e-6), angle / torch.where(small, torch.ones_like(sin_half), sin_half))
+    return xyz * factor
+
+
+def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
+    """6D rotations [..., 6] -> matrices [..., 3, 3], PyTorch3D's convention (used by metrical-tracker).
+
+    The 6 numbers are the first two ROWS of the matrix (Zhou et al. 2019 write columns; PyTorch3D,
+    and so metrical-tracker's `.frame` files, store rows). Gram-Schmidt makes them orthonormal; the
+    third row is their cross product.
+    """
+    a1, a2 = d6[..., :3], d6[..., 3:]
+    b1 = torch.nn.functional.normalize(a1, dim=-1)
+    b2 = torch.nn.functional.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1)
+    b3 = torch.linalg.cross(b1, b2)
+    return torch.stack([b1, b2, b3], dim=-2)
