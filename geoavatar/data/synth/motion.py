@@ -1,0 +1,283 @@
+"""The motion script of a synthetic actor: what the ground-truth head does, frame by frame.
+
+It imitates the recording protocol of the paper's DynamicFace data (actors hold strong expressions
+while slowly nodding and turning the head, plus talking), and ends with a test segment whose
+expression/pose combinations never occur in the training part:
+
+    training part (first `num_frames - test_frames` frames)
+      30 %  talking: jaw 0-0.35 rad at syllable rate, lip shapes, small head motion
+      70 %  held strong expressions (smile, surprise, pucker, frown, wide smile with teeth, ...)
+            while the head sweeps yaw in [-22, +30] deg and pitch in [-12, +15] deg, roll +-3 deg
+    test part (last `test_frames` frames)
+            open-mouth smile with brows raised at yaw down to -35 deg and pitch -18 deg (beyond the
+            training range, in the direction the training part covers least), a wink, talking with
+            a head roll of 10 deg (training roll stays within +-3 deg)
+
+Blinks every 2-4 s (at the dataset's fps) and gaze shifts every 1-2.5 s run through both parts.
+Segment boundaries scale with the number of frames, so a 8-frame test video still passes through
+every segment; event timing (blinks, syllables, saccades) is in seconds.
+
+Everything here is numpy and deterministic for a given (num_frames, seed).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# Held expressions of the training part: name -> (expression channel weights, jaw opening rad).
+# Channel names are semantic; `geoavatar.data.synth.actor` maps them to the head model's modes.
+TRAIN_EXPRESSIONS: tuple[tuple[str, dict[str, float], float], ...] = (
+    ("smile", {"smile": 1.0, "cheek_raise": 0.5}, 0.0),
+    ("surprise", {"brow_raise": 1.0, "eyes_wide": 0.8}, 0.22),
+    ("pucker", {"pucker": 1.0}, 0.0),
+    ("frown", {"brow_lower": 1.0, "mouth_frown": 0.8}, 0.0),
+    ("grin", {"smile": 0.8, "mouth_stretch": 0.6}, 0.12),
+    ("disgust", {"nose_wrinkle": 1.0, "upper_lip_raise": 0.8, "brow_lower": 0.4}, 0.05),
+)
+
+# Lip shapes mixed into talking (weights drawn per syllable).
+TALK_SHAPES = ("pucker", "mouth_stretch", "smile", "upper_lip_raise", "lip_funnel")
+
+# Head-pose ranges (degrees) of the training part, and the test extremes beyond them.
+TRAIN_YAW_RANGE = (-22.0, 30.0)
+TRAIN_PITCH_RANGE = (-12.0, 15.0)
+TRAIN_ROLL_MAX = 3.0
+TEST_YAW_MIN = -35.0
+TEST_PITCH_MIN = -18.0
+TEST_ROLL = 10.0
+JAW_MAX = 0.35
+
+
+@dataclass
+class Motion:
+    """Ground-truth motion of one video, in semantic units (numpy, one row per frame)."""
+
+    fps: float
+    test_start: int  # first frame of the test segment
+    yaw: np.ndarray  # [N] head yaw, radians (+ turns the face towards the subject's left = image right)
+    pitch: np.ndarray  # [N] head pitch, radians (+ nods down)
+    roll: np.ndarray  # [N] head roll, radians
+    translation: np.ndarray  # [N, 3] head sway, metres (head frame: +x subject's left, +y up, +z forward)
+    jaw: np.ndarray  # [N] jaw opening, radians (>= 0)
+    gaze: np.ndarray  # [N, 2] eye yaw, pitch in radians (+pitch looks down, as the head)
+    blink_left: np.ndarray  # [N] 0 open .. 1 closed
+    blink_right: np.ndarray  # [N]
+    expressions: dict[str, np.ndarray] = field(default_factory=dict)  # channel -> [N] weights
+    segments: list[tuple[int, int, str]] = field(default_factory=list)  # (start, stop, label)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.yaw.shape[0])
+
+
+def test_frame_count(num_frames: int) -> int:
+    """Frames in the held-out test segment, by the data layer's split rule (`geoavatar.data.splits`).
+
+    The last 350 frames (INSTA protocol, as the paper) when the video has at least 700 frames, else
+    the last 25 % (rounded up): so for every num_frames <= 700 but 700 itself, the last 25 %.
+    """
+    if num_frames < 2:
+        raise ValueError(f"a synthetic video needs at least 2 frames, got {num_frames}")
+    import warnings
+
+    from geoavatar.data.splits import split_timesteps
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the short-video notice is expected here
+        split = split_timesteps(list(range(num_frames)), source="synth")
+    return len(split.test)
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _hold_envelope(t: np.ndarray, start: float, stop: float, ramp: float) -> np.ndarray:
+    """1 inside [start, stop] with smooth ramps of length `ramp` at both ends (t in any unit)."""
+    ramp = max(ramp, 1e-6)
+    return _smoothstep((t - start) / ramp) * _smoothstep((stop - t) / ramp)
+
+
+def _smooth_noise(rng: np.random.Generator, n: int, correlation_frames: float) -> np.ndarray:
+    """Temporally correlated noise with unit standard deviation: white noise through a Gaussian filter."""
+    from scipy.ndimage import gaussian_filter1d
+
+    white = rng.standard_normal(n + 8 * int(correlation_frames) + 8)
+    smooth = gaussian_filter1d(white, sigma=max(correlation_frames, 1e-3), mode="wrap")
+    smooth = smooth[: n]
+    # Unit variance in expectation: the filter's gain on white noise is 1/sqrt(sum(g^2)).
+    sigma = max(correlation_frames, 1e-3)
+    radius = int(4 * sigma + 0.5)
+    g = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    g = g / g.sum()
+    return smooth / math.sqrt(float((g * g).sum()))
+
+
+def _blink_track(rng: np.random.Generator, times: np.ndarray) -> np.ndarray:
+    """Blinks every 2-4 s: 0.08 s closing, 0.16 s opening (a fast-close/slow-open lid profile)."""
+    out = np.zeros_like(times)
+    duration = float(times[-1]) if len(times) else 0.0
+    t_blink = rng.uniform(0.6, 2.0)
+    while t_blink < duration + 0.3:
+        close, reopen = 0.08, 0.16
+        rising = np.clip((times - (t_blink - close)) / close, 0.0, 1.0)
+        falling = np.clip(1.0 - (times - t_blink) / reopen, 0.0, 1.0)
+        out = np.maximum(out, np.where(times <= t_blink, rising, falling))
+        t_blink += rng.uniform(2.0, 4.0)
+    return out
+
+
+def _gaze_track(rng: np.random.Generator, times: np.ndarray) -> np.ndarray:
+    """Saccades every 1-2.5 s to targets within +-15 deg yaw, +-10 deg pitch; each saccade takes 0.06 s."""
+    out = np.zeros((len(times), 2))
+    duration = float(times[-1]) if len(times) else 0.0
+    current = np.zeros(2)
+    t_next = rng.uniform(0.3, 1.0)
+    while t_next < duration:
+        target = np.radians([rng.uniform(-15.0, 15.0), rng.uniform(-10.0, 10.0)])
+        step = _smoothstep((times - t_next) / 0.06)[:, None]
+        out = out + step * (target - current)
+        current = target
+        t_next += rng.uniform(1.0, 2.5)
+    return out
+
+
+def _talking(rng: np.random.Generator, times: np.ndarray, envelope: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Jaw opening at syllable rate (3.5-5.5 Hz) with random amplitude, and lip shapes per syllable."""
+    jaw = np.zeros_like(times)
+    shapes = {name: np.zeros_like(times) for name in TALK_SHAPES}
+    if envelope.max() <= 0.0:
+        return jaw, shapes
+    duration = float(times[-1]) + 1e-3
+    t = 0.0
+    while t < duration:
+        length = 1.0 / rng.uniform(3.5, 5.5)
+        amp = rng.uniform(0.08, JAW_MAX)
+        phase = np.clip((times - t) / length, 0.0, 1.0)
+        bump = np.sin(np.pi * phase) ** 2 * ((times >= t) & (times < t + length))
+        jaw = jaw + amp * bump
+        shape = TALK_SHAPES[int(rng.integers(len(TALK_SHAPES)))]
+        shapes[shape] = shapes[shape] + rng.uniform(0.3, 0.8) * bump
+        t += length
+    return jaw * envelope, {k: v * envelope for k, v in shapes.items()}
+
+
+def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0) -> Motion:
+    """The motion of one synthetic video (deterministic for a given num_frames and seed).
+
+    The test segment is the last `test_frame_count(num_frames)` frames and contains poses and
+    expression combinations outside the training part (see the module docstring).
+    """
+    test_frames = test_frame_count(num_frames)
+    train_frames = num_frames - test_frames
+    rng = np.random.default_rng([seed, 0x5EED, num_frames])
+    times = np.arange(num_frames) / fps  # [N] seconds
+    frame = np.arange(num_frames, dtype=np.float64)
+    # Normalised time of each part: u in [0, 1] inside the training part, w inside the test part.
+    u = frame / max(train_frames - 1, 1)
+    w = (frame - train_frames) / max(test_frames - 1, 1)
+    in_train = frame < train_frames
+    in_test = ~in_train
+
+    yaw = np.zeros(num_frames)
+    pitch = np.zeros(num_frames)
+    roll = np.zeros(num_frames)
+    jaw = np.zeros(num_frames)
+    channels: dict[str, np.ndarray] = {}
+
+    def add(name: str, values: np.ndarray) -> None:
+        channels[name] = channels.get(name, np.zeros(num_frames)) + values
+
+    # --- training part: talking (first 30 %), then held expressions while the head turns ------
+    talk_end = 0.3
+    ramp_u = 0.04
+    talk_env = _hold_envelope(u, -1.0, talk_end, ramp_u) * in_train
+    talk_jaw, talk_shapes = _talking(rng, times, talk_env)
+    jaw += talk_jaw
+    for name, values in talk_shapes.items():
+        add(name, values)
+    yaw += np.radians(8.0) * np.sin(2 * np.pi * u / talk_end * 0.5) * talk_env
+    pitch += np.radians(5.0) * np.sin(2 * np.pi * u / talk_end) * talk_env
+
+    # Held expressions share the rest of the training part evenly; the order is shuffled per seed.
+    order = rng.permutation(len(TRAIN_EXPRESSIONS))
+    slot = (1.0 - talk_end) / len(order)
+    for k, idx in enumerate(order):
+        _, weights, jaw_open = TRAIN_EXPRESSIONS[idx]
+        start = talk_end + k * slot
+        env = _hold_envelope(u, start + 0.15 * slot, start + slot, 0.2 * slot) * in_train
+        strength = rng.uniform(0.85, 1.0)
+        for name, value in weights.items():
+            add(name, strength * value * env)
+        jaw += jaw_open * env
+
+    # Head sweep over the expression part: one yaw cycle and 1.5 pitch cycles (slow nods/turns).
+    sweep = np.clip((u - talk_end) / (1.0 - talk_end), 0.0, 1.0)
+    sweep_env = _hold_envelope(u, talk_end, 1.0, ramp_u) * in_train
+    yaw_mid = np.radians(0.5 * (TRAIN_YAW_RANGE[0] + TRAIN_YAW_RANGE[1]))
+    yaw_amp = np.radians(0.5 * (TRAIN_YAW_RANGE[1] - TRAIN_YAW_RANGE[0]))
+    pitch_mid = np.radians(0.5 * (TRAIN_PITCH_RANGE[0] + TRAIN_PITCH_RANGE[1]))
+    pitch_amp = np.radians(0.5 * (TRAIN_PITCH_RANGE[1] - TRAIN_PITCH_RANGE[0]))
+    # envelope in [0, 1] times a value inside the range stays inside the range (which contains 0).
+    yaw += sweep_env * (yaw_mid + yaw_amp * np.sin(2 * np.pi * sweep))
+    pitch += sweep_env * (pitch_mid + pitch_amp * np.cos(3 * np.pi * sweep))
+    roll += np.radians(TRAIN_ROLL_MAX) * np.sin(2 * np.pi * 2.0 * u) * in_train
+
+    # --- test part: novel combinations at poses beyond the training range ---------------------
+    ramp_w = 0.12
+    # Ease in from the training part over at most 8 frames (short videos: straight to the pose).
+    ease_frames = min(8.0, 0.1 * test_frames)
+    ease_in = _smoothstep((frame - train_frames + 1) / max(ease_frames, 1.0))
+    first = _hold_envelope(w, -1.0, 0.55, ramp_w) * ease_in * in_test  # open-mouth smile, turned away
+    second = _hold_envelope(w, 0.45, 2.0, ramp_w) * in_test  # wink + talking with a rolled head
+    away = _smoothstep((0.55 - w) / 0.25)  # hold the extreme pose, then come back
+    yaw += first * np.radians(TEST_YAW_MIN) * away
+    pitch += first * np.radians(TEST_PITCH_MIN) * away
+    add("smile", first * 1.0)
+    add("brow_raise", first * 0.7)
+    jaw += first * 0.3
+    test_talk_jaw, test_talk_shapes = _talking(rng, times, second)
+    jaw += test_talk_jaw
+    for name, values in test_talk_shapes.items():
+        add(name, values)
+    add("mouth_frown", second * 0.5)
+    tilt = _smoothstep((w - 0.45) / 0.25)  # roll into the unseen tilt and stay there
+    roll += second * np.radians(TEST_ROLL) * tilt
+    yaw += second * np.radians(12.0) * tilt
+    wink = _hold_envelope(w, 0.6, 0.85, 0.08) * in_test
+
+    # --- through both parts: blinks, gaze, a little translation sway --------------------------
+    blink = _blink_track(rng, times)
+    eyes_wide = channels.get("eyes_wide", np.zeros(num_frames))
+    blink = blink * (1.0 - 0.5 * np.clip(eyes_wide, 0.0, 1.0))  # wide eyes blink less deeply
+    blink_left = np.clip(blink + wink, 0.0, 1.0)
+    blink_right = blink.copy()
+    gaze = _gaze_track(rng, times)
+    corr = 0.8 * fps
+    translation = np.stack(
+        [0.006 * _smooth_noise(rng, num_frames, corr), 0.004 * _smooth_noise(rng, num_frames, corr),
+         0.008 * _smooth_noise(rng, num_frames, corr)], axis=-1,
+    )
+
+    segments = [(0, int(round(talk_end * (train_frames - 1))) + 1, "talking")]
+    for k, idx in enumerate(order):
+        a = int(round((talk_end + k * slot) * (train_frames - 1))) + 1
+        b = int(round((talk_end + (k + 1) * slot) * (train_frames - 1))) + 1
+        segments.append((min(a, train_frames), min(b, train_frames), f"hold:{TRAIN_EXPRESSIONS[idx][0]}"))
+    segments.append((train_frames, num_frames, "test:novel"))
+
+    return Motion(
+        fps=fps, test_start=train_frames, yaw=yaw, pitch=pitch, roll=roll, translation=translation,
+        jaw=np.clip(jaw, 0.0, None), gaze=gaze, blink_left=blink_left, blink_right=blink_right,
+        expressions={k: v for k, v in sorted(channels.items())}, segments=segments,
+    )
+
+
+__all__ = [
+    "Motion", "script_motion", "test_frame_count", "TRAIN_EXPRESSIONS", "TALK_SHAPES",
+    "TRAIN_YAW_RANGE", "TRAIN_PITCH_RANGE", "TRAIN_ROLL_MAX", "TEST_YAW_MIN", "TEST_PITCH_MIN", "TEST_ROLL",
+]
