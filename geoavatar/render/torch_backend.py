@@ -1,0 +1,472 @@
+"""Pure-PyTorch Gaussian rasterizer following gsplat 1.5.3's conventions (CPU and CUDA tensors).
+
+Conventions (read from gsplat 1.5.3: ProjectionEWA3DGSFused.cu, Utils.cuh, RasterizeToPixels3DGS*.cu):
+
+- Projection: camera-space mean x_c = R x + t; Gaussians with z < 0.01 (near plane) or z > 1e10 are
+  culled. EWA: cov2d = J R Σ Rᵀ Jᵀ with the pinhole Jacobian J evaluated at (x, y) clamped to
+  ±(1.3 × tan(fov/2)) around the principal point (the "frustum clamp"), then 0.3 px² added to the
+  diagonal (low-pass dilation). det(cov2d) <= 0 culls.
+- Box: extent = min(3.33, sqrt(2 ln(255 · opacity))) standard deviations per axis (gsplat's
+  opacity-aware box); radius = ceil(extent · sqrt(cov2d_ii)) per axis; opacity < 1/255 culls, and so
+  does a box entirely outside the image. Outside that box a Gaussian's alpha is < 1/255 for
+  opacities <= 1, so it never contributes there.
+- Pixels: centres at (j + 0.5, i + 0.5); sigma = ½ dᵀ Σ⁻¹ d with d = mean2d − pixel;
+  alpha = min(0.999, o · exp(−sigma)) (gsplat 1.5.3 uses 0.999; the original 3DGS kernel 0.99);
+  alpha < 1/255 is skipped; Gaussians are composited front to back in depth order and a pixel stops
+  *before* the Gaussian that would bring its transmittance to <= 1e-4.
+- Output: rgb = Σ c_k α_k T_k + T_final · background, alpha = 1 − T_final.
+
+Implementation: (tile, Gaussian) rows. The image is cut into small square tiles (4 px by default).
+Each visible Gaussian, taken in depth order, emits one row per tile its box touches; a stable sort by
+tile groups the rows tile by tile while keeping depth order. A chunk of rows is a dense
+[rows, tile_px] tensor (column = pixel of the tile), so the per-pixel front-to-back product is a
+column-wise segmented cumulative sum of log(1 − α) (float64) and no per-pixel sort is needed. The
+compositing step is a custom autograd.Function: forward keeps only the row list and two small
+images; backward recomputes each chunk and applies the hand-written gradient, so memory stays
+bounded by the chunk size (never [pixels × Gaussians]).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+# gsplat 1.5.3 constants (see the module docstring).
+NEAR_PLANE = 0.01
+FAR_PLANE = 1e10
+EPS2D = 0.3
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.999
+TRANSMITTANCE_MIN = 1e-4
+MAX_EXTENT_SIGMA = 3.33
+FOV_CLAMP_MARGIN = 0.3  # Jacobian clamp at (1 + 0.3) x the half field of view
+
+DEFAULT_TILE_SIZE = 4
+DEFAULT_CHUNK_PAIRS = 1 << 20  # (row, pixel) pairs processed at once: bounds peak memory
+
+
+class Projection(NamedTuple):
+    """Screen-space Gaussians for one camera (culled ones: visible False, radii 0, means2d 0)."""
+
+    means2d: Tensor  # [N, 2] pixels, differentiable
+    conics: Tensor  # [N, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]], differentiable
+    depths: Tensor  # [N] camera-space z
+    radii: Tensor  # [N, 2] int32 half-extent of the box in pixels (x, y)
+    visible: Tensor  # [N] bool
+
+
+def quaternion_to_rotation(quats: Tensor) -> Tensor:
+    """wxyz quaternions [N, 4] (normalised here, as gsplat does) -> rotation matrices [N, 3, 3]."""
+    w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+
+
+def project_gaussians(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4] wxyz
+    scales: Tensor,  # [N, 3] linear
+    opacities: Tensor,  # [N]
+    viewmat: Tensor,  # [4, 4] world-to-camera, OpenCV axes
+    K: Tensor,  # [3, 3]
+    width: int,
+    height: int,
+) -> Projection:
+    """EWA projection with gsplat's frustum clamp, dilation, culling and opacity-aware boxes."""
+    rotation, translation = viewmat[:3, :3], viewmat[:3, 3]
+    means_cam = means @ rotation.T + translation  # [N, 3]
+    m = quaternion_to_rotation(quats) * scales[:, None, :]  # [N, 3, 3] = R_q S
+    m_cam = rotation @ m  # [N, 3, 3]; camera covariance = m_cam m_camᵀ
+    x, y, z = means_cam.unbind(-1)
+    in_range = (z >= NEAR_PLANE) & (z <= FAR_PLANE)
+    z_safe = torch.where(in_range, z, torch.ones_like(z))  # keeps culled entries finite (and their grads)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    lim_x_pos = (width - cx) / fx + FOV_CLAMP_MARGIN * 0.5 * width / fx
+    lim_x_neg = cx / fx + FOV_CLAMP_MARGIN * 0.5 * width / fx
+    lim_y_pos = (height - cy) / fy + FOV_CLAMP_MARGIN * 0.5 * height / fy
+    lim_y_neg = cy / fy + FOV_CLAMP_MARGIN * 0.5 * height / fy
+    inv_z = 1.0 / z_safe
+    tx = z_safe * torch.minimum(torch.maximum(x * inv_z, -lim_x_neg), lim_x_pos)
+    ty = z_safe * torch.minimum(torch.maximum(y * inv_z, -lim_y_neg), lim_y_pos)
+    # Rows of the Jacobian: J0 = (fx/z, 0, -fx tx/z²), J1 = (0, fy/z, -fy ty/z²); J Σ Jᵀ = (J m)(J m)ᵀ.
+    j0 = torch.stack([fx * inv_z, torch.zeros_like(z), -fx * tx * inv_z * inv_z], -1)  # [N, 3]
+    j1 = torch.stack([torch.zeros_like(z), fy * inv_z, -fy * ty * inv_z * inv_z], -1)  # [N, 3]
+    u = (j0[:, :, None] * m_cam).sum(1)  # [N, 3] = J0 m
+    v = (j1[:, :, None] * m_cam).sum(1)  # [N, 3] = J1 m
+    cov_a = (u * u).sum(-1) + EPS2D
+    cov_b = (u * v).sum(-1)
+    cov_c = (v * v).sum(-1) + EPS2D
+    det = cov_a * cov_c - cov_b * cov_b
+    ok = in_range & (det > 0)
+    det_safe = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([cov_c / det_safe, -cov_b / det_safe, cov_a / det_safe], -1)  # [N, 3]
+    means2d = torch.stack([fx * x * inv_z + cx, fy * y * inv_z + cy], -1)  # [N, 2]
+
+    with torch.no_grad():  # the box is not differentiable (as in gsplat)
+        ok = ok & (opacities >= ALPHA_MIN)
+        opacity_safe = torch.where(ok, opacities, torch.ones_like(opacities))
+        extent = torch.clamp(torch.sqrt(2.0 * torch.log(opacity_safe / ALPHA_MIN)), max=MAX_EXTENT_SIGMA)
+        var = torch.stack([cov_a, cov_c], -1).clamp_min(0)  # [N, 2]
+        radii_f = torch.ceil(extent[:, None] * torch.sqrt(var))  # [N, 2]
+        ok = ok & ((radii_f[:, 0] > 0) | (radii_f[:, 1] > 0))
+        mean_d = means2d.detach()
+        ok = ok & (mean_d[:, 0] + radii_f[:, 0] > 0) & (mean_d[:, 0] - radii_f[:, 0] < width)
+        ok = ok & (mean_d[:, 1] + radii_f[:, 1] > 0) & (mean_d[:, 1] - radii_f[:, 1] < height)
+        radii = torch.where(ok[:, None], radii_f, torch.zeros_like(radii_f)).to(torch.int32)
+    keep = ok[:, None]
+    means2d = torch.where(keep, means2d, torch.zeros_like(means2d))
+    conics = torch.where(keep, conics, torch.zeros_like(conics))
+    return Projection(means2d, conics, z.detach(), radii, ok)
+
+
+class RowPlan(NamedTuple):
+    """(tile, Gaussian) rows sorted by tile then depth, and the chunk boundaries (non-differentiable)."""
+
+    row_gaussian: Tensor  # [M] int64 index into the N Gaussians
+    row_tile: Tensor  # [M] int64 tile index
+    chunk_bounds: list  # [(row_start, row_end, tile_start, tile_end)], whole tiles per chunk
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
+
+
+def plan_rows(
+    means2d: Tensor,  # [N, 2]
+    radii: Tensor,  # [N, 2] int32
+    depths: Tensor,  # [N]
+    visible: Tensor,  # [N] bool
+    width: int,
+    height: int,
+    tile_size: int = DEFAULT_TILE_SIZE,
+    chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
+) -> RowPlan:
+    """List every (tile, Gaussian) overlap of the visible Gaussians' boxes, grouped by tile in depth order."""
+    device = means2d.device
+    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    ids = torch.nonzero(visible).squeeze(1)  # [G]
+    ids = ids[torch.argsort(depths[ids], stable=True)]  # front to back; ties keep index order like gsplat
+    centre = means2d.detach()[ids]  # [G, 2]
+    radius = radii[ids].to(centre.dtype)  # [G, 2]
+    lo = torch.floor((centre - radius) / tile_size).long()  # conservative: covers every pixel centre in the box
+    hi = torch.floor((centre + radius) / tile_size).long()
+    lo[:, 0].clamp_(0, tiles_x - 1), hi[:, 0].clamp_(0, tiles_x - 1)
+    lo[:, 1].clamp_(0, tiles_y - 1), hi[:, 1].clamp_(0, tiles_y - 1)
+    span = hi - lo + 1  # [G, 2]
+    counts = span[:, 0] * span[:, 1]  # [G]
+    total = int(counts.sum())
+    owner = torch.repeat_interleave(torch.arange(ids.numel(), device=device), counts)  # [M]
+    first = torch.cumsum(counts, 0) - counts
+    local = torch.arange(total, device=device) - first[owner]
+    tile_xy = lo[owner] + torch.stack([local % span[owner, 0], local // span[owner, 0]], -1)  # [M, 2]
+    tile = tile_xy[:, 1] * tiles_x + tile_xy[:, 0]
+    tile, order = torch.sort(tile, stable=True)  # stable: depth order survives inside each tile
+    row_gaussian = ids[owner[order]]
+
+    # Chunks of whole tiles with about chunk_pairs (row, pixel) pairs each.
+    tile_rows = torch.bincount(tile, minlength=tiles_x * tiles_y)  # [T]
+    tile_end = torch.cumsum(tile_rows, 0).tolist()
+    max_rows = max(1, chunk_pairs // (tile_size * tile_size))
+    chunk_bounds, row_start, tile_start = [], 0, 0
+    n_tiles = tiles_x * tiles_y
+    while tile_start < n_tiles:
+        # last tile whose end fits in the budget (at least one tile per chunk)
+        lo_t, hi_t = tile_start, n_tiles - 1
+        while lo_t < hi_t:
+            mid = (lo_t + hi_t + 1) // 2
+            if tile_end[mid] - row_start <= max_rows:
+                lo_t = mid
+            else:
+                hi_t = mid - 1
+        tile_stop = lo_t + 1
+        row_stop = tile_end[tile_stop - 1]
+        if row_stop > row_start:
+            chunk_bounds.append((row_start, row_stop, tile_start, tile_stop))
+        row_start, tile_start = row_stop, tile_stop
+    return RowPlan(row_gaussian, tile, chunk_bounds, tile_size, tiles_x, tiles_y)
+
+
+def _tile_pixel_grid(tile_size: int, tiles_x: int, width: int, height: int, tiles: Tensor, dtype):
+    """Pixel-centre coordinates [t, P] and in-image mask [t, P] of the pixels of the given tiles."""
+    offs = torch.arange(tile_size * tile_size, device=tiles.device)
+    col, row = offs % tile_size, offs // tile_size
+    px = (tiles % tiles_x)[:, None] * tile_size + col  # [t, P] integer pixel columns
+    py = (tiles // tiles_x)[:, None] * tile_size + row
+    inside = (px < width) & (py < height)
+    return px.to(dtype) + 0.5, py.to(dtype) + 0.5, px, py, inside
+
+
+def _segment_exclusive_cumsum(values: Tensor, row_tile_local: Tensor, tile_first_row: Tensor) -> Tensor:
+    """Column-wise cumulative sum over the rows of each tile, excluding the current row ([m, P] float64)."""
+    inclusive = torch.cumsum(values, 0)
+    exclusive = inclusive - values
+    return exclusive - exclusive[tile_first_row][row_tile_local]
+
+
+class _ChunkState(NamedTuple):
+    gauss: Tensor  # [m] Gaussian of each row
+    tile_local: Tensor  # [m] tile index within the chunk
+    dx: Tensor  # [m, P] mean2d.x - pixel x
+    dy: Tensor  # [m, P]
+    gauss_val: Tensor  # [m, P] exp(-sigma)
+    alpha: Tensor  # [m, P] alpha, 0 where skipped or after the transmittance stop
+    unclamped: Tensor  # [m, P] bool, alpha below the 0.999 cap (gradient flows)
+    t_before: Tensor  # [m, P] transmittance in front of the row's Gaussian
+    weight: Tensor  # [m, P] alpha * T (0 where not composited)
+    log_keep: Tensor  # [m, P] float64 log(1 - alpha) of the composited pairs
+    pix_index: Tensor  # [t, P] flat pixel index (clamped inside the image)
+    inside: Tensor  # [t, P] bool
+
+
+def _evaluate_chunk(plan: RowPlan, chunk, means2d, conics, opacities, width, height) -> _ChunkState:
+    """Recompute alpha and transmittance of every (row, pixel) pair of one chunk of tiles."""
+    r0, r1, t0, t1 = chunk
+    dtype = means2d.dtype
+    gauss = plan.row_gaussian[r0:r1]
+    tile_local = plan.row_tile[r0:r1] - t0
+    tiles = torch.arange(t0, t1, device=means2d.device)
+    pxf, pyf, px, py, inside = _tile_pixel_grid(plan.tile_size, plan.tiles_x, width, height, tiles, dtype)
+    pix_index = (py.clamp(max=height - 1) * width + px.clamp(max=width - 1))
+    mean = means2d[gauss]  # [m, 2]
+    conic = conics[gauss]  # [m, 3]
+    dx = mean[:, 0:1] - pxf[tile_local]  # [m, P]
+    dy = mean[:, 1:2] - pyf[tile_local]
+    sigma = 0.5 * (conic[:, 0:1] * dx * dx + conic[:, 2:3] * dy * dy) + conic[:, 1:2] * dx * dy
+    gauss_val = torch.exp(-sigma)
+    raw = opacities[gauss][:, None] * gauss_val
+    alpha = raw.clamp(max=ALPHA_MAX)
+    valid = (sigma >= 0) & (alpha >= ALPHA_MIN) & inside[tile_local]
+    alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
+    log_keep = torch.log1p(-alpha.double())  # [m, P]
+    counts = torch.bincount(tile_local, minlength=t1 - t0)
+    tile_first_row = (torch.cumsum(counts, 0) - counts).clamp(max=max(r1 - r0 - 1, 0))
+    log_t_before = _segment_exclusive_cumsum(log_keep, tile_local, tile_first_row)
+    composited = valid & (log_t_before + log_keep > math.log(TRANSMITTANCE_MIN))
+    # exp of the float64 log-transmittance: T > 1e-4 is decided in float64, then cast back
+    t_before = torch.exp(log_t_before).to(dtype)
+    alpha = torch.where(composited, alpha, torch.zeros_like(alpha))
+    log_keep = torch.where(composited, log_keep, torch.zeros_like(log_keep))
+    weight = alpha * t_before
+    return _ChunkState(gauss, tile_local, dx, dy, gauss_val, alpha, raw <= ALPHA_MAX, t_before, weight,
+                       log_keep, pix_index, inside)
+
+
+def _scatter_tiles(image: Tensor, pix_index: Tensor, inside: Tensor, tile_values: Tensor) -> None:
+    """image[pix] = tile_values for the in-image pixels of a chunk of tiles (image [H*W, D])."""
+    image[pix_index[inside]] = tile_values[inside]
+
+
+class _CompositeTiles(torch.autograd.Function):
+    """Front-to-back compositing of the planned rows with a hand-written, chunk-recomputing backward."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, background, plan, width, height):
+        dtype = means2d.dtype
+        num_pix = width * height
+        rgb = torch.zeros(num_pix, 3, dtype=dtype, device=means2d.device)  # without background
+        log_t = torch.zeros(num_pix, dtype=torch.float64, device=means2d.device)
+        for chunk in plan.chunk_bounds:
+            st = _evaluate_chunk(plan, chunk, means2d, conics, opacities, width, height)
+            n_tiles = chunk[3] - chunk[2]
+            tile_rgb = torch.zeros(n_tiles, st.weight.shape[1], 3, dtype=dtype, device=means2d.device)
+            tile_rgb.index_add_(0, st.tile_local, st.weight[:, :, None] * colors[st.gauss][:, None, :])
+            tile_log_t = torch.zeros(n_tiles, st.weight.shape[1], dtype=torch.float64, device=means2d.device)
+            tile_log_t.index_add_(0, st.tile_local, st.log_keep)
+            _scatter_tiles(rgb, st.pix_index, st.inside, tile_rgb)
+            _scatter_tiles(log_t, st.pix_index, st.inside, tile_log_t)
+        t_final = torch.exp(log_t).to(dtype)  # [H*W]
+        out_rgb = rgb + t_final[:, None] * background[None, :]
+        ctx.save_for_backward(means2d, conics, opacities, colors, background, rgb, t_final)
+        ctx.plan, ctx.width, ctx.height = plan, width, height
+        return out_rgb.reshape(height, width, 3), (1.0 - t_final).reshape(height, width, 1)
+
+    @staticmethod
+    def backward(ctx, grad_rgb, grad_alpha):
+        means2d, conics, opacities, colors, background, rgb, t_final = ctx.saved_tensors
+        plan, width, height = ctx.plan, ctx.width, ctx.height
+        n = means2d.shape[0]
+        dtype, device = means2d.dtype, means2d.device
+        grad_rgb = grad_rgb.reshape(-1, 3).to(dtype)  # [H*W, 3]
+        grad_alpha = grad_alpha.reshape(-1).to(dtype)  # [H*W]
+        # d loss / d T_final per pixel; total of c·g over the composited pairs (suffix sums start from it)
+        grad_t_final = grad_rgb @ background - grad_alpha  # [H*W]
+        tail_const = t_final * grad_t_final  # [H*W]
+        color_dot_total = (rgb * grad_rgb).sum(-1)  # [H*W]
+        # per-row sums, reduced to Gaussians at the end of each chunk
+        g_means2d = torch.zeros(n, 2, dtype=dtype, device=device)
+        g_conics = torch.zeros(n, 3, dtype=dtype, device=device)
+        g_opac = torch.zeros(n, dtype=dtype, device=device)
+        g_colors = torch.zeros(n, 3, dtype=dtype, device=device)
+        for chunk in plan.chunk_bounds:
+            st = _evaluate_chunk(plan, chunk, means2d, conics, opacities, width, height)
+            rows_pix = st.pix_index[st.tile_local]  # [m, P]
+            g_pix = grad_rgb[rows_pix]  # [m, P, 3]
+            col = colors[st.gauss]  # [m, 3]
+            color_dot = (g_pix * col[:, None, :]).sum(-1)  # [m, P] c_k · dL/drgb
+            contrib = (st.weight * color_dot).double()
+            counts = torch.bincount(st.tile_local, minlength=chunk[3] - chunk[2])
+            first = (torch.cumsum(counts, 0) - counts).clamp(max=max(st.gauss.numel() - 1, 0))
+            behind = color_dot_total[rows_pix].double() - (
+                _segment_exclusive_cumsum(contrib, st.tile_local, first) + contrib
+            )  # Σ over later composited pairs of the same pixel
+            one_minus = (1.0 - st.alpha).double()
+            grad_alpha_pair = (st.t_before * color_dot) - (
+                (behind + tail_const[rows_pix].double()) / one_minus
+            ).to(dtype)
+            live = (st.alpha > 0) & st.unclamped
+            grad_alpha_pair = torch.where(live, grad_alpha_pair, torch.zeros_like(grad_alpha_pair))
+            grad_sigma = -st.alpha * grad_alpha_pair  # d alpha / d sigma = -alpha below the cap
+            dx, dy = st.dx, st.dy
+            s_dx = (grad_sigma * dx).sum(1)
+            s_dy = (grad_sigma * dy).sum(1)
+            row_conic = torch.stack(
+                [0.5 * (grad_sigma * dx * dx).sum(1), (grad_sigma * dx * dy).sum(1), 0.5 * (grad_sigma * dy * dy).sum(1)],
+                -1,
+            )  # [m, 3]
+            conic = conics[st.gauss]
+            row_mean = torch.stack(
+                [conic[:, 0] * s_dx + conic[:, 1] * s_dy, conic[:, 1] * s_dx + conic[:, 2] * s_dy], -1
+            )  # [m, 2]
+            row_opac = (st.gauss_val * grad_alpha_pair).sum(1)  # [m]
+            row_color = torch.bmm(st.weight[:, None, :], g_pix).squeeze(1)  # [m, 3]
+            g_means2d.index_add_(0, st.gauss, row_mean)
+            g_conics.index_add_(0, st.gauss, row_conic)
+            g_opac.index_add_(0, st.gauss, row_opac)
+            g_colors.index_add_(0, st.gauss, row_color)
+        g_background = (t_final[:, None] * grad_rgb).sum(0)
+        return g_means2d, g_conics, g_opac, g_colors, g_background, None, None, None
+
+
+def composite(
+    means2d: Tensor,  # [N, 2]
+    conics: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    colors: Tensor,  # [N, 3]
+    background: Tensor,  # [3]
+    plan: RowPlan,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """rgb [H, W, 3] (background composited) and alpha [H, W, 1] of the planned rows."""
+    return _CompositeTiles.apply(means2d, conics, opacities, colors, background, plan, width, height)
+
+
+def composite_naive(
+    means2d: Tensor,  # [N, 2]
+    conics: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    colors: Tensor,  # [N, 3]
+    background: Tensor,  # [3]
+    radii: Tensor,  # [N, 2] int32
+    depths: Tensor,  # [N]
+    visible: Tensor,  # [N] bool
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """The simple variant (benchmark baseline and cross-check): one (Gaussian, pixel) pair per pixel of
+    each box, a stable sort by pixel, and plain autograd through every pair tensor (no chunking)."""
+    device, dtype = means2d.device, means2d.dtype
+    ids = torch.nonzero(visible).squeeze(1)
+    ids = ids[torch.argsort(depths[ids], stable=True)]
+    with torch.no_grad():
+        centre, radius = means2d[ids], radii[ids].to(dtype)
+        lo_x = torch.ceil(centre[:, 0] - radius[:, 0] - 0.5).long().clamp(0, width - 1)
+        hi_x = torch.floor(centre[:, 0] + radius[:, 0] - 0.5).long().clamp(0, width - 1)
+        lo_y = torch.ceil(centre[:, 1] - radius[:, 1] - 0.5).long().clamp(0, height - 1)
+        hi_y = torch.floor(centre[:, 1] + radius[:, 1] - 0.5).long().clamp(0, height - 1)
+        span_x, span_y = (hi_x - lo_x + 1).clamp_min(0), (hi_y - lo_y + 1).clamp_min(0)
+        counts = span_x * span_y
+        owner = torch.repeat_interleave(torch.arange(ids.numel(), device=device), counts)
+        local = torch.arange(int(counts.sum()), device=device) - (torch.cumsum(counts, 0) - counts)[owner]
+        pix_x = lo_x[owner] + local % span_x[owner]
+        pix_y = lo_y[owner] + local // span_x[owner]
+        pixel, order = torch.sort(pix_y * width + pix_x, stable=True)
+        gauss = ids[owner[order]]
+        pix_x, pix_y = pix_x[order], pix_y[order]
+    dx = means2d[gauss, 0] - (pix_x.to(dtype) + 0.5)
+    dy = means2d[gauss, 1] - (pix_y.to(dtype) + 0.5)
+    conic = conics[gauss]
+    sigma = 0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) + conic[:, 1] * dx * dy
+    alpha = (opacities[gauss] * torch.exp(-sigma)).clamp(max=ALPHA_MAX)
+    valid = (sigma >= 0) & (alpha >= ALPHA_MIN)
+    alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
+    log_keep = torch.log1p(-alpha.double())
+    inclusive = torch.cumsum(log_keep, 0)
+    exclusive = inclusive - log_keep
+    counts_pix = torch.bincount(pixel, minlength=width * height)
+    first = (torch.cumsum(counts_pix, 0) - counts_pix).clamp(max=max(pixel.numel() - 1, 0))
+    log_t_before = exclusive - exclusive[first[pixel]] if pixel.numel() else exclusive
+    composited = valid & (log_t_before + log_keep > math.log(TRANSMITTANCE_MIN)).detach()
+    weight = torch.where(composited, alpha * torch.exp(log_t_before).to(dtype), torch.zeros_like(alpha))
+    rgb = torch.zeros(width * height, 3, dtype=dtype, device=device).index_add(
+        0, pixel, weight[:, None] * colors[gauss]
+    )
+    log_t = torch.zeros(width * height, dtype=torch.float64, device=device).index_add(
+        0, pixel, torch.where(composited, log_keep, torch.zeros_like(log_keep))
+    )
+    t_final = torch.exp(log_t).to(dtype)
+    out = rgb + t_final[:, None] * background
+    return out.reshape(height, width, 3), (1.0 - t_final).reshape(height, width, 1)
+
+
+def rasterize_torch(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4] wxyz
+    scales: Tensor,  # [N, 3] linear
+    opacities: Tensor,  # [N] in [0, 1]
+    colors: Tensor,  # [N, 3]
+    viewmats: Tensor,  # [C, 4, 4] world-to-camera, OpenCV axes
+    Ks: Tensor,  # [C, 3, 3]
+    width: int,
+    height: int,
+    backgrounds: Tensor,  # [C, 3]
+    batched: bool = True,
+    method: str = "tiles",
+    tile_size: int = DEFAULT_TILE_SIZE,
+    chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Render C cameras; returns rgb [C,H,W,3], alpha [C,H,W,1], means2d [C,N,2] (a graph node whose
+    .grad is d loss / d means2d), radii [C,N,2] int32, visible [C,N] bool, depths [C,N].
+    batched=False (C == 1): means2d is returned as the [N, 2] node the renderer consumed.
+
+    method "tiles" is the fast renderer; "naive" the simple pair-expansion with plain autograd."""
+    if method not in ("tiles", "naive"):
+        raise ValueError(f"rasterize_torch: method must be 'tiles' or 'naive', got {method!r}")
+    projections = [
+        project_gaussians(means, quats, scales, opacities, viewmats[c], Ks[c], width, height)
+        for c in range(viewmats.shape[0])
+    ]
+    means2d = torch.stack([p.means2d for p in projections])  # [C, N, 2]
+    per_camera = means2d.unbind(0)  # the [N, 2] nodes the compositing consumes
+    if not batched:
+        means2d = per_camera[0]
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    rgbs, alphas = [], []
+    for c, proj in enumerate(projections):
+        if method == "naive":
+            rgb, alpha = composite_naive(
+                per_camera[c], proj.conics, opacities, colors, backgrounds[c], proj.radii, proj.depths,
+                proj.visible, width, height,
+            )
+        else:
+            plan = plan_rows(per_camera[c], proj.radii, proj.depths, proj.visible, width, height, tile_size, chunk_pairs)
+            rgb, alpha = composite(per_camera[c], proj.conics, opacities, colors, backgrounds[c], plan, width, height)
+        rgbs.append(rgb)
+        alphas.append(alpha)
+    return (
+        torch.stack(rgbs),
+        torch.stack(alphas),
+        means2d,
+        torch.stack([p.radii for p in projections]),
+        torch.stack([p.visible for p in projections]),
+        torch.stack([p.depths for p in projections]),
+    )
