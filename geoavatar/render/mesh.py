@@ -116,8 +116,7 @@ def rasterize_mesh(
         inv_z = 1.0 / z[face_ids]  # [Fk, 3]
         setup = _TriangleSetup(
             face_ids=face_ids,
-            origin=torch.stack([x0[face_ids], y0[face_ids]], -1).float(),  # [Fk, 2]
-            coeff=coeff.float(),
+            table=torch.cat([torch.stack([x0[face_ids], y0[face_ids]], -1), coeff.reshape(-1, 4)], -1).float(),
             inv_z=inv_z.float(),
         )
         box = torch.stack([ix0, iy0, ix1, iy1], -1)[face_ids].long()  # [Fk, 4]
@@ -145,8 +144,7 @@ def rasterize_mesh(
 @dataclass
 class _TriangleSetup:
     face_ids: Tensor  # [Fk] ids into the caller's face array
-    origin: Tensor  # [Fk, 2] pixel position of vertex 0
-    coeff: Tensor  # [Fk, 2, 2] d(b1, b2) / d(x, y)
+    table: Tensor  # [Fk, 6] float32: vertex-0 pixel x, y; d(b1, b2)/dx; d(b1, b2)/dy
     inv_z: Tensor  # [Fk, 3] 1 / z per vertex
 
 
@@ -196,34 +194,37 @@ def _rasterize_pieces(
     device = tri.device
     total = int(count.sum())
     cand_piece = torch.repeat_interleave(torch.arange(tri.shape[0], device=device), count, output_size=total)  # [N]
+    # One row gather of a packed per-piece table is much cheaper than several scattered gathers.
     first = torch.cumsum(count, 0) - count
-    local = torch.arange(total, device=device) - first[cand_piece]  # [N] rank inside the piece
-    w = piece_w[cand_piece]
-    row = torch.div(local, w, rounding_mode="floor")
-    px = x0[cand_piece] + (local - row * w)  # [N]
-    py = y0[cand_piece] + row  # [N]
-    cand_tri = tri[cand_piece]  # [N]
-    del local, w, row, first
+    piece_table = torch.stack([first, piece_w, x0, y0, tri], -1)  # [Pc, 5]
+    per_cand = piece_table.index_select(0, cand_piece)  # [N, 5]
+    local = torch.arange(total, device=device) - per_cand[:, 0]  # [N] rank inside the piece
+    row = torch.div(local, per_cand[:, 1], rounding_mode="floor")
+    px = per_cand[:, 2] + (local - row * per_cand[:, 1])  # [N]
+    py = per_cand[:, 3] + row  # [N]
+    cand_tri = per_cand[:, 4]  # [N]
+    del local, row, per_cand
 
-    origin = setup.origin[cand_tri]  # [N, 2]
-    dx = px.float() + 0.5 - origin[:, 0]
-    dy = py.float() + 0.5 - origin[:, 1]
-    coeff = setup.coeff[cand_tri]  # [N, 2, 2]
-    b1 = dx * coeff[:, 0, 0] + dy * coeff[:, 1, 0]
-    b2 = dx * coeff[:, 0, 1] + dy * coeff[:, 1, 1]
+    tri_table = setup.table.index_select(0, cand_tri)  # [N, 6]: origin x, y, d(b1,b2)/dx, d(b1,b2)/dy
+    dx = px.float() + 0.5 - tri_table[:, 0]
+    dy = py.float() + 0.5 - tri_table[:, 1]
+    b1 = dx * tri_table[:, 2] + dy * tri_table[:, 4]
+    b2 = dx * tri_table[:, 3] + dy * tri_table[:, 5]
+    del tri_table, dx, dy
     b0 = 1.0 - b1 - b2
     inside = (b0 >= -_INSIDE_EPS) & (b1 >= -_INSIDE_EPS) & (b2 >= -_INSIDE_EPS)
     sel = torch.nonzero(inside).squeeze(1)  # [M]
     if sel.numel() == 0:
         return
-    t = cand_tri[sel]
-    inv_z = setup.inv_z[t]  # [M, 3]
-    bb0, bb1, bb2 = b0[sel].clamp_min(0), b1[sel].clamp_min(0), b2[sel].clamp_min(0)
-    norm = bb0 + bb1 + bb2
+    t = cand_tri.index_select(0, sel)
+    inv_z = setup.inv_z.index_select(0, t)  # [M, 3]
+    bb0 = b0.index_select(0, sel).clamp_min(0)
+    bb1 = b1.index_select(0, sel).clamp_min(0)
+    bb2 = b2.index_select(0, sel).clamp_min(0)
     # 1/z is affine in screen space; the clamped, renormalised weights keep z inside the triangle.
-    depth = norm / (bb0 * inv_z[:, 0] + bb1 * inv_z[:, 1] + bb2 * inv_z[:, 2])  # [M]
-    key = (depth.view(torch.int32).to(torch.int64) << 32) | setup.face_ids[t]
-    pixel = py[sel] * width + px[sel]
+    depth = (bb0 + bb1 + bb2) / (bb0 * inv_z[:, 0] + bb1 * inv_z[:, 1] + bb2 * inv_z[:, 2])  # [M]
+    key = (depth.view(torch.int32).to(torch.int64) << 32) | setup.face_ids.index_select(0, t)
+    pixel = py.index_select(0, sel) * width + px.index_select(0, sel)
     zbuf.scatter_reduce_(0, pixel, key, reduce="amin")
 
 
