@@ -299,7 +299,8 @@ class LayoutWriter:
         # leaving the block calls finish(); an exception instead removes the partial folder
 
     Frames go to a hidden temporary folder beside `root`; `finish()` writes the canonical npz, the
-    transforms files (split by `split`, see geoavatar.data.splits) and geoavatar.json, then renames
+    transforms files (split by `split`, see geoavatar.data.splits; a synthetic subject with a novel
+    test segment passes SplitConfig(test_frames=N)) and geoavatar.json, then renames
     the folder to `root`. An existing `root` is refused unless `overwrite=True`.
 
     Parameters are written padded to the FLAME npz sizes (shape 300, expr 100) so files look like
@@ -317,6 +318,7 @@ class LayoutWriter:
         background: tuple[float, float, float] = (1.0, 1.0, 1.0),
         mouth: str | None = None,
         source: str | None = None,
+        split: SplitConfig | None = None,
         overwrite: bool = False,
         png_compress_level: int = 6,
     ):
@@ -340,6 +342,7 @@ class LayoutWriter:
             if offset.ndim != 3 or offset.shape[0] != 1 or offset.shape[2] != 3:
                 raise ValueError(f"static_offset must be [V, 3] or [1, V, 3], got {offset.shape}")
             self.static_offset = offset.astype(np.float32)
+        self.split = split
         self.overwrite = overwrite
         self.png_compress_level = png_compress_level
         self.root.parent.mkdir(parents=True, exist_ok=True)
@@ -392,14 +395,14 @@ class LayoutWriter:
 
         stem = f"{timestep:05d}_{camera:02d}"
         frame: dict[str, Any] = {"timestep_index": timestep, "camera_index": camera, "file_path": f"images/{stem}.png"}
-        Image.fromarray(pixels, "RGB").save(self.tmp / frame["file_path"], compress_level=self.png_compress_level)
+        Image.fromarray(pixels).save(self.tmp / frame["file_path"], compress_level=self.png_compress_level)
         if mask is not None:
             alpha = _to_uint8(mask, "mask")
             alpha = alpha[..., 0] if alpha.ndim == 3 and alpha.shape[2] == 1 else alpha
             if alpha.shape != (height, width):
                 raise ValueError(f"mask must be [H, W] or [H, W, 1] matching the image, got {alpha.shape}")
             frame["fg_mask_path"] = f"fg_masks/{stem}.png"
-            Image.fromarray(alpha, "L").save(self.tmp / frame["fg_mask_path"], compress_level=self.png_compress_level)
+            Image.fromarray(alpha).save(self.tmp / frame["fg_mask_path"], compress_level=self.png_compress_level)
         frame["flame_param_path"] = f"flame_param/{timestep:05d}.npz"
         if timestep not in self._written_params:
             np.savez(self.tmp / frame["flame_param_path"], **self._npz_arrays(params, f"frame {timestep}"))
@@ -450,7 +453,7 @@ class LayoutWriter:
             self._write_canonical()
             self.frames.sort(key=lambda f: (f["timestep_index"], f["camera_index"]))
             timesteps = sorted({f["timestep_index"] for f in self.frames})
-            chosen = split_timesteps(timesteps, split or SplitConfig(), source=str(self.root))
+            chosen = split_timesteps(timesteps, split or self.split or SplitConfig(), source=str(self.root))
             self._write_transforms(ALL_FILE, self.frames)
             self._write_transforms(SPLIT_FILES["train"], [f for f in self.frames if f["timestep_index"] in set(chosen.train)])
             self._write_transforms(SPLIT_FILES["val"], [f for f in self.frames if f["timestep_index"] in set(chosen.val)])
