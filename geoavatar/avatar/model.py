@@ -1,0 +1,142 @@
+"""GaussianAvatar: the learned Gaussian parameters, their face binding, and forward(vertices).
+
+The module holds only parameters and the binding; densification lives in `densify.py`, APS in
+`aps.py`, the mouth MLPs in `deform.py`, the losses in `geoavatar.train.losses`.
+
+Parameters (a ParameterDict `params`, every entry [N, ...], names as in the standard 3DGS PLY):
+    means      [N, 3]  local mean, in units of the face scale k
+    quats      [N, 4]  local rotation (w, x, y, z), normalised when used
+    scales     [N, 3]  local log standard deviation
+    f_dc       [N, 3]  SH degree-0 coefficient of the colour (RGB = 0.5 + C0 * f_dc)
+    opacities  [N]     opacity logit
+Buffers: binding [N] (face index, int64), faces [F, 3].
+"""
+
+from __future__ import annotations
+
+import math
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from geoavatar.avatar.binding import GlobalGaussians, face_frames, local_to_global, polar_coordinates
+
+SH_C0 = 0.28209479177387814  # Y_0^0
+GAUSSIAN_PARAM_NAMES = ("means", "quats", "scales", "f_dc", "opacities")
+
+
+def rgb_to_sh_dc(rgb: Tensor) -> Tensor:
+    return (rgb - 0.5) / SH_C0
+
+
+def sh_dc_to_rgb(f_dc: Tensor) -> Tensor:
+    return (SH_C0 * f_dc + 0.5).clamp_min(0.0)  # as 3DGS/gsplat: no upper clamp before blending
+
+
+def initial_gaussian_params(num_faces: int, init_opacity: float = 0.1, device=None) -> dict[str, Tensor]:
+    """One Gaussian per face: local mean 0, log-scale 0, identity rotation, grey, opacity `init_opacity`."""
+    if num_faces < 1:
+        raise ValueError(f"initial_gaussian_params: the head model has no faces (num_faces={num_faces})")
+    if not 0.0 < init_opacity < 1.0:
+        raise ValueError(f"initial_gaussian_params: init_opacity must lie in (0, 1), got {init_opacity}")
+    quats = torch.zeros(num_faces, 4, device=device)
+    quats[:, 0] = 1.0
+    return {
+        "means": torch.zeros(num_faces, 3, device=device),
+        "quats": quats,
+        "scales": torch.zeros(num_faces, 3, device=device),
+        "f_dc": torch.zeros(num_faces, 3, device=device),
+        "opacities": torch.full((num_faces,), math.log(init_opacity / (1.0 - init_opacity)), device=device),
+    }
+
+
+class GaussianAvatar(nn.Module):
+    """Gaussians rigged to the faces of a head model."""
+
+    def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1):
+        super().__init__()
+        faces = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces, dtype=torch.long)
+        if faces.dim() != 2 or faces.shape[1] != 3:
+            raise ValueError(f"GaussianAvatar: faces must be [F, 3], got {tuple(faces.shape)}")
+        self.register_buffer("faces", faces)  # [F, 3]
+        init = initial_gaussian_params(faces.shape[0], init_opacity)
+        self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in init.items()})
+        self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.binding.shape[0])
+
+    def gaussians_per_face(self) -> Tensor:
+        """[F] number of Gaussians bound to each face."""
+        return torch.bincount(self.binding, minlength=self.num_faces)
+
+    def forward(self, vertices: Tensor) -> GlobalGaussians:
+        """vertices [V, 3] or [B, V, 3] posed head vertices -> Gaussians in the same space ([N,...] or [B,N,...])."""
+        frames = face_frames(vertices, self.faces)
+        p = self.params
+        means, quats, scales = local_to_global(p["means"], p["quats"], p["scales"], self.binding, frames)
+        return GlobalGaussians(
+            means=means,
+            quats=quats,
+            scales=scales,
+            opacities=torch.sigmoid(p["opacities"]),
+            colors=sh_dc_to_rgb(p["f_dc"]),
+            frames=frames,
+        )
+
+    def polar(self, two_sided: bool = False) -> tuple[Tensor, Tensor]:
+        """r [N], phi [N] of the local means (see binding.polar_coordinates)."""
+        return polar_coordinates(self.params["means"], two_sided=two_sided)
+
+    # --- checkpoints: the number of Gaussians changes during training ---------------------------
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Resize the parameters to the checkpoint's number of Gaussians, then load as usual."""
+        key = "binding"
+        if key in state_dict:
+            n = int(state_dict[key].shape[0])
+            device = self.binding.device
+            for name in GAUSSIAN_PARAM_NAMES:
+                saved = state_dict.get(f"params.{name}")
+                if saved is None:
+                    continue
+                if saved.shape[1:] != self.params[name].shape[1:] or saved.shape[0] != n:
+                    raise ValueError(
+                        f"avatar checkpoint: 'params.{name}' has shape {tuple(saved.shape)}, expected "
+                        f"[{n}, {', '.join(map(str, self.params[name].shape[1:]))}]"
+                    )
+                self.params[name] = nn.Parameter(torch.empty_like(saved, device=device))
+            self.binding = torch.empty(n, dtype=torch.long, device=device)
+            binding = state_dict[key]
+            if n and (int(binding.min()) < 0 or int(binding.max()) >= self.num_faces):
+                raise ValueError(f"avatar checkpoint: 'binding' refers to faces outside [0, {self.num_faces})")
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+
+def gaussian_param_groups(params: dict[str, Tensor] | nn.ParameterDict, lr, scene_extent: float) -> list[dict]:
+    """Adam parameter groups for the Gaussian parameters (one tensor per group, named), as GaussianAvatars.
+
+    lr: a `geoavatar.config.LearningRates`. The position learning rate is scaled by the scene extent.
+    """
+    rates = {
+        "means": lr.position * scene_extent,
+        "quats": lr.rotation,
+        "scales": lr.scaling,
+        "f_dc": lr.features,
+        "opacities": lr.opacity,
+    }
+    return [{"params": [params[name]], "lr": rates[name], "name": name} for name in GAUSSIAN_PARAM_NAMES]
+
+
+def position_lr(step: int, lr, scene_extent: float) -> float:
+    """3DGS's log-linear position learning-rate decay (GaussianAvatars' values; its delay is off)."""
+    t = min(max(step / max(lr.position_decay_steps, 1), 0.0), 1.0)
+    start, end = lr.position * scene_extent, lr.position_final * scene_extent
+    if start <= 0.0 or end <= 0.0:
+        return 0.0
+    return float(math.exp(math.log(start) * (1 - t) + math.log(end) * t))
+
