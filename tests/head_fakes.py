@@ -270,3 +270,27 @@ def write_fake_flame(folder: Path, data: HeadModelData, version: str = "2023", m
     if write_masks:
         (folder / MASKS_FILE).write_bytes(pickle.dumps({**masks, **(masks_extra or {})}, protocol=2))
     return folder
+
+
+def openhead_data_or_skip() -> HeadModelData:
+    """OpenHead's arrays when geoavatar.head.openhead is available, else skip the test."""
+    import pytest
+
+    try:
+        from geoavatar.head.openhead import build_openhead  # noqa: F401
+    except ImportError as err:
+        pytest.skip(f"OpenHead not available yet: {err}")
+    from geoavatar.head import load_head_data
+
+    return load_head_data("openhead")
+
+
+def head_by_name(name: str) -> HeadModelData:
+    """'procedural', 'flame5023' (the procedural head renumbered to FLAME's lip-ring ids) or 'openhead'."""
+    if name == "procedural":
+        return procedural_head()
+    if name == "flame5023":
+        return renumber_to_flame(procedural_head(), 5023)
+    if name == "openhead":
+        return openhead_data_or_skip()
+    raise ValueError(name)
