@@ -21,7 +21,7 @@ Each item is a dict (so torch's default collate works):
 
 Images are downscaled on load so that the longer side is `resolution` (area filter; never
 upscaled) and K is scaled with them. With cache="memory" every frame of the split is decoded once
-(on first access, or all at once with `preload()`) into a uint8 [H, W, 4] tensor (RGB + mask):
+(on first access, or all at once with `preload()`) into uint8 tensors, RGB [H, W, 3] + mask [H, W, 1]:
 300 frames at 512 x 512 take 300 * 512 * 512 * 4 B = 315 MB, and a training step then reads
 memory instead of decoding PNGs. Fill the cache before forking DataLoader workers (`preload()`),
 or use num_workers=0, since workers' caches do not flow back to the parent.
@@ -132,7 +132,7 @@ class HeadAvatarDataset(Dataset):
         self.frames: list[FrameRecord] = subject.frames_of(self.split.timesteps(split))
         self.sizes = [_target_size(f.width, f.height, self.config.resolution) for f in self.frames]  # (w, h)
         self.background = torch.tensor(subject.info.background, dtype=torch.float32)  # [3]
-        self._cache: list[Tensor | None] = [None] * len(self.frames)
+        self._cache: list[tuple[Tensor, Tensor] | None] = [None] * len(self.frames)  # uint8 RGB, mask
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -143,14 +143,13 @@ class HeadAvatarDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict:
         frame = self.frames[index]
-        pixels = self._pixels(index)  # [H, W, 4] uint8
+        rgb, mask = self._pixels(index)  # [H, W, 3], [H, W, 1] uint8
         width, height = self.sizes[index]
         scale = torch.tensor([width / frame.width, height / frame.height, 1.0], dtype=torch.float64)
         K = torch.from_numpy(frame.K) * scale[:, None]  # rows x and y scale with the image
-        rgba = pixels.float() / 255.0
         return {
-            "image": rgba[..., :3],
-            "mask": rgba[..., 3:],
+            "image": rgb.to(torch.float32).mul_(1.0 / 255.0),
+            "mask": mask.to(torch.float32).mul_(1.0 / 255.0),
             "background": self.background.clone(),
             "viewmat": torch.from_numpy(frame.viewmat).float(),
             "K": K.float(),
@@ -169,13 +168,14 @@ class HeadAvatarDataset(Dataset):
         return self
 
     def cache_bytes(self) -> int:
-        return sum(t.numel() for t in self._cache if t is not None)
+        return sum(rgb.numel() + mask.numel() for rgb, mask in filter(None, self._cache))
 
-    def _pixels(self, index: int) -> Tensor:
+    def _pixels(self, index: int) -> tuple[Tensor, Tensor]:
         cached = self._cache[index]
         if cached is not None:
             return cached
-        pixels = torch.from_numpy(decode_frame(self.frames[index], self.sizes[index]))
+        rgba = decode_frame(self.frames[index], self.sizes[index])  # [H, W, 4] uint8
+        pixels = (torch.from_numpy(np.ascontiguousarray(rgba[..., :3])), torch.from_numpy(np.ascontiguousarray(rgba[..., 3:])))
         if self.config.cache == "memory":
             self._cache[index] = pixels
         return pixels
