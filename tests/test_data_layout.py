@@ -283,3 +283,22 @@ def test_not_a_dataset(tmp_path):
         open_subject(tmp_path / "nope")
     with pytest.raises(DatasetError, match="not a dataset"):
         open_subject(tmp_path)
+
+
+def test_vhap_export_opens_as_a_dataset_when_flame_is_supplied(tmp_path, monkeypatch):
+    """FLAME is located (not loaded) by the availability check, so placeholder files stand in for it."""
+    from geoavatar.data import HeadAvatarDataset
+    from geoavatar.head.flame import MASKS_FILE, MODEL_FILES
+
+    flame_dir = tmp_path / "flame"
+    flame_dir.mkdir()
+    (flame_dir / MODEL_FILES["2023"]).write_bytes(b"")
+    (flame_dir / MASKS_FILE).write_bytes(b"")
+    monkeypatch.setenv("GEOAVATAR_FLAME_DIR", str(flame_dir))
+    root = tmp_path / "vhap"
+    _write_vhap_export(root, frames=3)
+    test = HeadAvatarDataset(open_subject(root), "test")  # the export's own split files rule
+    assert test.timesteps == (2,)
+    item = test[0]
+    assert item["params"]["static_offset"].shape == (1, 5143, 3) and item["params"]["expr"][0, 0] == 2.0
+    assert item["image"][0, 0].tolist() == [pytest.approx(200 / 255)] * 3 and item["mask"].min() == 1.0

@@ -57,7 +57,7 @@ from PIL import Image
 from torch import Tensor
 
 from geoavatar.data.errors import DatasetError
-from geoavatar.data.splits import ExplicitSplit, Split, SplitConfig, split_timesteps
+from geoavatar.data.splits import ExplicitSplit, SplitConfig, split_timesteps
 from geoavatar.data.subject import (
     POSE_SIZES,
     FrameRecord,
@@ -529,6 +529,6 @@ def _to_uint8(value: np.ndarray | Tensor, name: str) -> np.ndarray:
 
 
 __all__ = [
-    "CANONICAL_FILE", "FORMAT_VERSION", "HEAD_MODEL_NAMES", "INFO_FILE", "LayoutWriter", "Split", "info_to_json",
+    "CANONICAL_FILE", "FORMAT_VERSION", "HEAD_MODEL_NAMES", "INFO_FILE", "LayoutWriter", "info_to_json",
     "is_layout", "read_info", "read_layout",
 ]
