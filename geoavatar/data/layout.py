@@ -301,7 +301,8 @@ class LayoutWriter:
     Frames go to a hidden temporary folder beside `root`; `finish()` writes the canonical npz, the
     transforms files (split by `split`, see geoavatar.data.splits; a synthetic subject with a novel
     test segment passes SplitConfig(test_frames=N)) and geoavatar.json, then renames
-    the folder to `root`. An existing `root` is refused unless `overwrite=True`.
+    the folder to `root`. An existing `root` is refused unless `overwrite=True`. Extra files a
+    producer wants inside the dataset (ground truth, previews) go under `writer.tmp` before finish().
 
     Parameters are written padded to the FLAME npz sizes (shape 300, expr 100) so files look like
     VHAP's; models with fewer modes use the leading entries when reading.
