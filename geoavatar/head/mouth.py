@@ -46,7 +46,9 @@ Skinning and blend shapes of the appended vertices:
 - expression: zero. The parts are rigid; GeoAvatar's part-wise deformation network moves them.
 
 Groups added to the data: vertex_groups mouth_upper / mouth_lower (and teeth_upper, teeth_lower,
-palate, floor), face_groups mouth (F_m), mouth_upper, mouth_lower.
+palate, floor; palate and floor start with the inner root ring they share with the teeth),
+face_groups mouth (F_m), mouth_upper, mouth_lower. Vertex layout per part: ring-major, ring r
+column i at r * N + i (N = 15 or 25 columns, x increasing through the front), the apex last.
 """
 
 from __future__ import annotations
