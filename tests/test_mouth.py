@@ -32,7 +32,8 @@ def _front_teeth_trajectory(data):
 def _winding_numbers(points, vertices, faces, chunk=8):
     """Generalised winding number of points [P, 3] w.r.t. a triangle mesh (Van Oosterom-Strackee solid angles)."""
     if len(points) > chunk:
-        return np.concatenate([_winding_numbers(points[i:i + chunk], vertices, faces) for i in range(0, len(points), chunk)])
+        pieces = [_winding_numbers(points[i:i + chunk], vertices, faces) for i in range(0, len(points), chunk)]
+        return np.concatenate(pieces)
     tri = vertices[faces][None] - points[:, None, None, :]  # [P, F, 3, 3]
     a, b, c = tri[:, :, 0], tri[:, :, 1], tri[:, :, 2]
     la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
@@ -144,7 +145,8 @@ def test_mouth_faces_are_valid_and_consistently_oriented(mouthed, head):
         assert len(ids) > 0 and np.all(sign * normals[ids, 1] > 0)
     # the front of the upper teeth at the middle column faces forward
     up = mouthed.vertex_groups["teeth_upper"]
-    front_mid = [f for f in mouthed.face_groups["mouth_upper"] if set(mouthed.faces[f].tolist()) <= {up[12], up[13], up[37], up[38]}]
+    quad = {up[12], up[13], up[37], up[38]}  # root and edge rings, middle columns
+    front_mid = [f for f in mouthed.face_groups["mouth_upper"] if set(mouthed.faces[f].tolist()) <= quad]
     assert len(front_mid) == 2 and np.all(normals[front_mid, 2] > 0)
 
 
@@ -203,7 +205,8 @@ def test_forward_with_mouth_shapes_and_gradients(head, mouthed):
     # no expression blend shapes on the rigid parts: at zero pose the expression cannot move them
     expr = torch.zeros(1, model.num_expr, requires_grad=True)
     zero = model.zero_params(1)
-    still = model(zero["shape"], expr, *(zero[k] for k in ("rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")))
+    pose = (zero[k] for k in ("rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation"))
+    still = model(zero["shape"], expr, *pose)
     still.vertices[0, added].sum().backward()
     assert expr.grad.abs().sum() == 0
 
