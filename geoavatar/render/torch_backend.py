@@ -46,6 +46,9 @@ FOV_CLAMP_MARGIN = 0.3  # Jacobian clamp at (1 + 0.3) x the half field of view
 
 DEFAULT_TILE_SIZE = 4
 DEFAULT_CHUNK_PAIRS = 1 << 20  # (row, pixel) pairs processed at once: bounds peak memory
+# Up to this many (row, pixel) pairs, forward keeps alpha and T of every pair (8 bytes/pair in float32)
+# so backward need not recompute them; above it, backward recomputes chunk by chunk.
+DEFAULT_KEEP_PAIRS = 1 << 25
 
 
 class Projection(NamedTuple):
@@ -137,6 +140,7 @@ class RowPlan(NamedTuple):
     tile_size: int
     tiles_x: int
     tiles_y: int
+    keep_pairs: bool  # forward keeps per-pair alpha and T for backward (below the memory budget)
 
 
 def plan_rows(
@@ -148,6 +152,7 @@ def plan_rows(
     height: int,
     tile_size: int = DEFAULT_TILE_SIZE,
     chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
+    keep_pairs_limit: int = DEFAULT_KEEP_PAIRS,
 ) -> RowPlan:
     """List every (tile, Gaussian) overlap of the visible Gaussians' boxes, grouped by tile in depth order."""
     device = means2d.device
@@ -191,77 +196,90 @@ def plan_rows(
         if row_stop > row_start:
             chunk_bounds.append((row_start, row_stop, tile_start, tile_stop))
         row_start, tile_start = row_stop, tile_stop
-    return RowPlan(row_gaussian, tile, chunk_bounds, tile_size, tiles_x, tiles_y)
+    keep = total * tile_size * tile_size <= keep_pairs_limit
+    return RowPlan(row_gaussian, tile, chunk_bounds, tile_size, tiles_x, tiles_y, keep)
 
 
-def _tile_pixel_grid(tile_size: int, tiles_x: int, width: int, height: int, tiles: Tensor, dtype):
-    """Pixel-centre coordinates [t, P] and in-image mask [t, P] of the pixels of the given tiles."""
-    offs = torch.arange(tile_size * tile_size, device=tiles.device)
-    col, row = offs % tile_size, offs // tile_size
-    px = (tiles % tiles_x)[:, None] * tile_size + col  # [t, P] integer pixel columns
-    py = (tiles // tiles_x)[:, None] * tile_size + row
-    inside = (px < width) & (py < height)
-    return px.to(dtype) + 0.5, py.to(dtype) + 0.5, px, py, inside
+def _tile_basis(tile_size: int, dtype, device) -> Tensor:
+    """[P, 6] monomials (1, u, v, u², v², uv) of the pixel-centre offsets (u, v) from the tile centre."""
+    offs = torch.arange(tile_size * tile_size, device=device)
+    u = (offs % tile_size).to(dtype) + 0.5 - tile_size / 2
+    v = (offs // tile_size).to(dtype) + 0.5 - tile_size / 2
+    return torch.stack([torch.ones_like(u), u, v, u * u, v * v, u * v], -1)
 
 
-def _segment_exclusive_cumsum(values: Tensor, row_tile_local: Tensor, tile_first_row: Tensor) -> Tensor:
-    """Column-wise cumulative sum over the rows of each tile, excluding the current row ([m, P] float64)."""
-    inclusive = torch.cumsum(values, 0)
-    exclusive = inclusive - values
-    return exclusive - exclusive[tile_first_row][row_tile_local]
+def _segment_exclusive_cumsum(values: Tensor, seg: Tensor, seg_first_row: Tensor) -> Tensor:
+    """Column-wise sum over the earlier rows of the same tile ([m, P]; use float64 for precision)."""
+    exclusive = torch.cumsum(values, 0) - values
+    return exclusive - exclusive.index_select(0, seg_first_row).index_select(0, seg)
 
 
 class _ChunkState(NamedTuple):
     gauss: Tensor  # [m] Gaussian of each row
-    tile_local: Tensor  # [m] tile index within the chunk
-    dx: Tensor  # [m, P] mean2d.x - pixel x
-    dy: Tensor  # [m, P]
-    gauss_val: Tensor  # [m, P] exp(-sigma)
-    alpha: Tensor  # [m, P] alpha, 0 where skipped or after the transmittance stop
-    unclamped: Tensor  # [m, P] bool, alpha below the 0.999 cap (gradient flows)
+    seg: Tensor  # [m] tile of each row, counted from the chunk's first tile
+    offset: Tensor  # [m, 2] mean2d minus the centre of the row's tile
+    alpha: Tensor  # [m, P] composited alpha (0 where skipped or after the transmittance stop)
     t_before: Tensor  # [m, P] transmittance in front of the row's Gaussian
-    weight: Tensor  # [m, P] alpha * T (0 where not composited)
-    log_keep: Tensor  # [m, P] float64 log(1 - alpha) of the composited pairs
-    pix_index: Tensor  # [t, P] flat pixel index (clamped inside the image)
-    inside: Tensor  # [t, P] bool
+    seg_first_row: Tensor  # [t] first row of each tile of the chunk (clamped for empty tiles)
 
 
-def _evaluate_chunk(plan: RowPlan, chunk, means2d, conics, opacities, width, height) -> _ChunkState:
-    """Recompute alpha and transmittance of every (row, pixel) pair of one chunk of tiles."""
+def _evaluate_chunk(plan: RowPlan, chunk, basis, means2d, conics, opacities) -> _ChunkState:
+    """alpha and transmittance of every (row, pixel) pair of one chunk of whole tiles.
+
+    sigma is a quadratic in the pixel offset (u, v) from the tile centre, so log(o) - sigma for all
+    pixels of all rows is one matrix product [m, 6] @ [6, P].
+    """
     r0, r1, t0, t1 = chunk
-    dtype = means2d.dtype
+    s = plan.tile_size
     gauss = plan.row_gaussian[r0:r1]
-    tile_local = plan.row_tile[r0:r1] - t0
-    tiles = torch.arange(t0, t1, device=means2d.device)
-    pxf, pyf, px, py, inside = _tile_pixel_grid(plan.tile_size, plan.tiles_x, width, height, tiles, dtype)
-    pix_index = (py.clamp(max=height - 1) * width + px.clamp(max=width - 1))
-    mean = means2d[gauss]  # [m, 2]
-    conic = conics[gauss]  # [m, 3]
-    dx = mean[:, 0:1] - pxf[tile_local]  # [m, P]
-    dy = mean[:, 1:2] - pyf[tile_local]
-    sigma = 0.5 * (conic[:, 0:1] * dx * dx + conic[:, 2:3] * dy * dy) + conic[:, 1:2] * dx * dy
-    gauss_val = torch.exp(-sigma)
-    raw = opacities[gauss][:, None] * gauss_val
-    alpha = raw.clamp(max=ALPHA_MAX)
-    valid = (sigma >= 0) & (alpha >= ALPHA_MIN) & inside[tile_local]
-    alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
-    log_keep = torch.log1p(-alpha.double())  # [m, P]
-    counts = torch.bincount(tile_local, minlength=t1 - t0)
-    tile_first_row = (torch.cumsum(counts, 0) - counts).clamp(max=max(r1 - r0 - 1, 0))
-    log_t_before = _segment_exclusive_cumsum(log_keep, tile_local, tile_first_row)
-    composited = valid & (log_t_before + log_keep > math.log(TRANSMITTANCE_MIN))
-    # exp of the float64 log-transmittance: T > 1e-4 is decided in float64, then cast back
+    tile = plan.row_tile[r0:r1]
+    seg = tile - t0
+    dtype = means2d.dtype
+    centre = torch.stack([(tile % plan.tiles_x).to(dtype), (tile // plan.tiles_x).to(dtype)], -1) * s + s / 2
+    offset = means2d.index_select(0, gauss) - centre  # [m, 2]
+    a, b, c = conics.index_select(0, gauss).unbind(-1)
+    ox, oy = offset.unbind(-1)
+    # sigma(u, v) = ½a(ox-u)² + ½c(oy-v)² + b(ox-u)(oy-v), expanded in the monomials of _tile_basis
+    coef = torch.stack(
+        [
+            torch.log(opacities.index_select(0, gauss)) - (0.5 * a * ox * ox + 0.5 * c * oy * oy + b * ox * oy),
+            a * ox + b * oy,
+            c * oy + b * ox,
+            -0.5 * a,
+            -0.5 * c,
+            -b,
+        ],
+        -1,
+    )  # [m, 6]
+    alpha_raw = torch.exp(coef @ basis.T)  # [m, P] o·exp(-sigma)
+    valid = alpha_raw >= ALPHA_MIN
+    alpha = torch.where(valid, alpha_raw.clamp(max=ALPHA_MAX), 0.0)
+    log_keep = torch.log1p(-alpha.double())  # float64: the scan runs over all rows of the chunk
+    counts = torch.bincount(seg, minlength=t1 - t0)
+    seg_first_row = (torch.cumsum(counts, 0) - counts).clamp(max=max(r1 - r0 - 1, 0))
+    log_t_before = _segment_exclusive_cumsum(log_keep, seg, seg_first_row)
+    # a pixel stops before the pair that would take T to <= 1e-4; T only falls, so all later pairs stop too
+    composited = log_t_before + log_keep > math.log(TRANSMITTANCE_MIN)
+    alpha = torch.where(composited, alpha, 0.0)
     t_before = torch.exp(log_t_before).to(dtype)
-    alpha = torch.where(composited, alpha, torch.zeros_like(alpha))
-    log_keep = torch.where(composited, log_keep, torch.zeros_like(log_keep))
-    weight = alpha * t_before
-    return _ChunkState(gauss, tile_local, dx, dy, gauss_val, alpha, raw <= ALPHA_MAX, t_before, weight,
-                       log_keep, pix_index, inside)
+    return _ChunkState(gauss, seg, offset, alpha, t_before, seg_first_row)
 
 
-def _scatter_tiles(image: Tensor, pix_index: Tensor, inside: Tensor, tile_values: Tensor) -> None:
-    """image[pix] = tile_values for the in-image pixels of a chunk of tiles (image [H*W, D])."""
-    image[pix_index[inside]] = tile_values[inside]
+def _tiles_to_image(tile_values: Tensor, plan: RowPlan, width: int, height: int) -> Tensor:
+    """[T, P, D] values of every tile -> [H, W, D] image (tiles past the image edge are cropped)."""
+    s, d = plan.tile_size, tile_values.shape[-1]
+    grid = tile_values.reshape(plan.tiles_y, plan.tiles_x, s, s, d).permute(0, 2, 1, 3, 4)
+    return grid.reshape(plan.tiles_y * s, plan.tiles_x * s, d)[:height, :width]
+
+
+def _image_to_tiles(image: Tensor, plan: RowPlan) -> Tensor:
+    """[H, W, D] image -> [T, P, D] (pixels outside the image, in the padding of edge tiles, are 0)."""
+    s = plan.tile_size
+    h, w, d = image.shape
+    padded = image.new_zeros(plan.tiles_y * s, plan.tiles_x * s, d)
+    padded[:h, :w] = image
+    grid = padded.reshape(plan.tiles_y, s, plan.tiles_x, s, d).permute(0, 2, 1, 3, 4)
+    return grid.reshape(plan.tiles_y * plan.tiles_x, s * s, d)
 
 
 class _CompositeTiles(torch.autograd.Function):
@@ -269,79 +287,76 @@ class _CompositeTiles(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, background, plan, width, height):
-        dtype = means2d.dtype
-        num_pix = width * height
-        rgb = torch.zeros(num_pix, 3, dtype=dtype, device=means2d.device)  # without background
-        log_t = torch.zeros(num_pix, dtype=torch.float64, device=means2d.device)
+        dtype, device = means2d.dtype, means2d.device
+        pix = plan.tile_size * plan.tile_size
+        basis = _tile_basis(plan.tile_size, dtype, device)
+        colors_and_one = torch.cat([colors, torch.ones_like(colors[:, :1])], -1)  # [N, 4]: rgb and coverage
+        tiles = torch.zeros(plan.tiles_x * plan.tiles_y, pix, 4, dtype=dtype, device=device)
+        ctx.kept = []
         for chunk in plan.chunk_bounds:
-            st = _evaluate_chunk(plan, chunk, means2d, conics, opacities, width, height)
-            n_tiles = chunk[3] - chunk[2]
-            tile_rgb = torch.zeros(n_tiles, st.weight.shape[1], 3, dtype=dtype, device=means2d.device)
-            tile_rgb.index_add_(0, st.tile_local, st.weight[:, :, None] * colors[st.gauss][:, None, :])
-            tile_log_t = torch.zeros(n_tiles, st.weight.shape[1], dtype=torch.float64, device=means2d.device)
-            tile_log_t.index_add_(0, st.tile_local, st.log_keep)
-            _scatter_tiles(rgb, st.pix_index, st.inside, tile_rgb)
-            _scatter_tiles(log_t, st.pix_index, st.inside, tile_log_t)
-        t_final = torch.exp(log_t).to(dtype)  # [H*W]
-        out_rgb = rgb + t_final[:, None] * background[None, :]
+            st = _evaluate_chunk(plan, chunk, basis, means2d, conics, opacities)
+            weight = st.alpha * st.t_before
+            rows = weight[:, :, None] * colors_and_one.index_select(0, st.gauss)[:, None, :]  # [m, P, 4]
+            tiles[chunk[2]:chunk[3]].index_add_(0, st.seg, rows)
+            if plan.keep_pairs:
+                ctx.kept.append(st)
+        image = _tiles_to_image(tiles, plan, width, height)  # [H, W, 4]
+        rgb = image[..., :3]  # without background
+        alpha = image[..., 3:].clamp(0.0, 1.0)  # Σ α T telescopes to 1 - T_final
+        t_final = 1.0 - alpha
         ctx.save_for_backward(means2d, conics, opacities, colors, background, rgb, t_final)
-        ctx.plan, ctx.width, ctx.height = plan, width, height
-        return out_rgb.reshape(height, width, 3), (1.0 - t_final).reshape(height, width, 1)
+        ctx.plan = plan
+        return rgb + t_final * background, alpha
 
     @staticmethod
     def backward(ctx, grad_rgb, grad_alpha):
         means2d, conics, opacities, colors, background, rgb, t_final = ctx.saved_tensors
-        plan, width, height = ctx.plan, ctx.width, ctx.height
+        plan = ctx.plan
         n = means2d.shape[0]
         dtype, device = means2d.dtype, means2d.device
-        grad_rgb = grad_rgb.reshape(-1, 3).to(dtype)  # [H*W, 3]
-        grad_alpha = grad_alpha.reshape(-1).to(dtype)  # [H*W]
-        # d loss / d T_final per pixel; total of c·g over the composited pairs (suffix sums start from it)
-        grad_t_final = grad_rgb @ background - grad_alpha  # [H*W]
-        tail_const = t_final * grad_t_final  # [H*W]
-        color_dot_total = (rgb * grad_rgb).sum(-1)  # [H*W]
-        # per-row sums, reduced to Gaussians at the end of each chunk
+        grad_rgb = grad_rgb.to(dtype)  # [H, W, 3]
+        grad_alpha = grad_alpha.to(dtype)  # [H, W, 1]
+        # d loss / d T_final, times T_final; and the total Σ_k (c_k · g) α_k T_k of each pixel
+        tail = t_final * ((grad_rgb * background).sum(-1, keepdim=True) - grad_alpha)  # [H, W, 1]
+        color_total = (rgb * grad_rgb).sum(-1, keepdim=True)  # [H, W, 1]
+        per_pixel = _image_to_tiles(torch.cat([grad_rgb, tail + color_total], -1), plan)  # [T, P, 4]
+        basis = _tile_basis(plan.tile_size, dtype, device)
         g_means2d = torch.zeros(n, 2, dtype=dtype, device=device)
         g_conics = torch.zeros(n, 3, dtype=dtype, device=device)
         g_opac = torch.zeros(n, dtype=dtype, device=device)
         g_colors = torch.zeros(n, 3, dtype=dtype, device=device)
-        for chunk in plan.chunk_bounds:
-            st = _evaluate_chunk(plan, chunk, means2d, conics, opacities, width, height)
-            rows_pix = st.pix_index[st.tile_local]  # [m, P]
-            g_pix = grad_rgb[rows_pix]  # [m, P, 3]
-            col = colors[st.gauss]  # [m, 3]
-            color_dot = (g_pix * col[:, None, :]).sum(-1)  # [m, P] c_k · dL/drgb
-            contrib = (st.weight * color_dot).double()
-            counts = torch.bincount(st.tile_local, minlength=chunk[3] - chunk[2])
-            first = (torch.cumsum(counts, 0) - counts).clamp(max=max(st.gauss.numel() - 1, 0))
-            behind = color_dot_total[rows_pix].double() - (
-                _segment_exclusive_cumsum(contrib, st.tile_local, first) + contrib
-            )  # Σ over later composited pairs of the same pixel
-            one_minus = (1.0 - st.alpha).double()
-            grad_alpha_pair = (st.t_before * color_dot) - (
-                (behind + tail_const[rows_pix].double()) / one_minus
-            ).to(dtype)
-            live = (st.alpha > 0) & st.unclamped
-            grad_alpha_pair = torch.where(live, grad_alpha_pair, torch.zeros_like(grad_alpha_pair))
+        for index, chunk in enumerate(plan.chunk_bounds):
+            if plan.keep_pairs:
+                st = ctx.kept[index]
+            else:
+                st = _evaluate_chunk(plan, chunk, basis, means2d, conics, opacities)
+            pix = per_pixel[chunk[2]:chunk[3]].index_select(0, st.seg)  # [m, P, 4]
+            g_pix = pix[..., :3]
+            col = colors.index_select(0, st.gauss)  # [m, 3]
+            color_dot = torch.bmm(g_pix, col[:, :, None]).squeeze(-1)  # [m, P] c_k · dL/drgb
+            weight = st.alpha * st.t_before
+            contrib = (weight * color_dot).double()
+            # Σ over the later pairs of the pixel of (c·g) α T, plus T_final · dL/dT_final
+            behind = pix[..., 3].double() - _segment_exclusive_cumsum(contrib, st.seg, st.seg_first_row) - contrib
+            # composited and below the 0.999 cap (a capped alpha is exactly ALPHA_MAX and has no gradient)
+            live = (st.alpha > 0) & (st.alpha < ALPHA_MAX)
+            grad_alpha_pair = st.t_before * color_dot - (behind / (1.0 - st.alpha.double())).to(dtype)
+            grad_alpha_pair = torch.where(live, grad_alpha_pair, 0.0)
             grad_sigma = -st.alpha * grad_alpha_pair  # d alpha / d sigma = -alpha below the cap
-            dx, dy = st.dx, st.dy
-            s_dx = (grad_sigma * dx).sum(1)
-            s_dy = (grad_sigma * dy).sum(1)
-            row_conic = torch.stack(
-                [0.5 * (grad_sigma * dx * dx).sum(1), (grad_sigma * dx * dy).sum(1), 0.5 * (grad_sigma * dy * dy).sum(1)],
-                -1,
-            )  # [m, 3]
-            conic = conics[st.gauss]
-            row_mean = torch.stack(
-                [conic[:, 0] * s_dx + conic[:, 1] * s_dy, conic[:, 1] * s_dx + conic[:, 2] * s_dy], -1
-            )  # [m, 2]
-            row_opac = (st.gauss_val * grad_alpha_pair).sum(1)  # [m]
-            row_color = torch.bmm(st.weight[:, None, :], g_pix).squeeze(1)  # [m, 3]
-            g_means2d.index_add_(0, st.gauss, row_mean)
-            g_conics.index_add_(0, st.gauss, row_conic)
-            g_opac.index_add_(0, st.gauss, row_opac)
-            g_colors.index_add_(0, st.gauss, row_color)
-        g_background = (t_final[:, None] * grad_rgb).sum(0)
+            m0, m_u, m_v, m_uu, m_vv, m_uv = (grad_sigma @ basis).unbind(-1)  # moments over the tile's pixels
+            ox, oy = st.offset.unbind(-1)
+            s_dx = ox * m0 - m_u  # Σ gσ·dx with dx = ox - u
+            s_dy = oy * m0 - m_v
+            s_dxdx = ox * ox * m0 - 2 * ox * m_u + m_uu
+            s_dydy = oy * oy * m0 - 2 * oy * m_v + m_vv
+            s_dxdy = ox * oy * m0 - ox * m_v - oy * m_u + m_uv
+            a, b, c = conics.index_select(0, st.gauss).unbind(-1)
+            g_means2d.index_add_(0, st.gauss, torch.stack([a * s_dx + b * s_dy, b * s_dx + c * s_dy], -1))
+            g_conics.index_add_(0, st.gauss, torch.stack([0.5 * s_dxdx, s_dxdy, 0.5 * s_dydy], -1))
+            # d alpha / d o = exp(-sigma) = alpha / o below the cap
+            g_opac.index_add_(0, st.gauss, (st.alpha * grad_alpha_pair).sum(1) / opacities.index_select(0, st.gauss))
+            g_colors.index_add_(0, st.gauss, torch.bmm(weight[:, None, :], g_pix).squeeze(1))
+        g_background = (t_final * grad_rgb).sum((0, 1))
         return g_means2d, g_conics, g_opac, g_colors, g_background, None, None, None
 
 
@@ -432,12 +447,14 @@ def rasterize_torch(
     method: str = "tiles",
     tile_size: int = DEFAULT_TILE_SIZE,
     chunk_pairs: int = DEFAULT_CHUNK_PAIRS,
+    keep_pairs_limit: int = DEFAULT_KEEP_PAIRS,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Render C cameras; returns rgb [C,H,W,3], alpha [C,H,W,1], means2d [C,N,2] (a graph node whose
     .grad is d loss / d means2d), radii [C,N,2] int32, visible [C,N] bool, depths [C,N].
     batched=False (C == 1): means2d is returned as the [N, 2] node the renderer consumed.
 
-    method "tiles" is the fast renderer; "naive" the simple pair-expansion with plain autograd."""
+    method "tiles" is the fast renderer; "naive" the simple pair-expansion with plain autograd.
+    tile_size, chunk_pairs and keep_pairs_limit tune "tiles" (speed and memory only, never results)."""
     if method not in ("tiles", "naive"):
         raise ValueError(f"rasterize_torch: method must be 'tiles' or 'naive', got {method!r}")
     projections = [
@@ -458,7 +475,8 @@ def rasterize_torch(
                 proj.visible, width, height,
             )
         else:
-            plan = plan_rows(per_camera[c], proj.radii, proj.depths, proj.visible, width, height, tile_size, chunk_pairs)
+            plan = plan_rows(per_camera[c], proj.radii, proj.depths, proj.visible, width, height, tile_size,
+                             chunk_pairs, keep_pairs_limit)
             rgb, alpha = composite(per_camera[c], proj.conics, opacities, colors, backgrounds[c], plan, width, height)
         rgbs.append(rgb)
         alphas.append(alpha)

@@ -1,0 +1,160 @@
+"""Benchmark of geoavatar.render.rasterize (torch backend) on a head-like scene.
+
+Prints, for 256² and 512² images with 10k, 50k and 100k Gaussians: forward seconds, forward+backward
+seconds and the peak RSS of the process, for the fast renderer ("tiles": tile rows + hand-written
+backward) and the naive variant ("naive": per-pixel pairs + plain autograd) side by side, plus the
+forward-only frames per second at 512²/50k. Each configuration runs in a fresh subprocess so that
+its peak RSS is its own. Timings are the best of --repeats runs after one warm-up.
+
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/render_bench.py
+    .venv/bin/python benchmarks/render_bench.py --sizes 256 --counts 50000 --methods tiles
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+
+
+def head_scene(n: int, size: int, seed: int = 0):
+    """n Gaussians lying flat on a head-sized ellipsoid (metres) plus a neck, seen from 0.6 m ahead."""
+    import torch
+
+    gen = torch.Generator().manual_seed(seed)
+    radii = torch.tensor([0.08, 0.11, 0.095])  # half width, half height, half depth of a head
+    n_neck = n // 8
+    n_head = n - n_neck
+    # head: uniform directions on the unit sphere, stretched to the ellipsoid
+    d = torch.nn.functional.normalize(torch.randn(n_head, 3, generator=gen), dim=-1)
+    head = d * radii
+    head_normal = torch.nn.functional.normalize(d / radii, dim=-1)
+    # neck: a cylinder below the head
+    angle = torch.rand(n_neck, generator=gen) * 2 * math.pi
+    neck_y = -0.08 - torch.rand(n_neck, generator=gen) * 0.1
+    neck = torch.stack([0.055 * torch.cos(angle), neck_y, 0.055 * torch.sin(angle) - 0.01], -1)
+    neck_normal = torch.stack([torch.cos(angle), torch.zeros(n_neck), torch.sin(angle)], -1)
+    means = torch.cat([head, neck])
+    normals = torch.cat([head_normal, neck_normal])
+    # surface-aligned, flat Gaussians: spacing from the surface area per Gaussian
+    area = 4 * math.pi * 0.094**2 + 2 * math.pi * 0.055 * 0.1
+    spacing = math.sqrt(area / n)
+    tangent_scale = spacing * torch.exp(torch.randn(n, 2, generator=gen) * 0.3) * 0.7
+    scales = torch.cat([tangent_scale, spacing * 0.1 * torch.ones(n, 1)], -1)
+    # rotation taking local z to the normal, with a random twist about it
+    from geoavatar.geometry import axis_angle_to_matrix, matrix_to_quaternion
+
+    z = torch.tensor([0.0, 0.0, 1.0]).expand(n, 3)
+    axis = torch.linalg.cross(z, normals)
+    sin = axis.norm(dim=-1, keepdim=True)
+    cos = (z * normals).sum(-1, keepdim=True)
+    align = axis_angle_to_matrix(axis / sin.clamp_min(1e-9) * torch.atan2(sin, cos))
+    twist = axis_angle_to_matrix(normals * (torch.rand(n, 1, generator=gen) * 2 * math.pi))
+    quats = matrix_to_quaternion(twist @ align)
+    opacities = torch.sigmoid(torch.randn(n, generator=gen) * 1.5 + 1.0)
+    colors = torch.tensor([0.8, 0.6, 0.5]) + 0.15 * torch.rand(n, 3, generator=gen)
+    # camera 0.6 m in front of the face (+z out of the face), OpenCV axes: x right, y down, z forward
+    viewmat = torch.tensor(
+        [[1.0, 0, 0, 0], [0, -1.0, 0, 0.02], [0, 0, -1.0, 0.6], [0, 0, 0, 1.0]]
+    )  # rotation diag(1,-1,-1): the camera sits at world z = +0.6 and looks along -z, at the face
+    focal = 2.2 * size  # the head fills ~80% of the image height
+    K = torch.tensor([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1.0]])
+    return means, quats, scales, opacities, colors, viewmat, K
+
+
+def run_one(method: str, size: int, count: int, repeats: int, tile_size: int) -> dict:
+    from geoavatar.runtime import setup_process
+
+    setup_process()
+    import torch
+
+    from geoavatar.render.torch_backend import rasterize_torch
+
+    means, quats, scales, opacities, colors, viewmat, K = head_scene(count, size)
+    params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+    gen = torch.Generator().manual_seed(1)
+    target = torch.rand(1, size, size, 3, generator=gen)
+    background = torch.ones(1, 3)
+
+    def render(tensors):
+        return rasterize_torch(*tensors, viewmat[None], K[None], size, size, background, batched=False,
+                               method=method, tile_size=tile_size)
+
+    def forward_only():
+        with torch.no_grad():
+            render(params)
+
+    def forward_backward():
+        rgb, alpha, means2d, *_ = render(params)
+        loss = (rgb - target).abs().mean() + alpha.mean()
+        loss.backward()
+        for p in params:
+            p.grad = None
+        return means2d
+
+    forward_only()
+    forward_backward()  # warm-up
+    best_fwd, best_fb = math.inf, math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        forward_only()
+        best_fwd = min(best_fwd, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        forward_backward()
+        best_fb = min(best_fb, time.perf_counter() - t0)
+    with torch.no_grad():
+        rgb, alpha, _, radii, visible, _ = render(params)
+    return dict(
+        method=method, size=size, count=count, fwd_s=best_fwd, fwd_bwd_s=best_fb,
+        peak_rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2,
+        visible=int(visible.sum()), coverage=float((alpha > 0.5).float().mean()),
+        threads=torch.get_num_threads(), checksum=float(rgb.double().sum()),
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
+    parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 50_000, 100_000])
+    parser.add_argument("--methods", nargs="+", default=["tiles", "naive"], choices=["tiles", "naive"])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--tile-size", type=int, default=4)
+    parser.add_argument("--one", nargs=3, metavar=("METHOD", "SIZE", "COUNT"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        method, size, count = args.one
+        print(json.dumps(run_one(method, int(size), int(count), args.repeats, args.tile_size)))
+        return
+
+    env = dict(os.environ)
+    env.update(OMP_NUM_THREADS=str(args.threads), GEOAVATAR_THREADS=str(args.threads), MALLOC_MMAP_MAX_="0",
+               MALLOC_TRIM_THRESHOLD_="68719476736")
+    print(f"render_bench: torch backend, {args.threads} threads, best of {args.repeats}, tile size {args.tile_size}")
+    print(f"{'method':<7} {'image':>7} {'gaussians':>9} {'visible':>8} {'fwd s':>8} {'fwd+bwd s':>10} {'peak RSS GB':>12}")
+    results = []
+    for size in args.sizes:
+        for count in args.counts:
+            for method in args.methods:
+                cmd = [sys.executable, __file__, "--one", method, str(size), str(count), "--repeats", str(args.repeats),
+                       "--tile-size", str(args.tile_size)]
+                proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+                if proc.returncode != 0:
+                    print(f"{method:<7} {size:>4}^2 {count:>9}  failed: {proc.stderr.strip().splitlines()[-1:]}")
+                    continue
+                r = json.loads(proc.stdout.strip().splitlines()[-1])
+                results.append(r)
+                print(f"{method:<7} {size:>4}^2 {count:>9} {r['visible']:>8} {r['fwd_s']:>8.3f} {r['fwd_bwd_s']:>10.3f} "
+                      f"{r['peak_rss_gb']:>12.2f}", flush=True)
+    for r in results:
+        if r["size"] == 512 and r["count"] == 50_000:
+            print(f"forward-only frames per second at 512^2 / 50k ({r['method']}): {1.0 / r['fwd_s']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
