@@ -107,8 +107,20 @@ def generate_openhead(shape: OpenHeadShape = OpenHeadShape()) -> HeadModelData:
     return data.validate()
 
 
+def _generator_source_digest() -> str:
+    """Hash of the generator's own source: an edited generator never reads a stale cache."""
+    here = Path(__file__).resolve().parent
+    files = sorted(here.glob("*.py")) + [here.parent / "landmarks_mediapipe.py"]
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
 def _cache_key(shape: OpenHeadShape) -> str:
-    params = json.dumps({"version": VERSION, "shape": dataclasses.asdict(shape)}, sort_keys=True)
+    params = json.dumps({"version": VERSION, "shape": dataclasses.asdict(shape), "source": _generator_source_digest()},
+                        sort_keys=True)
     return hashlib.sha256(params.encode()).hexdigest()[:16]
 
 
@@ -143,6 +155,7 @@ def _write_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
     try:
         with os.fdopen(fd, "wb") as handle:
             np.savez(handle, **arrays)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a cache may be shared
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -167,7 +167,7 @@ def embed_landmarks(layout: HeadLayout) -> tuple[np.ndarray, np.ndarray, np.ndar
             u = (r[:, 0] - inner_x) / (outer_x - inner_x)
             s = -1.0 + 2.0 * u
             upper, lower = fissure_outline(s, shape)
-            y = np.where(g_index == 0, upper + 0.0006, lower - 0.0006)
+            y = np.where(g_index == 0, upper + 0.0002, lower - 0.0002)  # on the lid margin
             y[np.abs(s) > 0.999] = upper[np.abs(s) > 0.999]
             lateral = 0.0015 + s * hw * 0.985
             xy = np.stack([e[0] + side * lateral, e[1] + y], -1)

@@ -29,9 +29,9 @@ class OpenHeadShape:
     eyeball_radius: float = 0.0120
     lid_radius: float = 0.0133  # eyelid skin lies on this sphere around the eyeball centre
     fissure_floor_radius: float = 0.0103  # skin inside the eye opening, behind the eyeball
-    fissure_half_width: float = 0.0140
-    fissure_upper: float = 0.0048  # opening above the eye centre line
-    fissure_lower: float = 0.0036
+    fissure_half_width: float = 0.0145
+    fissure_upper: float = 0.0054  # opening above the eye centre line
+    fissure_lower: float = 0.0040
     fissure_tilt: float = 0.08  # outer corner higher than the inner one (dy/dx)
     mouth_half_width: float = 0.0250
     lip_gap: float = 0.0012  # neutral opening at the mid-line, each lip (the mouth is almost closed)
@@ -41,11 +41,11 @@ class OpenHeadShape:
     neck_base_height: float = -0.19  # the open, horizontal neck ring
     neck_axis_z: float = -0.018
     columns_mouth: int = 14  # intervals between the mouth corners (15 vertices on each lip edge)
-    column_step_face_deg: float = 2.3
-    column_step_back_deg: float = 6.0
+    column_step_face_deg: float = 1.7
+    column_step_back_deg: float = 8.0
     row_step_face_deg: float = 1.9
     row_step_eyes_deg: float = 1.3
-    row_step_skull_deg: float = 4.6
+    row_step_skull_deg: float = 5.5
     eyeball_segments: tuple[int, int] = (24, 12)  # around, front-to-back
 
 
@@ -92,33 +92,33 @@ def fissure_outline(s: np.ndarray, shape: OpenHeadShape, openness: float = 1.0):
     return upper, lower
 
 
-def head_sdf(p: np.ndarray, shape: OpenHeadShape, eyes_open: bool = True) -> np.ndarray:
+def head_sdf(p: np.ndarray, shape: OpenHeadShape) -> np.ndarray:
     """Signed distance-like function of the head skin (negative inside). p [..., 3] -> [...].
 
-    Mirror-symmetric in x. With eyes_open=False the eye openings are not carved (closed lids).
+    Mirror-symmetric in x. The eyelids are closed here; `open_eyes` cuts the openings on the grid.
     """
     q = np.concatenate([np.abs(p[..., :1]), p[..., 1:]], axis=-1)  # fold onto the left half
     x, y, z = q[..., 0], q[..., 1], q[..., 2]
     d = _ellipsoid(q, (0.0, 0.046, -0.004), (0.075, 0.094, 0.097))  # cranium
     d = _smin(d, _ellipsoid(q, (0.0, 0.010, 0.028), (0.062, 0.072, 0.068)), 0.02)  # upper face / forehead
     d = _smin(d, _ellipsoid(q, (0.0, -0.040, 0.022), (0.058, 0.052, 0.062)), 0.02)  # midface
-    d = _smin(d, _ellipsoid(q, (0.0, -0.062, 0.026), (0.046, 0.032, 0.052)), 0.02)  # lower face
+    d = _smin(d, _ellipsoid(q, (0.0, -0.062, 0.026), (0.050, 0.032, 0.052)), 0.02)  # lower face
     d = _smin(d, _round_cone(q, (0.047, -0.030, -0.008), (0.016, -0.082, 0.058), 0.012, 0.010), 0.018)  # mandible
     d = _smin(d, _ellipsoid(q, (0.0, -0.076, 0.060), (0.020, 0.016, 0.016)), 0.012)  # chin
     # Neck: an elliptic cylinder below the skull, ending in the open base (rays stop above its end).
     neck = (np.sqrt((x / 0.054) ** 2 + ((z + 0.018) / 0.050) ** 2) - 1.0) * 0.05
-    d = _smin(d, np.maximum(neck, y + 0.02), 0.03)
+    d = _smin(d, _smax(neck, y + 0.01, 0.03), 0.03)
     d = _smin(d, _ellipsoid(q, (0.047, 0.002, 0.054), (0.020, 0.014, 0.018)), 0.015)  # cheekbone
     d = _smin(d, _ellipsoid(q, (0.030, -0.030, 0.066), (0.020, 0.018, 0.016)), 0.015)  # cheek
-    d = _smin(d, _ellipsoid(q, (0.024, 0.036, 0.082), (0.024, 0.0085, 0.012)), 0.012)  # brow ridge
+    d = _smin(d, _ellipsoid(q, (0.024, 0.037, 0.080), (0.024, 0.0085, 0.012)), 0.014)  # brow ridge
     # Nose: bridge as a round cone, tip ball, alae (nostril wings), columella.
     d = _smin(d, _round_cone(q, (0.0, 0.024, 0.090), (0.0, -0.018, 0.104), 0.0045, 0.0075), 0.006)
     d = _smin(d, _ellipsoid(q, (0.0, -0.021, 0.1055), (0.0085, 0.0085, 0.0080)), 0.004)  # tip
-    d = _smin(d, _ellipsoid(q, (0.0125, -0.026, 0.093), (0.0075, 0.0065, 0.0085)), 0.004)  # ala
-    d = _smin(d, _ellipsoid(q, (0.0, -0.029, 0.098), (0.0045, 0.004, 0.0065)), 0.004)  # columella
+    d = _smin(d, _ellipsoid(q, (0.0125, -0.026, 0.092), (0.0075, 0.0065, 0.0085)), 0.006)  # ala
+    d = _smin(d, _ellipsoid(q, (0.0, -0.028, 0.098), (0.0045, 0.0045, 0.0070)), 0.006)  # columella
     # Lips: upper and lower vermilion, philtrum ridge of the upper lip.
-    d = _smin(d, _ellipsoid(q, (0.0, -0.0435, 0.0885), (0.024, 0.0055, 0.0075)), 0.004)
-    d = _smin(d, _ellipsoid(q, (0.0, -0.0540, 0.0860), (0.021, 0.0070, 0.0080)), 0.004)
+    d = _smin(d, _ellipsoid(q, (0.0, -0.0435, 0.056), (0.0265, 0.0065, 0.0355)), 0.004)
+    d = _smin(d, _ellipsoid(q, (0.0, -0.0550, 0.054), (0.0235, 0.0078, 0.0350)), 0.004)
     # Ears: a tilted flat ellipsoid with a rim; the concha is a dent on its outer face.
     ear_c = np.array([0.074, 0.003, -0.010])
     e = q - ear_c
@@ -128,19 +128,10 @@ def head_sdf(p: np.ndarray, shape: OpenHeadShape, eyes_open: bool = True) -> np.
     ear = _ellipsoid(e, (0.0, 0.0, 0.0), (0.013, 0.031, 0.017))
     d = _smin(d, ear, 0.006)
     d = _smax(d, -_ellipsoid(e, (0.012, -0.004, 0.003), (0.006, 0.011, 0.0085)), 0.003)  # concha
-    # Eyes: socket, lid sphere, and (open eyes) the almond-shaped opening carved behind the eyeball.
+    # Eyes: a shallow socket and the closed lids on a sphere around the eyeball.
     ec = np.asarray(shape.eye_centre)
-    d = _smax(d, -_ellipsoid(q, (ec[0], ec[1] + 0.003, ec[2] + 0.022), (0.022, 0.016, 0.017)), 0.010)
-    d = _smin(d, np.linalg.norm(q - ec, axis=-1) - shape.lid_radius, 0.004)
-    if eyes_open:
-        rel = q - ec
-        s = (rel[..., 0] - 0.0015) / shape.fissure_half_width
-        upper, lower = fissure_outline(s, shape)
-        inside_almond = np.maximum(np.maximum(rel[..., 1] - upper, lower - rel[..., 1]), np.abs(s) - 1.0)
-        in_front = -rel[..., 2]  # only carve in front of the eye centre
-        outside_floor = shape.fissure_floor_radius - np.linalg.norm(rel, axis=-1)
-        cutter = np.maximum(np.maximum(inside_almond, in_front), outside_floor)
-        d = np.maximum(d, -cutter)
+    d = _smax(d, -_ellipsoid(q, (ec[0], ec[1] + 0.002, ec[2] + 0.028), (0.019, 0.013, 0.0105)), 0.010)
+    d = _smin(d, np.linalg.norm(q - ec, axis=-1) - shape.lid_radius, 0.005)
     return d
 
 
@@ -167,14 +158,14 @@ def column_angles(shape: OpenHeadShape) -> tuple[np.ndarray, int]:
     The first `columns_mouth / 2` steps on each side end exactly on the mouth corners.
     """
     o = np.asarray(shape.ray_origin)
-    corner_depth = 0.074 - o[2]  # the mouth corner sits about this far in front of O
+    corner_depth = 0.080 - o[2]  # the mouth corner sits about this far in front of O
     theta_corner = np.arctan2(shape.mouth_half_width, corner_depth)
     half = shape.columns_mouth // 2
     mouth_steps = np.full(half, theta_corner / half)
     face, back = np.deg2rad(shape.column_step_face_deg), np.deg2rad(shape.column_step_back_deg)
 
     def step(a):
-        t = np.clip((a - np.deg2rad(45.0)) / np.deg2rad(55.0), 0.0, 1.0)
+        t = np.clip((a - np.deg2rad(40.0)) / np.deg2rad(50.0), 0.0, 1.0)
         return face + (back - face) * t * t * (3 - 2 * t)
 
     right_half = _symmetric_steps(mouth_steps, step, np.pi)  # 0 .. pi
@@ -238,6 +229,36 @@ def cast_rays(origin: np.ndarray, dirs: np.ndarray, sdf, t_max: float = 0.22, st
     return 0.5 * (t_hi + t_lo)
 
 
+def open_eyes(grid: np.ndarray, shape: OpenHeadShape) -> np.ndarray:
+    """Cut the eye openings into the closed lids of a ray grid [R, C, 3] (returns a new grid).
+
+    Per grid column over an eye, the vertex nearest to the upper and to the lower lid margin
+    (`fissure_outline`) is moved onto it (on the lid sphere), and the vertices between them sink to a
+    sphere behind the eyeball's front, so the eyeball shows between two clean lid margins.
+    """
+    grid = grid.copy()
+    for side in (1.0, -1.0):
+        e = np.asarray(shape.eye_centre) * np.array([side, 1.0, 1.0])
+        rel = grid - e  # [R, C, 3]
+        s = (side * rel[..., 0] - 0.0015) / shape.fissure_half_width
+        upper, lower = fissure_outline(s, shape)
+        near = (np.linalg.norm(rel, axis=-1) < 0.02) & (rel[..., 2] > 0)
+        for c in np.nonzero((near & (np.abs(s) < 1.0)).any(0))[0]:
+            rows = np.nonzero(near[:, c] & (np.abs(s[:, c]) < 1.0))[0]
+            y = rel[rows, c, 1]
+            top = rows[np.argmin(np.abs(y - upper[rows, c]))]
+            bottom = rows[np.argmin(np.abs(y - lower[rows, c]))]
+            if top - bottom < 2:  # too close to the corner for an opening in this column
+                continue
+            for r, margin in ((top, upper[top, c]), (bottom, lower[bottom, c])):
+                x = rel[r, c, 0]
+                z = np.sqrt(max(shape.lid_radius**2 - x * x - margin * margin, 0.0))
+                grid[r, c] = e + np.array([x, margin, z])
+            for r in range(bottom + 1, top):
+                grid[r, c] = e + rel[r, c] * (shape.fissure_floor_radius / np.linalg.norm(rel[r, c]))
+    return grid
+
+
 @dataclass
 class SkinGrid:
     """The skin mesh and its grid bookkeeping (used by rigging, regions and modes)."""
@@ -266,6 +287,7 @@ def build_skin(shape: OpenHeadShape) -> SkinGrid:
     dirs = _ray_dirs(th.ravel(), ph.ravel())
     sdf = lambda p: head_sdf(p, shape)  # noqa: E731
     upper_grid = (origin + cast_rays(origin, dirs, sdf)[:, None] * dirs).reshape(len(ray_phis), nc, 3)
+    upper_grid = open_eyes(upper_grid, shape)
     # Neck: horizontal rays from the neck axis, at heights from the lowest ray row down to the base.
     k = np.arange(shape.neck_rows, 0, -1)[:, None] / shape.neck_rows  # bottom (1) .. top (1/N)
     heights = upper_grid[0, :, 1][None] + k * (shape.neck_base_height - upper_grid[0, :, 1][None])  # [N, C]
