@@ -1,10 +1,14 @@
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 from geoavatar.runtime import setup_process
 
+# Generated caches (OpenHead) go to one folder per test session, never the user's ~/.cache. Set at
+# import time so module- and session-scoped fixtures see it too.
+os.environ["GEOAVATAR_CACHE"] = os.environ.get("GEOAVATAR_TEST_CACHE") or tempfile.mkdtemp(prefix="geoavatar-test-cache-")
 setup_process()
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
@@ -16,10 +20,3 @@ def shared_dir() -> Path:
     if not SHARED.is_dir():
         pytest.skip(f"shared data folder not found at {SHARED}")
     return SHARED
-
-
-@pytest.fixture(autouse=True)
-def _isolated_cache(tmp_path_factory, monkeypatch):
-    """Keep generated caches (OpenHead) out of the user's home: one cache for the whole session."""
-    cache = tmp_path_factory.getbasetemp() / "geoavatar-cache"
-    monkeypatch.setenv("GEOAVATAR_CACHE", os.environ.get("GEOAVATAR_TEST_CACHE", str(cache)))
