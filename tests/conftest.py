@@ -1,4 +1,6 @@
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -8,7 +10,11 @@ from geoavatar.runtime import setup_process
 
 # Generated caches (OpenHead) go to one folder per test session, never the user's ~/.cache. Set at
 # import time so module- and session-scoped fixtures see it too.
-os.environ["GEOAVATAR_CACHE"] = os.environ.get("GEOAVATAR_TEST_CACHE") or tempfile.mkdtemp(prefix="geoavatar-test-cache-")
+if os.environ.get("GEOAVATAR_TEST_CACHE"):
+    os.environ["GEOAVATAR_CACHE"] = os.environ["GEOAVATAR_TEST_CACHE"]
+else:
+    os.environ["GEOAVATAR_CACHE"] = tempfile.mkdtemp(prefix="geoavatar-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["GEOAVATAR_CACHE"], ignore_errors=True)
 setup_process()
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
