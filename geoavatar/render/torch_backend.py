@@ -254,15 +254,32 @@ def _evaluate_chunk(plan: RowPlan, chunk, basis, means2d, conics, opacities) -> 
     alpha_raw = torch.exp(coef @ basis.T)  # [m, P] o·exp(-sigma)
     valid = alpha_raw >= ALPHA_MIN
     alpha = torch.where(valid, alpha_raw.clamp(max=ALPHA_MAX), 0.0)
-    log_keep = torch.log1p(-alpha.double())  # float64: the scan runs over all rows of the chunk
-    counts = torch.bincount(seg, minlength=t1 - t0)
-    seg_first_row = (torch.cumsum(counts, 0) - counts).clamp(max=max(r1 - r0 - 1, 0))
+    # rows whose Gaussian reaches no pixel of the tile (box corners) change nothing: drop them
+    gauss, seg, offset, alpha = _compact_rows(valid.any(1), gauss, seg, offset, alpha)
+    log_keep = torch.log1p(-alpha).double()  # float64: the scan runs over all rows of the chunk
+    seg_first_row = _first_rows(seg, t1 - t0)
     log_t_before = _segment_exclusive_cumsum(log_keep, seg, seg_first_row)
     # a pixel stops before the pair that would take T to <= 1e-4; T only falls, so all later pairs stop too
     composited = log_t_before + log_keep > math.log(TRANSMITTANCE_MIN)
     alpha = torch.where(composited, alpha, 0.0)
     t_before = torch.exp(log_t_before).to(dtype)
-    return _ChunkState(gauss, seg, offset, alpha, t_before, seg_first_row)
+    # rows hidden behind saturated pixels neither render nor receive gradient: drop them too
+    gauss, seg, offset, alpha, t_before = _compact_rows((alpha > 0).any(1), gauss, seg, offset, alpha, t_before)
+    return _ChunkState(gauss, seg, offset, alpha, t_before, _first_rows(seg, t1 - t0))
+
+
+def _compact_rows(keep: Tensor, *row_tensors: Tensor) -> tuple[Tensor, ...]:
+    """The rows where keep [m] is True of each [m, ...] tensor (no copy when all are kept)."""
+    if bool(keep.all()):
+        return row_tensors
+    index = torch.nonzero(keep).squeeze(1)
+    return tuple(t.index_select(0, index) for t in row_tensors)
+
+
+def _first_rows(seg: Tensor, n_tiles: int) -> Tensor:
+    """[n_tiles] index of the first row of each tile in tile-sorted rows (clamped for empty tiles)."""
+    counts = torch.bincount(seg, minlength=n_tiles)
+    return (torch.cumsum(counts, 0) - counts).clamp(max=max(seg.numel() - 1, 0))
 
 
 def _tiles_to_image(tile_values: Tensor, plan: RowPlan, width: int, height: int) -> Tensor:
