@@ -1,0 +1,261 @@
+"""Checkpoints and the RUN folder of `geoavatar train`: atomic writes, safe loading, `load_run`.
+
+RUN layout (what later commands — eval, render, reenact, export — read):
+
+    RUN/config.json              the resolved TrainConfig + the run options (JSON)
+    RUN/checkpoints/last.pt      newest checkpoint (rewritten every --ckpt-every steps, on Ctrl-C, at the end)
+    RUN/checkpoints/final.pt     the checkpoint of the finished run (same content as last.pt then)
+    RUN/aps.json                 the APS decision: Distance(k) per part, tau_part, rigid/flexible
+    RUN/train.log                one line per logged step, densification and APS events, validation PSNR
+    RUN/val/step_XXXXXX.png      progress images: ground truth | render, one row per validation frame
+
+A checkpoint holds only tensors, numbers, strings, lists and dicts (configs as JSON strings), so it
+loads with `torch.load(weights_only=True)`: a checkpoint from someone else cannot run code. Keys:
+
+    format, version, step          "geoavatar-checkpoint", 1, the number of finished steps
+    config, run                    JSON strings: TrainConfig, run options (data dir, seed, device, ...)
+    dataset                        dict: root, head_model, background, resolution, timesteps of the splits
+    avatar                         GaussianAvatar.state_dict() (params.*, binding [N], faces [F, 3])
+    deformer, num_frames           MouthDeformer.state_dict() or None; the num_frames it was built for
+    frame_params, refine_tracking  per-timestep head parameters [T, ...] (refined when refine_tracking)
+    optimizers                     {"gaussians", "tracking", "deformer"}: Adam state dicts (absent: None)
+    densify_stats                  {grad2d, count, max_radii} [N]
+    aps, face_sets                 APSState.to_dict(); [F] regulariser set of every face
+    extent                         scene extent (metres) used by the position lr and densification
+    rng                            torch / cuda / numpy / python / trainer generator states
+
+Every write goes to a temporary file in the same folder and is moved into place with os.replace, so
+a killed process leaves either the old or the new file, never a torn one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import os
+import tempfile
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+
+from geoavatar.config import TrainConfig
+
+FORMAT = "geoavatar-checkpoint"
+VERSION = 1
+CHECKPOINT_DIR = "checkpoints"
+LAST_CHECKPOINT = "last.pt"
+FINAL_CHECKPOINT = "final.pt"
+CONFIG_FILE = "config.json"
+APS_FILE = "aps.json"
+LOG_FILE = "train.log"
+VAL_DIR = "val"
+
+
+class RunError(ValueError):
+    """A RUN folder or checkpoint is missing or unusable; the message names the path."""
+
+
+# --- atomic writes ----------------------------------------------------------------------------
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write `data` to `path` via a temporary file in the same folder and os.replace."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str | os.PathLike, data: Any) -> Path:
+    return atomic_write_text(path, json.dumps(data, indent=2, sort_keys=False, allow_nan=True) + "\n")
+
+
+def save_checkpoint(path: str | os.PathLike, payload: dict) -> Path:
+    """torch.save `payload` (plus format/version) atomically."""
+    buffer = io.BytesIO()
+    torch.save({"format": FORMAT, "version": VERSION, **payload}, buffer)
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
+    """Load a checkpoint safely (weights_only=True); RunError naming the file when it is unusable."""
+    path = Path(path)
+    if not path.is_file():
+        raise RunError(f"{path}: checkpoint not found")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:  # noqa: BLE001 - torch raises many kinds for a corrupt or foreign file
+        raise RunError(f"{path}: not a readable GeoAvatar checkpoint ({type(err).__name__}: {err})") from err
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise RunError(f"{path}: not a GeoAvatar checkpoint (no format marker '{FORMAT}')")
+    if payload.get("version") != VERSION:
+        raise RunError(f"{path}: checkpoint version {payload.get('version')} is not supported (expected {VERSION})")
+    return payload
+
+
+# --- configs as JSON --------------------------------------------------------------------------
+
+
+def config_to_dict(config: TrainConfig) -> dict:
+    return dataclasses.asdict(config)
+
+
+def dataclass_from_dict(cls: type, data: dict, where: str = "config") -> Any:
+    """Rebuild a (nested) dataclass from its asdict() form; ValueError naming an unknown key."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected an object, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {', '.join(unknown)}")
+    values = {}
+    for name, value in data.items():
+        hint = hints.get(name)
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+            value = dataclass_from_dict(hint, value, f"{where}.{name}")
+        values[name] = value
+    return cls(**values)
+
+
+def config_from_json(text: str, where: str = "config") -> TrainConfig:
+    try:
+        return dataclass_from_dict(TrainConfig, json.loads(text), where).validate()
+    except (json.JSONDecodeError, TypeError, ValueError) as err:
+        raise RunError(f"{where}: not a valid training configuration ({err})") from err
+
+
+# --- loading a finished (or interrupted) run --------------------------------------------------
+
+
+@dataclass
+class RunInfo:
+    """What a run knows about its data, besides the learned avatar."""
+
+    run_dir: Path
+    checkpoint: Path
+    step: int
+    data_root: Path
+    head_model: str
+    background: list[float]  # [3] colour the avatar was trained on
+    resolution: int | None
+    num_frames: int  # the MouthDeformer's time normaliser (frames of the video)
+    timesteps: dict[str, list[int]]  # "all", "train", "val", "test"
+    frame_params: dict[str, torch.Tensor]  # per-timestep head parameters [T, ...] (refined ones when on)
+    aps: dict  # APSState.to_dict()
+    face_sets: torch.Tensor  # [F]
+    run_options: dict = field(default_factory=dict)
+
+
+class LoadedRun(NamedTuple):
+    config: TrainConfig
+    head: Any  # geoavatar.head.HeadModel
+    avatar: Any  # geoavatar.avatar.GaussianAvatar
+    deformer: Any  # geoavatar.avatar.MouthDeformer | None
+    info: RunInfo
+
+
+def run_checkpoint_path(run_dir: str | os.PathLike, which: str = "last") -> Path:
+    names = {"last": LAST_CHECKPOINT, "final": FINAL_CHECKPOINT}
+    if which not in names:
+        raise ValueError(f"checkpoint must be one of {', '.join(names)}, got {which!r}")
+    return Path(run_dir) / CHECKPOINT_DIR / names[which]
+
+
+def load_head_for(name: str, mouth: str, flame_dir: str | os.PathLike | None = None):
+    """The head model a run (or a dataset) needs, with the mouth structure of its config."""
+    from geoavatar.head import load_head_model
+
+    options = {"flame_dir": flame_dir} if name == "flame" else {}
+    return load_head_model(name, mouth=mouth, **options)
+
+
+def load_run(
+    run_dir: str | os.PathLike,
+    device: str | torch.device = "cpu",
+    checkpoint: str = "last",
+    flame_dir: str | os.PathLike | None = None,
+) -> LoadedRun:
+    """(config, head, avatar, deformer, info) of a RUN folder written by `geoavatar train`.
+
+    The modules are on `device` in eval mode. flame_dir overrides the FLAME folder the run used.
+    """
+    from geoavatar.avatar import GaussianAvatar, MouthDeformer
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise RunError(f"{run_dir}: run folder not found")
+    path = run_checkpoint_path(run_dir, checkpoint)
+    if not path.is_file():
+        raise RunError(
+            f"{run_dir}: not a GeoAvatar run (no {CHECKPOINT_DIR}/{path.name}); "
+            "train one with `geoavatar train --data DIR --out RUN`"
+        )
+    ckpt = load_checkpoint(path, map_location="cpu")
+    try:
+        config = config_from_json(ckpt["config"], f"{path} [config]")
+        run_options = json.loads(ckpt.get("run", "{}"))
+        dataset = ckpt["dataset"]
+        head = load_head_for(dataset["head_model"], config.model.mouth, flame_dir or run_options.get("flame_dir"))
+        faces = ckpt["avatar"]["faces"]
+        if tuple(faces.shape) != tuple(head.faces.shape) or not torch.equal(faces, head.faces.cpu()):
+            raise RunError(
+                f"{path}: the avatar is bound to a mesh with {faces.shape[0]} faces, but the head model "
+                f"'{dataset['head_model']}' (mouth '{config.model.mouth}') here has {head.num_faces} different ones"
+            )
+        avatar = GaussianAvatar(head.faces, config.model.init_opacity)
+        avatar.load_state_dict(ckpt["avatar"])
+        deformer = None
+        if ckpt.get("deformer") is not None:
+            deformer = MouthDeformer.for_head(head, int(ckpt["num_frames"]), config.model.mouth_deform)
+            deformer.load_state_dict(ckpt["deformer"])
+        info = RunInfo(
+            run_dir=run_dir,
+            checkpoint=path,
+            step=int(ckpt["step"]),
+            data_root=Path(dataset["root"]),
+            head_model=str(dataset["head_model"]),
+            background=[float(c) for c in dataset["background"]],
+            resolution=dataset.get("resolution"),
+            num_frames=int(ckpt["num_frames"]),
+            timesteps={k: [int(t) for t in v] for k, v in dataset["timesteps"].items()},
+            frame_params=dict(ckpt["frame_params"]),
+            aps=dict(ckpt["aps"]),
+            face_sets=ckpt["face_sets"],
+            run_options=run_options,
+        )
+    except KeyError as err:
+        raise RunError(f"{path}: checkpoint lacks the entry {err}") from err
+    except (ValueError, RuntimeError) as err:
+        if isinstance(err, RunError):
+            raise
+        raise RunError(f"{path}: cannot rebuild the avatar ({err})") from err
+    head, avatar = head.to(device).eval(), avatar.to(device).eval()
+    deformer = deformer.to(device).eval() if deformer is not None else None
+    return LoadedRun(config, head, avatar, deformer, info)
+
+
+__all__ = [
+    "APS_FILE", "CHECKPOINT_DIR", "CONFIG_FILE", "FINAL_CHECKPOINT", "LAST_CHECKPOINT", "LOG_FILE", "VAL_DIR",
+    "LoadedRun", "RunError", "RunInfo", "atomic_write_bytes", "atomic_write_json", "atomic_write_text",
+    "config_from_json", "config_to_dict", "dataclass_from_dict", "load_checkpoint", "load_head_for", "load_run",
+    "run_checkpoint_path", "save_checkpoint",
+]

@@ -1,0 +1,221 @@
+"""Trainer: a short run learns and writes a loadable RUN, resume is exact, NaN stops cleanly,
+seeded CPU runs repeat bit for bit, bad input fails with a clear message.
+
+One tiny generated subject (64 px, 12 frames) serves every test; runs are 6 steps of (a variant of)
+preset E that densifies at steps 2 and 4 and runs APS at step 3 (see small_config).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from geoavatar.config import preset
+from geoavatar.data import DatasetError
+from geoavatar.data.splits import ShortVideoWarning
+from geoavatar.train import checkpoint as ckpt
+from geoavatar.train import trainer as trainer_module
+from geoavatar.train.trainer import RunOptions, TrainingDiverged, new_state, open_training_data, render_frame, train
+
+STEPS = 6
+
+
+@pytest.fixture(scope="module")
+def subject(tmp_path_factory) -> Path:
+    from geoavatar.data.synth.generate import SynthConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("train-subject") / "tiny"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        generate_dataset(out, SynthConfig(subject=0, frames=12, size=64, seed=0), progress=False)
+    return out
+
+
+def small_config():
+    """Preset E on a 6-step schedule, changed so that 6 steps at 64 px show progress:
+    - Gaussians start at opacity 0.5 (0.1 leaves the sub-pixel Gaussians of a 64 px head nearly
+      transparent) and colours learn 20x faster;
+    - densification every 2 steps (scaled, it would run every step; a densifying step replaces the
+      Gaussian tensors, so as in 3DGS their Adam update is skipped that step and they would never learn);
+    - no opacity reset (scaled, it would fall every 2 steps and leave no step to recover; the reset
+      itself is tested in test_avatar).
+    APS stays at step 3, so the resume test crosses densification (random split samples) and APS.
+    """
+    config = preset("E", steps=STEPS)
+    return replace(
+        config,
+        model=replace(config.model, init_opacity=0.5),
+        lr=replace(config.lr, features=0.05, opacity=0.1),
+        densify=replace(config.densify, every=2, reset_opacity_every=10 * STEPS),
+    )
+
+
+def options(subject: Path, out: Path, **changes) -> RunOptions:
+    base = RunOptions(data=subject, out=out, seed=3, device="cpu", progress=False, val_every=1000, ckpt_every=1000,
+                      log_every=1)
+    return replace(base, **changes)
+
+
+def run(subject: Path, out: Path, **changes):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        return train(options(subject, out, **changes), small_config())
+
+
+def learned_tensors(run_dir: Path) -> dict[str, torch.Tensor]:
+    """Every learned tensor and optimizer moment of a run's last checkpoint, flattened by name."""
+    payload = ckpt.load_checkpoint(ckpt.run_checkpoint_path(run_dir, "last"))
+    out = {f"avatar.{k}": v for k, v in payload["avatar"].items()}
+    out.update({f"deformer.{k}": v for k, v in payload["deformer"].items()})
+    out.update({f"frames.{k}": v for k, v in payload["frame_params"].items()})
+    out.update({f"stats.{k}": v for k, v in payload["densify_stats"].items()})
+    for name, state in payload["optimizers"].items():
+        for index, moments in (state or {"state": {}})["state"].items():
+            out.update({f"opt.{name}.{index}.{k}": v for k, v in moments.items()})
+    out["face_sets"] = payload["face_sets"]
+    out["step"] = torch.tensor(payload["step"])
+    return out
+
+
+def assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+    assert sorted(a) == sorted(b)
+    for key in a:
+        assert a[key].shape == b[key].shape, key
+        assert torch.equal(a[key], b[key]), f"{key} differs (max {float((a[key].double() - b[key].double()).abs().max())})"
+
+
+@pytest.fixture(scope="module")
+def straight_run(subject, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("runs") / "straight"
+    result = run(subject, out)
+    assert result.status == "finished" and result.step == STEPS
+    return out
+
+
+def mean_l1(subject: Path, head, avatar, deformer, frames) -> float:
+    """Mean L1 over the validation frames (fixed training frames, unlike the per-step training loss)."""
+    data = trainer_module.HeadAvatarDataset(trainer_module.open_subject(subject), "val")
+    total = 0.0
+    with torch.no_grad():
+        for i in range(len(data)):
+            item = data[i]
+            target = trainer_module.composite_target(item["image"], item["mask"], item["background"])
+            result, _ = render_frame(head, avatar, deformer, frames(item["row"]), item["timestep"], item["viewmat"],
+                                     item["K"], item["width"], item["height"], item["background"])
+            total += float((result.rgb - target).abs().mean())
+    return total / len(data)
+
+
+def test_short_run_lowers_loss_and_writes_loadable_run(subject, straight_run, tmp_path):
+    config = small_config()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        data = open_training_data(options(subject, tmp_path / "unused"), config)
+    initial = new_state(data, config, seed=3)
+    before = mean_l1(subject, data.head, initial.avatar, initial.deformer, initial.frames)
+
+    loaded = ckpt.load_run(straight_run)
+    from geoavatar.train.frame_params import FrameParams
+
+    frames = FrameParams(loaded.info.frame_params)
+    after = mean_l1(subject, loaded.head, loaded.avatar, loaded.deformer, frames)
+    assert after < before - 1e-3, (before, after)
+
+    assert loaded.config == config and loaded.info.step == STEPS
+    assert loaded.deformer is not None and loaded.info.num_frames == 12
+    assert loaded.avatar.num_gaussians == loaded.avatar.binding.shape[0] >= loaded.head.num_faces
+    assert loaded.info.aps["done"] and loaded.info.aps["step"] == config.aps_step == 3
+    for name in ("config.json", "aps.json", "train.log", "checkpoints/final.pt"):
+        assert (straight_run / name).is_file(), name
+    assert sorted(p.name for p in (straight_run / "val").iterdir()) == [f"step_{STEPS:06d}.png"]
+    log = (straight_run / "train.log").read_text()
+    assert "APS at step 3" in log and "validation PSNR" in log
+    # Test frames are never refined: their parameters equal the tracked ones.
+    subject_params = trainer_module.open_subject(subject).params
+    test_rows = [loaded.info.timesteps["all"].index(t) for t in loaded.info.timesteps["test"]]
+    assert test_rows and torch.equal(frames.values["expr"][test_rows], subject_params["expr"][test_rows])
+
+
+def test_seeded_runs_repeat_exactly(subject, straight_run, tmp_path):
+    run(subject, tmp_path / "again")
+    assert_same(learned_tensors(straight_run), learned_tensors(tmp_path / "again"))
+
+
+def test_resume_after_ctrl_c_and_after_a_kill_equals_straight_run(subject, straight_run, tmp_path):
+    out = tmp_path / "resumed"
+
+    def ctrl_c_at_2(step, state, report):  # a real SIGINT, as Ctrl-C sends it
+        if step == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        first = train(options(subject, out, ckpt_every=4), small_config(), callback=ctrl_c_at_2)
+    assert first.status == "interrupted" and first.step == 2
+    assert ckpt.load_checkpoint(ckpt.run_checkpoint_path(out, "last"))["step"] == 2
+
+    def killed_at_5(step, state, report):  # dies without saving: the checkpoint of step 4 remains
+        if step == 5:
+            raise RuntimeError("simulated kill")
+
+    with warnings.catch_warnings(), pytest.raises(RuntimeError, match="simulated kill"):
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        train(options(subject, out, ckpt_every=4), None, resume=True, callback=killed_at_5)
+    assert ckpt.load_checkpoint(ckpt.run_checkpoint_path(out, "last"))["step"] == 4
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        final = train(options(subject, out, ckpt_every=4), None, resume=True)
+    assert final.status == "finished" and final.step == STEPS
+    assert_same(learned_tensors(straight_run), learned_tensors(out))
+    assert "resume at step 4" in (out / "train.log").read_text()
+
+
+def test_nan_loss_stops_with_last_good_checkpoint(subject, tmp_path, monkeypatch):
+    real_loss = trainer_module.avatar_loss
+
+    def loss_turning_nan_at_step_3(*args, **kwargs):
+        losses = real_loss(*args, **kwargs)
+        loss_turning_nan_at_step_3.calls += 1
+        if loss_turning_nan_at_step_3.calls == 3:
+            losses["total"] = losses["total"] * float("nan")
+        return losses
+
+    loss_turning_nan_at_step_3.calls = 0
+    monkeypatch.setattr(trainer_module, "avatar_loss", loss_turning_nan_at_step_3)
+    out = tmp_path / "nan"
+    with pytest.raises(TrainingDiverged, match=r"step 3: the loss is not finite.*last good checkpoint.*step 2"):
+        run(subject, out, ckpt_every=2)
+    good = ckpt.load_checkpoint(ckpt.run_checkpoint_path(out, "last"))
+    assert good["step"] == 2
+    assert all(torch.isfinite(v).all() for v in good["avatar"].values() if v.is_floating_point())
+    assert not ckpt.run_checkpoint_path(out, "final").exists()
+    assert "STOPPED" in (out / "train.log").read_text()
+
+
+def test_bad_inputs_fail_clearly(subject, straight_run, tmp_path, capsys):
+    from geoavatar.apps.train import train as cli_train
+
+    with pytest.raises(DatasetError, match="dataset folder not found"):
+        train(options(tmp_path / "missing", tmp_path / "r1"), small_config())
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match="geoavatar train: .*empty: not a dataset"):
+        cli_train(data=tmp_path / "empty", out=tmp_path / "r2", steps=2, progress=False)
+    with pytest.raises(SystemExit, match="already holds a run.*--resume"):
+        cli_train(data=subject, out=straight_run, steps=2, progress=False)
+    with pytest.raises(SystemExit, match="nothing to resume"):
+        cli_train(data=subject, out=tmp_path / "r3", resume=True, progress=False)
+    with pytest.raises(SystemExit, match="different one.*steps"):
+        cli_train(data=subject, out=straight_run, resume=True, steps=99, progress=False)
+    with pytest.raises(ckpt.RunError, match="not a GeoAvatar run"):
+        ckpt.load_run(tmp_path / "empty")
+    (tmp_path / "bad" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "bad" / "checkpoints" / "last.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ckpt.RunError, match="not a readable GeoAvatar checkpoint"):
+        ckpt.load_run(tmp_path / "bad")
