@@ -19,11 +19,18 @@ Conventions (read from gsplat 1.5.3: ProjectionEWA3DGSFused.cu, Utils.cuh, Raste
 Implementation: (tile, Gaussian) rows. The image is cut into small square tiles (4 px by default).
 Each visible Gaussian, taken in depth order, emits one row per tile its box touches; a stable sort by
 tile groups the rows tile by tile while keeping depth order. A chunk of rows is a dense
-[rows, tile_px] tensor (column = pixel of the tile), so the per-pixel front-to-back product is a
-column-wise segmented cumulative sum of log(1 − α) (float64) and no per-pixel sort is needed. The
-compositing step is a custom autograd.Function: forward keeps only the row list and two small
-images; backward recomputes each chunk and applies the hand-written gradient, so memory stays
-bounded by the chunk size (never [pixels × Gaussians]).
+[rows, tile_px] tensor (column = pixel of the tile): log(o) − sigma is one matrix product of per-row
+coefficients with the tile's pixel monomials, and the per-pixel front-to-back product is a
+column-wise segmented cumulative sum of log(1 − α) in float64 (no per-pixel sort). Rows that reach
+no pixel (before the scan), or that lie behind saturated pixels (after it), are dropped. Compositing
+is a custom autograd.Function with a hand-written backward; forward keeps alpha and T of the
+surviving pairs when they fit in a budget (else backward recomputes them chunk by chunk), so memory
+stays bounded by the chunk size and the number of overlaps, never [pixels × Gaussians].
+
+Two details differ from gsplat's kernel without changing results: gsplat's `sigma < 0` test is
+omitted (the conic is positive definite, so sigma >= 0; the matrix-product form can round to a tiny
+negative value at the mean, where gsplat computes exactly 0), and the coverage is accumulated as
+alpha = Σ α_k T_k, which equals gsplat's 1 − T_final up to rounding.
 """
 
 from __future__ import annotations
