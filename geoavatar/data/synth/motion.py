@@ -73,7 +73,7 @@ class Motion:
         return int(self.yaw.shape[0])
 
 
-def test_frame_count(num_frames: int) -> int:
+def held_out_frame_count(num_frames: int) -> int:
     """Frames in the held-out test segment, by the data layer's split rule (`geoavatar.data.splits`).
 
     The last 350 frames (INSTA protocol, as the paper) when the video has at least 700 frames, else
@@ -169,10 +169,10 @@ def _talking(rng: np.random.Generator, times: np.ndarray, envelope: np.ndarray) 
 def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0) -> Motion:
     """The motion of one synthetic video (deterministic for a given num_frames and seed).
 
-    The test segment is the last `test_frame_count(num_frames)` frames and contains poses and
+    The test segment is the last `held_out_frame_count(num_frames)` frames and contains poses and
     expression combinations outside the training part (see the module docstring).
     """
-    test_frames = test_frame_count(num_frames)
+    test_frames = held_out_frame_count(num_frames)
     train_frames = num_frames - test_frames
     rng = np.random.default_rng([seed, 0x5EED, num_frames])
     times = np.arange(num_frames) / fps  # [N] seconds
@@ -278,6 +278,6 @@ def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0) -> Motion:
 
 
 __all__ = [
-    "Motion", "script_motion", "test_frame_count", "TRAIN_EXPRESSIONS", "TALK_SHAPES",
+    "Motion", "script_motion", "held_out_frame_count", "TRAIN_EXPRESSIONS", "TALK_SHAPES",
     "TRAIN_YAW_RANGE", "TRAIN_PITCH_RANGE", "TRAIN_ROLL_MAX", "TEST_YAW_MIN", "TEST_PITCH_MIN", "TEST_ROLL",
 ]

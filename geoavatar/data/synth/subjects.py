@@ -10,7 +10,7 @@ accessories (glasses or a beard), so that some of its parts need large offsets f
                protruding ears (scaled x1.15, turned out 18 deg), no accessories
     subject 1  dark skin, black curly hair with big volume (2.0-3.0 cm), dark-brown eyes,
                small close-set ears (x0.88, turned back 8 deg), thin dark glasses
-    subject 2  light freckled skin, auburn hair (1.0-2.2 cm), green-blue eyes,
+    subject 2  light freckled skin, auburn hair (1.3-2.4 cm), green-blue eyes,
                ears set lower and further back (x1.05, 6 mm down), a short beard on the jaw and chin
 """
 
@@ -112,7 +112,7 @@ SUBJECTS: tuple[Subject, ...] = (
         skin_rgb=(0.90, 0.72, 0.62), skin_variation=0.05, cheek_red=0.5, freckles=0.6,
         lip_rgb=(0.78, 0.42, 0.42), brow_rgb=(0.42, 0.20, 0.10), iris_rgb=(0.22, 0.42, 0.40),
         hair_rgb=(0.50, 0.22, 0.09),
-        hair=HairStyle(min_cm=1.0, max_cm=2.2, curl=0.3, lumpiness=0.2, part_x=-0.02, hairline_drop_cm=0.4),
+        hair=HairStyle(min_cm=1.3, max_cm=2.4, curl=0.3, lumpiness=0.2, part_x=-0.02, hairline_drop_cm=0.4),
         ears=EarChange(scale=1.05, turn_out_deg=6.0, shift_cm=(0.0, -0.6, -0.4)),
         glasses=False, beard=True,
         background_rgb=(0.45, 0.58, 0.50), background_rgb_bottom=(0.36, 0.47, 0.41), texture_seed=33,

@@ -1,0 +1,365 @@
+"""Generate a complete synthetic monocular dataset of a ground-truth actor (VHAP layout).
+
+    generate_dataset(Path("data/synth0"), SynthConfig(subject=0, frames=300, size=512, seed=0))
+
+Output (written through `geoavatar.data.layout.LayoutWriter`, so it appears atomically):
+
+    transforms{,_train,_val,_test}.json, images/, fg_masks/, flame_param/, canonical_flame_param.npz,
+    geoavatar.json   head_model "openhead", mouth "geoavatar", background = mean background colour,
+                     source "geoavatar synth subject=K seed=S"
+    flame_param_gt/  the exact ground-truth parameters, same npz layout as flame_param/
+                     (flame_param/ = ground truth + tracker error unless tracking noise is off)
+    background.png   the constant background the frames are composited on
+    synth.json       generator metadata: subject, motion segments, test start, noise model, timing
+    preview.png      contact sheet (with --preview)
+
+The written static_offset is zero: the hair, ears, glasses and beard of the actor are NOT in the
+parameters (that is what the avatar has to learn).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import time
+import warnings
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from geoavatar.data.layout import INFO_FILE, LayoutWriter, read_info
+from geoavatar.data.splits import ShortVideoWarning
+from geoavatar.data.synth.actor import HEAD_MODEL, MOUTH_KIND, Actor, actor_for_subject
+from geoavatar.data.synth.appearance import background_image
+from geoavatar.data.synth.motion import Motion, script_motion
+from geoavatar.data.synth.render import ActorRenderer, Camera, frontal_camera
+from geoavatar.data.synth.subjects import get_subject
+from geoavatar.data.synth.tracking import TrackingNoise, apply_tracking_noise
+from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
+
+log = logging.getLogger(__name__)
+
+SOURCE_PREFIX = "geoavatar synth"
+META_FILE = "synth.json"
+GT_DIR = "flame_param_gt"
+BACKGROUND_FILE = "background.png"
+PREVIEW_FILE = "preview.png"
+
+# How the motion's share of head rotation is split between the root and the neck joint.
+ROOT_SHARE = 0.4
+
+# Semantic motion channels -> candidate expression-mode names of the head model (first match wins).
+CHANNEL_NAMES: dict[str, tuple[str, ...]] = {
+    "smile": ("smile",),
+    "cheek_raise": ("cheek_raise", "eye_squint", "cheek_squint", "squint"),
+    "brow_raise": ("brow_raise", "brows_raise", "brow_up", "surprise"),
+    "eyes_wide": ("eyes_wide", "eye_wide", "eyes_open", "lids_raise"),
+    "pucker": ("pucker", "lip_pucker", "kiss"),
+    "brow_lower": ("brow_lower", "brows_lower", "frown", "brow_down"),
+    "mouth_frown": ("mouth_frown", "frown", "lip_corner_down"),
+    "mouth_stretch": ("mouth_stretch", "lip_stretch", "stretch", "grimace"),
+    "nose_wrinkle": ("nose_wrinkle", "sneer", "disgust"),
+    "upper_lip_raise": ("upper_lip_raise", "upper_lip_up", "lip_raise_upper"),
+    "lip_funnel": ("lip_funnel", "funnel", "pucker"),
+    "blink_left": ("blink_left", "eye_close_left", "left_blink"),
+    "blink_right": ("blink_right", "eye_close_right", "right_blink"),
+}
+REQUIRED_CHANNELS = ("smile", "blink_left", "blink_right")
+
+
+@dataclass
+class SynthConfig:
+    """What to generate. The subject is fixed by its index; the seed drives motion and tracker error."""
+
+    subject: int = 0
+    frames: int = 300
+    size: int = 512
+    seed: int = 0
+    fps: float = 25.0
+    fov_deg: float = 30.0  # vertical field of view (a webcam / phone front camera)
+    ssaa: int = 2  # supersampling factor of the anti-aliasing
+    tracking_noise: TrackingNoise = field(default_factory=TrackingNoise)
+    png_compress_level: int = 1
+
+
+def check_output_folder(out: Path) -> bool:
+    """Refuse to write over anything but an empty folder or an earlier synthetic dataset.
+
+    Returns True when `out` exists and may be replaced. Raises FileExistsError / NotADirectoryError
+    naming --out otherwise.
+    """
+    out = Path(out)
+    if not out.exists():
+        return False
+    if not out.is_dir():
+        raise NotADirectoryError(f"--out {out} exists and is not a folder; choose another --out")
+    if not any(out.iterdir()):
+        return True
+    if is_synth_dataset(out):
+        return True
+    raise FileExistsError(
+        f"--out {out} is a non-empty folder that is not a dataset made by `geoavatar synth`; "
+        "refusing to overwrite it. Choose an empty or new folder."
+    )
+
+
+def is_synth_dataset(root: Path) -> bool:
+    root = Path(root)
+    if not (root / INFO_FILE).is_file() or not (root / META_FILE).is_file():
+        return False
+    try:
+        info = read_info(root)
+    except ValueError:
+        return False
+    return info is not None and (info.source or "").startswith(SOURCE_PREFIX)
+
+
+def expression_channels(head_expression_names: list[str] | tuple[str, ...]) -> dict[str, int]:
+    """Semantic channel -> expression mode index of the head model (channels it lacks are left out)."""
+    index = {name: i for i, name in enumerate(head_expression_names)}
+    mapping = {}
+    for channel, candidates in CHANNEL_NAMES.items():
+        for name in candidates:
+            if name in index:
+                mapping[channel] = index[name]
+                break
+    missing = [c for c in REQUIRED_CHANNELS if c not in mapping]
+    if missing:
+        raise ValueError(f"the head model's expression modes lack {', '.join(missing)} "
+                         f"(have: {', '.join(head_expression_names)}); the synthetic motion needs them")
+    return mapping
+
+
+def motion_to_params(motion: Motion, actor: Actor) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """Ground-truth parameters [N, ...] in the FLAME npz layout (model mode counts) from a motion."""
+    n = motion.num_frames
+    names = list(actor.head.metadata.get("expression_names", []))
+    mapping = expression_channels(names)
+    num_expr = actor.head.exprdirs.shape[-1]
+    expr = np.zeros((n, num_expr), np.float32)
+    channels = dict(motion.expressions)
+    channels["blink_left"] = motion.blink_left
+    channels["blink_right"] = motion.blink_right
+    for channel, values in channels.items():
+        if channel in mapping:
+            expr[:, mapping[channel]] += values.astype(np.float32)
+    euler = np.stack([motion.yaw, motion.pitch, motion.roll], axis=-1)  # [N, 3]
+    rotation = Rotation.from_euler("YXZ", ROOT_SHARE * euler).as_rotvec()
+    neck = Rotation.from_euler("YXZ", (1.0 - ROOT_SHARE) * euler).as_rotvec()
+    jaw = np.zeros((n, 3))
+    jaw[:, 0] = motion.jaw
+    eye = Rotation.from_euler("YX", motion.gaze).as_rotvec()  # [N, 3]
+    params = {
+        "shape": actor.shape.copy(),
+        "expr": expr,
+        "rotation": rotation.astype(np.float32),
+        "neck_pose": neck.astype(np.float32),
+        "jaw_pose": jaw.astype(np.float32),
+        "eyes_pose": np.concatenate([eye, eye], axis=1).astype(np.float32),
+        "translation": motion.translation.astype(np.float32),
+    }
+    return params, mapping
+
+
+def _frame_params(params: dict[str, np.ndarray], t: int) -> dict[str, np.ndarray]:
+    return {k: (v if k == "shape" else v[t : t + 1]) for k, v in params.items()}
+
+
+def _npz_arrays(params: dict[str, np.ndarray], t: int, static_offset: np.ndarray) -> dict[str, np.ndarray]:
+    """One timestep in the VHAP npz layout (padded to FLAME sizes, as the writer pads flame_param/)."""
+    out = {k: params[k][t : t + 1].astype(np.float32) for k in ("translation", "rotation", "neck_pose", "jaw_pose", "eyes_pose")}
+    expr = np.zeros((1, FLAME_EXPR_DIM), np.float32)
+    expr[0, : params["expr"].shape[1]] = params["expr"][t]
+    shape = np.zeros(FLAME_SHAPE_DIM, np.float32)
+    shape[: params["shape"].shape[0]] = params["shape"]
+    out.update(expr=expr, shape=shape, static_offset=static_offset)
+    return out
+
+
+def _posed_vertices(actor: Actor, params: dict[str, np.ndarray], start: int, stop: int) -> torch.Tensor:
+    batch = {k: torch.from_numpy(np.ascontiguousarray(v if k == "shape" else v[start:stop])) for k, v in params.items()}
+    with torch.no_grad():
+        return actor.model.forward_params(batch).vertices  # [B, V, 3]
+
+
+def preview_frames(motion: Motion, count: int = 10) -> list[int]:
+    """Frames for the contact sheet: spread over the sequence plus the widest-open mouths and the extremes."""
+    n = motion.num_frames
+    picks = set(np.linspace(0, n - 1, max(count - 4, 2)).round().astype(int).tolist())
+    train, test = slice(0, motion.test_start), slice(motion.test_start, n)
+    picks.add(int(np.argmax(motion.jaw[train])))
+    picks.add(motion.test_start + int(np.argmax(motion.jaw[test])))
+    picks.add(int(np.argmax(np.abs(motion.yaw[train]))))
+    picks.add(motion.test_start + int(np.argmin(motion.yaw[test])))
+    return sorted(picks)[:count + 2]
+
+
+def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, progress: bool = True) -> Path:
+    """Render and write the dataset to `out` (see the module docstring). Returns `out`."""
+    started = time.perf_counter()
+    out = Path(out)
+    subject = get_subject(config.subject)
+    if config.frames < 2:
+        raise ValueError(f"--frames must be at least 2 (training and test frames), got {config.frames}")
+    if config.size < 16:
+        raise ValueError(f"--size must be at least 16 pixels, got {config.size}")
+    replace = check_output_folder(out)
+
+    actor = actor_for_subject(subject.index)
+    camera = frontal_camera(actor, config.size, config.fov_deg)
+    background = background_image(subject, config.size, config.size)  # [H, W, 3]
+    renderer = ActorRenderer(actor, camera, background, ssaa=config.ssaa)
+    motion = script_motion(config.frames, config.seed, config.fps)
+    gt, mapping = motion_to_params(motion, actor)
+    written = apply_tracking_noise(gt, config.tracking_noise, config.fps, config.seed,
+                                   num_expr_used=actor.head.exprdirs.shape[-1],
+                                   num_shape_used=actor.head.shapedirs.shape[-1])
+    static_offset = np.zeros((1, actor.num_model_vertices, 3), np.float32)
+    mean_bg = tuple(float(v) for v in background.reshape(-1, 3).mean(0))
+    seen = set(preview_frames(motion)) if preview else set()
+    kept: dict[int, np.ndarray] = {}
+
+    writer = LayoutWriter(
+        out, head_model=HEAD_MODEL, image_size=(config.size, config.size), shape=written["shape"],
+        static_offset=static_offset, background=mean_bg, mouth=MOUTH_KIND,
+        source=f"{SOURCE_PREFIX} subject={config.subject} seed={config.seed}", overwrite=replace,
+        png_compress_level=config.png_compress_level,
+    )
+    try:
+        (writer.tmp / GT_DIR).mkdir()
+        viewmat, K = camera.viewmat, camera.K
+        pool = ThreadPoolExecutor(max_workers=1)  # PNG encoding overlaps the next frame's rendering
+        bar = _progress(config.frames, progress)
+        try:
+            pending: Future | None = None
+            for t in range(config.frames):
+                # One frame per forward pass: the same vertices as anyone re-posing the actor for frame t.
+                vertices = _posed_vertices(actor, gt, t, t + 1)[0]  # [V, 3]
+                image, mask = renderer.render(vertices)
+                image_u8 = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
+                mask_u8 = (mask.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
+                if t in seen:
+                    kept[t] = image_u8
+                if pending is not None:
+                    pending.result()
+                pending = pool.submit(_write_frame, writer, t, image_u8, mask_u8, _frame_params(written, t),
+                                      viewmat, K, _npz_arrays(gt, t, static_offset))
+                bar.update(1)
+            if pending is not None:
+                pending.result()
+        finally:
+            pool.shutdown(wait=True)  # never remove the folder under a write still in flight
+            bar.close()
+
+        Image.fromarray((background * 255.0 + 0.5).astype(np.uint8)).save(writer.tmp / BACKGROUND_FILE)
+        render_seconds = time.perf_counter() - started
+        meta = {
+            "generator": SOURCE_PREFIX,
+            "subject": subject.summary(),
+            "seed": config.seed,
+            "frames": config.frames,
+            "fps": config.fps,
+            "size": config.size,
+            "fov_deg_vertical": config.fov_deg,
+            "ssaa": config.ssaa,
+            "test_start": motion.test_start,
+            "segments": [{"start": a, "stop": b, "label": label} for a, b, label in motion.segments],
+            "tracking_noise": config.tracking_noise.to_dict(),
+            "expression_channels": {k: int(v) for k, v in mapping.items()},
+            "channels_unmapped": sorted(set(motion.expressions) - set(mapping)),
+            "actor": actor.info,
+            "ground_truth": f"{GT_DIR}/<timestep>.npz (flame_param/ = ground truth + tracker error)",
+            "background_file": BACKGROUND_FILE,
+            "render_seconds": round(render_seconds, 2),
+        }
+        if preview:
+            sheet = contact_sheet(actor, renderer, motion, gt, kept)
+            sheet.save(writer.tmp / PREVIEW_FILE, optimize=True)
+        (writer.tmp / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+        with warnings.catch_warnings():
+            # A short video holds out its last 25 %: expected here, the motion script is built for it.
+            warnings.simplefilter("ignore", ShortVideoWarning)
+            writer.finish()
+    except BaseException:
+        writer.abort()
+        raise
+    log.info("synthetic dataset written to %s in %.1f s", out, time.perf_counter() - started)
+    return out
+
+
+def _write_frame(writer: LayoutWriter, t: int, image: np.ndarray, mask: np.ndarray, params: dict,
+                 viewmat: torch.Tensor, K: torch.Tensor, gt_arrays: dict) -> None:
+    writer.add_frame(t, image, params, viewmat, K, mask=mask)
+    np.savez(writer.tmp / GT_DIR / f"{t:05d}.npz", **gt_arrays)
+
+
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, enabled: bool):
+    if not enabled:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc="synth", unit="frame")
+
+
+# --- preview -------------------------------------------------------------------------------------
+
+
+def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params: dict[str, np.ndarray],
+                  frames: dict[int, np.ndarray]) -> Image.Image:
+    """Frames across the sequence (labelled with segment, yaw, jaw) plus side views of the actor and of
+    the bare head model with the same parameters (shows the hair volume, ears, glasses, beard)."""
+    from PIL import ImageDraw
+
+    from geoavatar.data.synth.render import orbit_camera
+    from geoavatar.render.mesh import Lighting, render_mesh
+
+    tiles: list[tuple[np.ndarray, str]] = []
+    for t in sorted(frames):
+        label = next((lab for a, b, lab in motion.segments if a <= t < b), "")
+        tiles.append((frames[t], f"#{t} {label}  yaw {math.degrees(motion.yaw[t]):+.0f}  jaw {motion.jaw[t]:.2f}"))
+    # Side views of the neutral actor vs the bare head model, and an open-mouth close-up.
+    neutral = {k: (v if k == "shape" else np.zeros_like(v[:1])) for k, v in params.items()}
+    neutral["shape"] = params["shape"]
+    vertices = _posed_vertices(actor, neutral, 0, 1)[0]
+    target_y = float(torch.linalg.inv(renderer.camera.viewmat.double())[1, 3])
+    for yaw in (75.0, -110.0):
+        side = orbit_camera(renderer.camera, yaw, target_y)
+        image, _ = renderer.render(vertices, side)
+        tiles.append(((image * 255 + 0.5).to(torch.uint8).numpy(), f"actor, side {yaw:+.0f} deg"))
+        head = vertices[: actor.num_head_vertices]
+        bare = render_mesh(head, torch.from_numpy(actor.head.faces), side.viewmat, side.K, side.width, side.height,
+                           lighting=Lighting(), background=(0.85, 0.85, 0.85), ssaa=2)
+        tiles.append(((bare.image * 255 + 0.5).to(torch.uint8).numpy(), "head model alone, same view"))
+    size = 256
+    columns = 4
+    rows = math.ceil(len(tiles) / columns)
+    sheet = Image.new("RGB", (columns * size, rows * (size + 14)), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for i, (pixels, label) in enumerate(tiles):
+        x, y = (i % columns) * size, (i // columns) * (size + 14)
+        sheet.paste(Image.fromarray(pixels).resize((size, size), Image.LANCZOS), (x, y + 14))
+        draw.text((x + 3, y + 1), label, fill=(0, 0, 0))
+    return sheet
+
+
+__all__ = [
+    "SynthConfig", "generate_dataset", "check_output_folder", "is_synth_dataset", "motion_to_params",
+    "expression_channels", "contact_sheet", "preview_frames", "META_FILE", "GT_DIR", "BACKGROUND_FILE",
+    "PREVIEW_FILE",
+]
