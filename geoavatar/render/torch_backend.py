@@ -180,7 +180,9 @@ def plan_rows(
     local = torch.arange(total, device=device) - first[owner]
     tile_xy = lo[owner] + torch.stack([local % span[owner, 0], local // span[owner, 0]], -1)  # [M, 2]
     tile = tile_xy[:, 1] * tiles_x + tile_xy[:, 0]
-    tile, order = torch.sort(tile, stable=True)  # stable: depth order survives inside each tile
+    # stable: depth order survives inside each tile (int32 keys sort about twice as fast as int64)
+    tile, order = torch.sort(tile.to(torch.int32), stable=True)
+    tile = tile.long()
     row_gaussian = ids[owner[order]]
 
     # Chunks of whole tiles with about chunk_pairs (row, pixel) pairs each.
