@@ -18,11 +18,15 @@ COMMANDS: CommandTable = {
     "head": {
         "show": "geoavatar.apps.head_show:head_show",
     },
+    "synth": "geoavatar.apps.synth:synth",
+    "train": "geoavatar.apps.train:train",
 }
 
 _DESCRIPTIONS = {
     "head": "Head models: inspect the template, expressions and mouth structure.",
     "head show": "Render a contact sheet of a head model (front/side, expressions, open jaw).",
+    "synth": "Generate a synthetic monocular dataset of a ground-truth actor (the embedded default).",
+    "train": "Train a GeoAvatar (or an ablation preset) on a dataset.",
 }
 
 
