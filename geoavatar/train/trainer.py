@@ -11,8 +11,9 @@ One step (GaussianAvatars' loop with GeoAvatar's additions; steps are numbered 1
     target      image * mask + background * (1 - mask): pixels outside the foreground mask become the
                 background colour, as GaussianAvatars does, so the avatar never learns clothing/backdrop
     loss        avatar_loss: L_rgb + L_reg (+ L_angle, + GaussianAvatars' scale loss); NaN/Inf stops the run
-    backward    then densification statistics from means2d.grad, densify/prune/opacity reset on the
-                (scaled) schedule, Adam steps (position lr decays log-linearly), APS at aps_step
+    backward    then Adam steps (position lr decays log-linearly), then densification statistics from
+                means2d.grad and densify/prune/opacity reset on the (scaled) schedule, then APS at aps_step
+                (3DGS densifies before the Adam step and so skips that step's update; see train_step)
 
 Every step-based milestone comes from `TrainConfig.scaled_to(steps)`, so a short run keeps the paper's
 proportions (APS at half the run, densification every 1 % from 5 %, opacity reset every 30 %).
@@ -393,15 +394,18 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     for group in gaussians_opt.param_groups:
         if group["name"] == "means":
             group["lr"] = position_lr(step, config.lr, data.extent)
+    for opt in state.optimizers.values():
+        if opt is not None:
+            opt.step()
+    # Densification after the Adam step (3DGS runs it before, and a densifying step then loses its
+    # update: densify replaces the tensors, whose .grad is gone; immaterial every 2000 of 200k steps,
+    # but a schedule scaled to a few hundred steps densifies every 1-2 steps and would freeze them).
     binding, densified = densify_ops.step_post_backward(
         p, [gaussians_opt], state.avatar.binding, state.stats, config.densify, step,
         g.frames.scale.detach(), data.extent, result.means2d.grad, result.visible, result.radii,
         item["width"], item["height"], state.generator,
     )
     state.avatar.binding = binding
-    for opt in state.optimizers.values():
-        if opt is not None:
-            opt.step()
     _assert_finite(state, f"step {step}: after the optimizer step")
 
     aps_ran = False
