@@ -26,7 +26,9 @@ import os
 import shutil
 import time
 import warnings
-from concurrent.futures import Future, ThreadPoolExecutor
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import closing, contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -88,6 +90,7 @@ class SynthConfig:
     ssaa: int = 2  # supersampling factor of the anti-aliasing
     tracking_noise: TrackingNoise = field(default_factory=TrackingNoise)
     png_compress_level: int = 1
+    workers: int = field(default_factory=lambda: default_workers())  # rendering processes (1: inline)
 
 
 def check_output_folder(out: Path) -> bool:
@@ -211,6 +214,8 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
         raise ValueError(f"--frames must be at least 2 (training and test frames), got {config.frames}")
     if config.size < 16:
         raise ValueError(f"--size must be at least 16 pixels, got {config.size}")
+    if config.workers < 1:
+        raise ValueError(f"workers must be at least 1, got {config.workers}")
     replace = check_output_folder(out)
 
     actor = actor_for_subject(subject.index)
@@ -236,27 +241,16 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
     try:
         (writer.tmp / GT_DIR).mkdir()
         viewmat, K = camera.viewmat, camera.K
-        pool = ThreadPoolExecutor(max_workers=1)  # PNG encoding overlaps the next frame's rendering
         bar = _progress(config.frames, progress)
         try:
-            pending: Future | None = None
-            for t in range(config.frames):
-                # One frame per forward pass: the same vertices as anyone re-posing the actor for frame t.
-                vertices = _posed_vertices(actor, gt, t, t + 1)[0]  # [V, 3]
-                image, mask = renderer.render(vertices)
-                image_u8 = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
-                mask_u8 = (mask.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
-                if t in seen:
-                    kept[t] = image_u8
-                if pending is not None:
-                    pending.result()
-                pending = pool.submit(_write_frame, writer, t, image_u8, mask_u8, _frame_params(written, t),
-                                      viewmat, K, _npz_arrays(gt, t, static_offset))
-                bar.update(1)
-            if pending is not None:
-                pending.result()
+            with closing(_render_frames(actor, renderer, gt, config.frames, config.workers)) as frames:
+                for t, image_u8, mask_u8 in frames:
+                    if t in seen:
+                        kept[t] = image_u8
+                    _write_frame(writer, t, image_u8, mask_u8, _frame_params(written, t), viewmat, K,
+                                 _npz_arrays(gt, t, static_offset))
+                    bar.update(1)
         finally:
-            pool.shutdown(wait=True)  # never remove the folder under a write still in flight
             bar.close()
 
         Image.fromarray((background * 255.0 + 0.5).astype(np.uint8)).save(writer.tmp / BACKGROUND_FILE)
@@ -301,6 +295,67 @@ def _write_frame(writer: LayoutWriter, t: int, image: np.ndarray, mask: np.ndarr
     np.savez(writer.tmp / GT_DIR / f"{t:05d}.npz", **gt_arrays)
 
 
+# --- frame rendering, in worker processes ----------------------------------------------------------
+#
+# Frames are independent, so they are rendered in parallel by forked worker processes, each with one
+# torch thread (many small tensor ops parallelise poorly inside a frame, and OpenMP threads spin
+# badly on a busy machine). Every frame is rendered single-threaded, in a worker or inline, so the
+# bytes do not depend on the number of workers.
+
+_STATE: dict = {}  # actor, renderer, ground truth: inherited by forked workers
+
+
+def default_workers() -> int:
+    """Worker processes for rendering: the cores this process may use (at most 8)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(8, cores))
+
+
+@contextmanager
+def _one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _render_one(t: int) -> tuple[int, np.ndarray, np.ndarray]:
+    actor, renderer, params = _STATE["actor"], _STATE["renderer"], _STATE["params"]
+    vertices = _posed_vertices(actor, params, t, t + 1)[0]  # [V, 3], one frame per forward pass
+    image, mask = renderer.render(vertices)
+    image_u8 = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
+    mask_u8 = (mask.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
+    return t, image_u8, mask_u8
+
+
+def _worker_init() -> None:
+    torch.set_num_threads(1)
+
+
+def _render_frames(actor: Actor, renderer: ActorRenderer, params: dict[str, np.ndarray], frames: int, workers: int):
+    """Yield (t, image uint8 [H, W, 3], mask uint8 [H, W]) for t = 0..frames-1, in order."""
+    _STATE.update(actor=actor, renderer=renderer, params=params)
+    try:
+        if workers > 1 and frames > 1 and "fork" in multiprocessing.get_all_start_methods():
+            context = multiprocessing.get_context("fork")
+            pool = ProcessPoolExecutor(max_workers=min(workers, frames), mp_context=context, initializer=_worker_init)
+            try:
+                yield from pool.map(_render_one, range(frames), chunksize=1)
+            finally:  # on an error or Ctrl-C, drop the frames not started yet
+                pool.shutdown(wait=True, cancel_futures=True)
+        else:
+            with _one_thread():
+                for t in range(frames):
+                    yield _render_one(t)
+    finally:
+        _STATE.clear()
+
+
 class _NoBar:
     def update(self, n: int) -> None:
         pass
@@ -327,13 +382,26 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     from PIL import ImageDraw
 
     from geoavatar.data.synth.render import orbit_camera
+    from geoavatar.render.camera import intrinsics_from_fov, look_at
     from geoavatar.render.mesh import Lighting, render_mesh
 
     tiles: list[tuple[np.ndarray, str]] = []
     for t in sorted(frames):
         label = next((lab for a, b, lab in motion.segments if a <= t < b), "")
         tiles.append((frames[t], f"#{t} {label}  yaw {math.degrees(motion.yaw[t]):+.0f}  jaw {motion.jaw[t]:.2f}"))
-    # Side views of the neutral actor vs the bare head model, and an open-mouth close-up.
+    # A close-up of the widest-open mouth (teeth, tongue, palate).
+    t_open = int(np.argmax(motion.jaw))
+    posed = _posed_vertices(actor, params, t_open, t_open + 1)[0]
+    lips = np.concatenate([np.asarray(actor.head.lip_ring_upper), np.asarray(actor.head.lip_ring_lower)])
+    mouth = posed[torch.from_numpy(lips)].mean(0).double()  # [3]
+    close = Camera(
+        viewmat=look_at(mouth + torch.tensor([0.0, 0.03, 0.3], dtype=torch.float64), mouth).float(),
+        K=intrinsics_from_fov(18.0, renderer.camera.width, renderer.camera.height), width=renderer.camera.width,
+        height=renderer.camera.height,
+    )
+    image, _ = renderer.render(posed, close)
+    tiles.append(((image * 255 + 0.5).to(torch.uint8).numpy(), f"#{t_open} mouth close-up, jaw {motion.jaw[t_open]:.2f}"))
+    # Side views of the neutral actor vs the bare head model (hair volume, ears, glasses, beard).
     neutral = {k: (v if k == "shape" else np.zeros_like(v[:1])) for k, v in params.items()}
     neutral["shape"] = params["shape"]
     vertices = _posed_vertices(actor, neutral, 0, 1)[0]
@@ -346,8 +414,8 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
         bare = render_mesh(head, torch.from_numpy(actor.head.faces), side.viewmat, side.K, side.width, side.height,
                            lighting=Lighting(), background=(0.85, 0.85, 0.85), ssaa=2)
         tiles.append(((bare.image * 255 + 0.5).to(torch.uint8).numpy(), "head model alone, same view"))
-    size = 256
-    columns = 4
+    size = 240
+    columns = 5
     rows = math.ceil(len(tiles) / columns)
     sheet = Image.new("RGB", (columns * size, rows * (size + 14)), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
