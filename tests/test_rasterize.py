@@ -15,13 +15,12 @@ through the dense [Gaussians x pixels] tensors (fine at test sizes, forbidden in
 
 from __future__ import annotations
 
-import math
 import sys
 
 import pytest
 import torch
 
-from geoavatar.geometry import axis_angle_to_matrix, quaternion_to_matrix
+from geoavatar.geometry import quaternion_to_matrix
 from geoavatar.render import RasterizeResult, rasterize
 from geoavatar.render.gsplat_backend import gsplat_available
 from geoavatar.render.torch_backend import plan_rows, project_gaussians, rasterize_torch

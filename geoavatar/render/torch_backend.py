@@ -309,7 +309,8 @@ def _image_to_tiles(image: Tensor, plan: RowPlan) -> Tensor:
 
 
 class _CompositeTiles(torch.autograd.Function):
-    """Front-to-back compositing of the planned rows with a hand-written, chunk-recomputing backward."""
+    """Front-to-back compositing of the planned rows with a hand-written backward (per-pair alpha and T
+    kept from forward within the budget, recomputed chunk by chunk beyond it)."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, background, plan, width, height):
