@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -158,7 +157,7 @@ def test_dataset_files_and_reader_round_trip(dataset):
         assert (dataset / "images" / f"{t:05d}_00.png").is_file()
         assert (dataset / "fg_masks" / f"{t:05d}_00.png").is_file()
         assert (dataset / GT_DIR / f"{t:05d}.npz").is_file()
-    assert (dataset / "preview.png").is_file() and (dataset / "background.png").is_file()
+    assert (dataset / "preview.png").is_file()
     meta = json.loads((dataset / META_FILE).read_text())
     assert meta["test_start"] == FRAMES - held_out_frame_count(FRAMES)
     assert not meta["channels_unmapped"], meta["channels_unmapped"]
@@ -168,14 +167,13 @@ def test_dataset_files_and_reader_round_trip(dataset):
         assert set(gt.files) >= {"translation", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "expr", "shape"}
         # Tracker error on by default: written parameters differ from the ground truth.
         assert not np.allclose(gt["rotation"], subject.params["rotation"][3:4].numpy())
-    bg = np.asarray(Image.open(dataset / "background.png"), np.float32) / 255
-    np.testing.assert_allclose(bg.reshape(-1, 3).mean(0), subject.info.background, atol=2 / 255)
+    assert subject.info.background == pytest.approx(get_subject(0).background_rgb)
     assert not any(p.name.startswith(".") for p in dataset.parent.iterdir())  # no temporary folders left
 
 
 def test_mask_is_the_rendered_foreground(dataset):
     """The mask equals the supersampled coverage of the actor posed with the ground truth (an
-    independent rasterization), the image equals the background exactly where the mask is 0,
+    independent rasterization), the image is the geoavatar.json background exactly where the mask is 0,
     and the mask is larger than the bare head model's coverage (hair volume, ears)."""
     meta = json.loads((dataset / META_FILE).read_text())
     actor = build_actor(get_subject(0))
@@ -201,11 +199,11 @@ def test_mask_is_the_rendered_foreground(dataset):
     assert np.abs(mask - expected).max() <= 0.5 / 255 + 1e-6
     assert 0.1 < mask.mean() < 0.8 and ((mask > 0) & (mask < 1)).any()  # anti-aliased edges
     image = np.asarray(Image.open(dataset / "images" / f"{t:05d}_00.png"), np.float32) / 255
-    bg = np.asarray(Image.open(dataset / "background.png"), np.float32) / 255
+    bg = np.asarray(read_layout(dataset).info.background, np.float32)  # exact in 8 bits
     empty = mask == 0
-    np.testing.assert_allclose(image[empty], bg[empty], atol=1 / 255)
+    np.testing.assert_array_equal(image[empty], np.broadcast_to(bg, image[empty].shape))
     full = mask == 1
-    assert np.abs(image[full] - bg[full]).mean() > 0.05
+    assert np.abs(image[full] - bg).mean() > 0.05
     head_only = coverage(vertices[: actor.num_head_vertices], actor.head.faces)
     assert mask.sum() > 1.05 * head_only.sum()
 

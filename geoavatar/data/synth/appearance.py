@@ -256,18 +256,4 @@ class Appearance:
         return colour.clamp(0.0, 1.0)
 
 
-def background_image(subject: Subject, width: int, height: int) -> np.ndarray:
-    """The constant background [H, W, 3] float32: a vertical gradient with a faint cloudy texture."""
-    top = np.asarray(subject.background_rgb, dtype=np.float32)
-    bottom = np.asarray(subject.background_rgb_bottom, dtype=np.float32)
-    y = (np.arange(height, dtype=np.float32) + 0.5) / height
-    grad = top[None, :] * (1 - y[:, None]) + bottom[None, :] * y[:, None]  # [H, 3]
-    noise = SolidNoise(subject.texture_seed * 7 + 5)
-    yy, xx = np.meshgrid(y, (np.arange(width, dtype=np.float32) + 0.5) / width, indexing="ij")
-    pts = torch.from_numpy(np.stack([xx, yy, np.zeros_like(xx)], -1).reshape(-1, 3))
-    cloud = noise.fbm(pts, 6.0, octaves=3).numpy().reshape(height, width)
-    image = grad[:, None, :] * (1.0 + 0.025 * cloud[..., None])
-    return np.clip(image, 0.0, 1.0).astype(np.float32)
-
-
-__all__ = ["MATERIALS", "MATERIAL_INDEX", "Appearance", "FaceLandmarks", "LIGHTING", "background_image"]
+__all__ = ["MATERIALS", "MATERIAL_INDEX", "Appearance", "FaceLandmarks", "LIGHTING"]

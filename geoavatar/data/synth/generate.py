@@ -5,11 +5,10 @@
 Output (written through `geoavatar.data.layout.LayoutWriter`, so it appears atomically):
 
     transforms{,_train,_val,_test}.json, images/, fg_masks/, flame_param/, canonical_flame_param.npz,
-    geoavatar.json   head_model "openhead", mouth "geoavatar", background = mean background colour,
-                     source "geoavatar synth subject=K seed=S"
+    geoavatar.json   head_model "openhead", mouth "geoavatar", background = the plain background
+                     colour (exact: a multiple of 1/255), source "geoavatar synth subject=K seed=S"
     flame_param_gt/  the exact ground-truth parameters, same npz layout as flame_param/
                      (flame_param/ = ground truth + tracker error unless tracking noise is off)
-    background.png   the constant background the frames are composited on
     synth.json       generator metadata: subject, motion segments, test start, noise model, timing
     preview.png      contact sheet (with --preview)
 
@@ -22,14 +21,13 @@ from __future__ import annotations
 import json
 import logging
 import math
+import multiprocessing
 import os
-import shutil
 import time
 import warnings
-import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import closing, contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +38,6 @@ from scipy.spatial.transform import Rotation
 from geoavatar.data.layout import INFO_FILE, LayoutWriter, read_info
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.data.synth.actor import HEAD_MODEL, MOUTH_KIND, Actor, actor_for_subject
-from geoavatar.data.synth.appearance import background_image
 from geoavatar.data.synth.motion import Motion, script_motion
 from geoavatar.data.synth.render import ActorRenderer, Camera, frontal_camera
 from geoavatar.data.synth.subjects import get_subject
@@ -52,7 +49,6 @@ log = logging.getLogger(__name__)
 SOURCE_PREFIX = "geoavatar synth"
 META_FILE = "synth.json"
 GT_DIR = "flame_param_gt"
-BACKGROUND_FILE = "background.png"
 PREVIEW_FILE = "preview.png"
 
 # How the motion's share of head rotation is split between the root and the neck joint.
@@ -220,21 +216,19 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
 
     actor = actor_for_subject(subject.index)
     camera = frontal_camera(actor, config.size, config.fov_deg)
-    background = background_image(subject, config.size, config.size)  # [H, W, 3]
-    renderer = ActorRenderer(actor, camera, background, ssaa=config.ssaa)
+    renderer = ActorRenderer(actor, camera, subject.background_rgb, ssaa=config.ssaa)
     motion = script_motion(config.frames, config.seed, config.fps)
     gt, mapping = motion_to_params(motion, actor)
     written = apply_tracking_noise(gt, config.tracking_noise, config.fps, config.seed,
                                    num_expr_used=actor.head.exprdirs.shape[-1],
                                    num_shape_used=actor.head.shapedirs.shape[-1])
     static_offset = np.zeros((1, actor.num_model_vertices, 3), np.float32)
-    mean_bg = tuple(float(v) for v in background.reshape(-1, 3).mean(0))
     seen = set(preview_frames(motion)) if preview else set()
     kept: dict[int, np.ndarray] = {}
 
     writer = LayoutWriter(
         out, head_model=HEAD_MODEL, image_size=(config.size, config.size), shape=written["shape"],
-        static_offset=static_offset, background=mean_bg, mouth=MOUTH_KIND,
+        static_offset=static_offset, background=subject.background_rgb, mouth=MOUTH_KIND,
         source=f"{SOURCE_PREFIX} subject={config.subject} seed={config.seed}", overwrite=replace,
         png_compress_level=config.png_compress_level,
     )
@@ -253,7 +247,6 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
         finally:
             bar.close()
 
-        Image.fromarray((background * 255.0 + 0.5).astype(np.uint8)).save(writer.tmp / BACKGROUND_FILE)
         render_seconds = time.perf_counter() - started
         meta = {
             "generator": SOURCE_PREFIX,
@@ -271,7 +264,6 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
             "channels_unmapped": sorted(set(motion.expressions) - set(mapping)),
             "actor": actor.info,
             "ground_truth": f"{GT_DIR}/<timestep>.npz (flame_param/ = ground truth + tracker error)",
-            "background_file": BACKGROUND_FILE,
             "render_seconds": round(render_seconds, 2),
         }
         if preview:
@@ -428,6 +420,6 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
 
 __all__ = [
     "SynthConfig", "generate_dataset", "check_output_folder", "is_synth_dataset", "motion_to_params",
-    "expression_channels", "contact_sheet", "preview_frames", "META_FILE", "GT_DIR", "BACKGROUND_FILE",
+    "expression_channels", "contact_sheet", "preview_frames", "META_FILE", "GT_DIR",
     "PREVIEW_FILE",
 ]

@@ -71,9 +71,9 @@ def _neutral(actor: Actor) -> dict[str, Tensor]:
 
 
 class ActorRenderer:
-    """Renders frames of one actor: holds the per-vertex attributes and the background."""
+    """Renders frames of one actor over a plain background: holds the per-vertex attributes."""
 
-    def __init__(self, actor: Actor, camera: Camera, background: np.ndarray, ssaa: int = 2):
+    def __init__(self, actor: Actor, camera: Camera, background: tuple[float, float, float], ssaa: int = 2):
         if ssaa < 1:
             raise ValueError(f"ssaa must be >= 1, got {ssaa}")
         self.actor = actor
@@ -91,9 +91,7 @@ class ActorRenderer:
         # Inside the mouth, light falls off behind the front of the teeth (or the lips without teeth).
         self.mouth_z = float(actor.canonical[np.concatenate(teeth), 2].max()) if teeth \
             else float(actor.landmarks.mouth_centre[2])
-        bg = torch.from_numpy(np.ascontiguousarray(background, dtype=np.float32))  # [H, W, 3]
-        # The background at the supersampled resolution (nearest: box-filtering it back is exact).
-        self.background_hi = bg.repeat_interleave(ssaa, 0).repeat_interleave(ssaa, 1)
+        self.background = torch.tensor(background, dtype=torch.float32)  # [3]
         self.K_hi = scale_intrinsics(camera.K, ssaa)
 
     @torch.no_grad()
@@ -128,19 +126,11 @@ class ActorRenderer:
         occlusion = 1.0 - inside * 0.75 * (1.0 - torch.exp(-depth_in / 0.015))
         colour = self.appearance.shade_samples(canonical, weights, edge, normals, view_dirs, back_facing, occlusion)
 
-        background = self.background_hi if camera is self.camera else _resize_background(self.background_hi, height, width)
-        image_hi = background.reshape(-1, 3).clone()
+        image_hi = self.background.expand(height * width, 3).clone()
         image_hi[pix] = colour
         image = box_downsample(image_hi.view(height, width, 3), s)
         mask = box_downsample(covered.view(height, width).float(), s)
         return image, mask
-
-
-def _resize_background(background: Tensor, height: int, width: int) -> Tensor:
-    if background.shape[:2] == (height, width):
-        return background
-    return F.interpolate(background.permute(2, 0, 1)[None], size=(height, width), mode="bilinear",
-                         align_corners=False)[0].permute(1, 2, 0)
 
 
 __all__ = ["Camera", "ActorRenderer", "frontal_camera", "orbit_camera"]

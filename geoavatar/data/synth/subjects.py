@@ -58,8 +58,7 @@ class Subject:
     ears: EarChange
     glasses: bool
     beard: bool
-    background_rgb: tuple[float, float, float]  # top colour of the (vertical-gradient) background
-    background_rgb_bottom: tuple[float, float, float]
+    background_rgb: tuple[float, float, float]  # plain background (multiples of 1/255: exact in 8-bit images)
     texture_seed: int = 0
     extra: dict = field(default_factory=dict)
 
@@ -77,7 +76,12 @@ class Subject:
                      "shift_cm": list(self.ears.shift_cm)},
             "glasses": self.glasses,
             "beard": self.beard,
+            "background_rgb": list(self.background_rgb),
         }
+
+
+def _u8(r: int, g: int, b: int) -> tuple[float, float, float]:
+    return (r / 255.0, g / 255.0, b / 255.0)
 
 
 SUBJECTS: tuple[Subject, ...] = (
@@ -91,7 +95,7 @@ SUBJECTS: tuple[Subject, ...] = (
         hair=HairStyle(min_cm=1.2, max_cm=2.6, curl=0.0, lumpiness=0.15, part_x=0.025, hairline_drop_cm=0.6),
         ears=EarChange(scale=1.15, turn_out_deg=18.0, shift_cm=(0.0, 0.0, 0.0)),
         glasses=False, beard=False,
-        background_rgb=(0.62, 0.66, 0.70), background_rgb_bottom=(0.48, 0.52, 0.57), texture_seed=11,
+        background_rgb=_u8(140, 150, 161), texture_seed=11,
     ),
     Subject(
         index=1,
@@ -103,7 +107,7 @@ SUBJECTS: tuple[Subject, ...] = (
         hair=HairStyle(min_cm=2.0, max_cm=3.0, curl=1.0, lumpiness=0.35, part_x=None, hairline_drop_cm=0.3),
         ears=EarChange(scale=0.88, turn_out_deg=-8.0, shift_cm=(0.0, 0.3, 0.0)),
         glasses=True, beard=False,
-        background_rgb=(0.80, 0.76, 0.68), background_rgb_bottom=(0.70, 0.66, 0.58), texture_seed=22,
+        background_rgb=_u8(192, 182, 162), texture_seed=22,
     ),
     Subject(
         index=2,
@@ -115,7 +119,7 @@ SUBJECTS: tuple[Subject, ...] = (
         hair=HairStyle(min_cm=1.3, max_cm=2.4, curl=0.3, lumpiness=0.2, part_x=-0.02, hairline_drop_cm=0.4),
         ears=EarChange(scale=1.05, turn_out_deg=6.0, shift_cm=(0.0, -0.6, -0.4)),
         glasses=False, beard=True,
-        background_rgb=(0.45, 0.58, 0.50), background_rgb_bottom=(0.36, 0.47, 0.41), texture_seed=33,
+        background_rgb=_u8(104, 136, 118), texture_seed=33,
     ),
 )
 
