@@ -11,6 +11,7 @@ composited on the background with its mask (the training target). Reported per r
                   the same skin vertices exist in every preset's head model, so the region is the
                   same for every run
     SSIM          3DGS's SSIM over the whole image
+and, for scale, the PSNR of an empty render (the background colour alone) against the same targets.
 
     .venv/bin/python benchmarks/train_compare.py RUN_A RUN_E [--split test]
 
@@ -67,6 +68,7 @@ def evaluate(run_dir: Path, split: str) -> dict:
         raise SystemExit(f"{info.data_root}: the '{split}' split is empty")
     frames = FrameParams(info.frame_params, refine=False)
     sq_all, n_all, sq_mouth, n_mouth, ssims = 0.0, 0, 0.0, 0, []
+    bg_all, bg_mouth = 0.0, 0.0  # the same errors for an empty render (background only), for scale
     with torch.no_grad():
         for index in range(len(dataset)):
             item = dataset[index]
@@ -81,6 +83,9 @@ def evaluate(run_dir: Path, split: str) -> dict:
             n_all += err.numel()
             mask = mouth_mask(head, params, item["viewmat"], item["K"], item["width"], item["height"])
             sq_mouth += float(err[mask].sum())
+            bg_err = (item["background"].view(1, 1, 3) - target) ** 2
+            bg_all += float(bg_err.sum())
+            bg_mouth += float(bg_err[mask].sum())
             n_mouth += int(mask.sum()) * 3
             ssims.append(float(ssim(rgb, target)))
 
@@ -88,7 +93,8 @@ def evaluate(run_dir: Path, split: str) -> dict:
         return float("nan") if n == 0 else -10.0 * math.log10(max(sq / n, 1e-12))
 
     return {"run": str(run_dir), "step": info.step, "frames": len(dataset), "psnr": psnr(sq_all, n_all),
-            "mouth_psnr": psnr(sq_mouth, n_mouth), "mouth_pixels": n_mouth // 3 // len(dataset),
+            "mouth_psnr": psnr(sq_mouth, n_mouth), "bg_psnr": psnr(bg_all, n_all),
+            "bg_mouth_psnr": psnr(bg_mouth, n_mouth), "mouth_pixels": n_mouth // 3 // len(dataset),
             "ssim": sum(ssims) / len(ssims), "gaussians": avatar.num_gaussians,
             "flexible": [n for n, f in zip(info.aps.get("part_names", []), info.aps.get("flexible", [])) if f]}
 
@@ -106,6 +112,7 @@ def main() -> None:
     for r in rows:
         print(f"{Path(r['run']).name:<28} {r['step']:>6} {r['frames']:>6} {r['psnr']:>7.2f} {r['mouth_psnr']:>10.2f} "
               f"{r['ssim']:>6.4f} {r['gaussians']:>9}  {', '.join(r['flexible']) or '-'}")
+    print(f"{'(background only)':<28} {'':>6} {'':>6} {rows[0]['bg_psnr']:>7.2f} {rows[0]['bg_mouth_psnr']:>10.2f}")
     print(f"(mouth region: {rows[0]['mouth_pixels']} px per frame on average in the first run)")
 
 
