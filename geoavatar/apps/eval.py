@@ -1,0 +1,102 @@
+"""`geoavatar eval RUN [RUN ...]`: MSE, PSNR, SSIM, LPIPS (+ mouth PSNR / LPIPS) of trained runs."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+
+from geoavatar.data import DatasetError
+from geoavatar.eval.lpips import LPIPSWeightsError
+from geoavatar.train.checkpoint import RunError
+
+
+def _common_parent(paths: list[Path]) -> Path:
+    try:
+        return Path(os.path.commonpath([str(p.resolve()) for p in paths]))
+    except ValueError:  # different drives
+        return Path.cwd()
+
+
+def eval_runs(
+    runs: tyro.conf.Positional[list[Path]],
+    split: Literal["test", "val", "train"] = "test",
+    lpips_net: Literal["vgg", "alex"] = "vgg",
+    out: Optional[Path] = None,
+    max_frames: Optional[int] = None,
+    device: str = "auto",
+    data: Optional[Path] = None,
+    checkpoint: Literal["last", "final"] = "last",
+    save_images: bool = False,
+    lpips_unit_inputs: bool = False,
+    mouth: bool = True,
+    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    flame_dir: Optional[Path] = None,
+    progress: bool = True,
+) -> int:
+    """Evaluate trained runs on a split of their datasets, as the paper's Table 1 does.
+
+    Renders every frame of the split, composites the ground truth on the dataset's background as
+    GaussianAvatars and INSTA do, and measures MSE, PSNR, SSIM and LPIPS per frame (mean ± std), plus
+    PSNR and LPIPS of the mouth region (mouth-structure + lips faces). Test frames are unseen
+    timesteps: they use the dataset's tracked parameters and T = 0 for the mouth deformer.
+    Writes RUN/eval/SPLIT/metrics.json (per frame, summary, settings) and metrics.md (Table 1 layout)
+    for each run; with several runs also one comparison table (Table 1 and ablation layouts).
+
+    Args:
+        runs: One or more RUN folders written by `geoavatar train`.
+        split: Frames to evaluate: test (held-out last frames), val or train.
+        lpips_net: LPIPS backbone: vgg (as the 3DGS / GaussianAvatars evaluation) or alex.
+        out: Comparison table file (Markdown; a .json beside it) when several runs are given
+            (default: eval_SPLIT_comparison.md in the runs' common parent folder).
+        max_frames: Evaluate only this many frames, spread evenly over the split (default: all).
+        device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
+        data: Dataset folder, when it moved since training (default: the one the run recorded).
+        checkpoint: Which checkpoint of each run: last or final.
+        save_images: Also write RUN/eval/SPLIT/frames/*.png (gt | render | error x4 | mouth mask).
+        lpips_unit_inputs: Feed [0, 1] images to LPIPS unscaled, as the 3DGS scripts do (only then are
+            numbers comparable with theirs); default: [-1, 1], as LPIPS is defined.
+        mouth: Measure the mouth region too (--no-mouth skips it).
+        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        flame_dir: Folder with your FLAME model files (runs on FLAME-tracked data only).
+        progress: Show progress bars.
+    """
+    from geoavatar.eval.evaluate import EvalConfig, evaluate_run
+    from geoavatar.eval.report import comparison_markdown, metric_table, write_comparison, write_run_report
+    from geoavatar.train.checkpoint import load_run
+    from geoavatar.train.trainer import resolve_device
+
+    if not runs:
+        raise SystemExit("geoavatar eval: give at least one RUN folder")
+    config = EvalConfig(split=split, lpips_net=lpips_net, lpips_unit_inputs=lpips_unit_inputs, max_frames=max_frames,
+                        mouth=mouth, backend=backend, keep_images=save_images)
+    try:
+        config.validate()
+        torch_device = resolve_device(device)
+    except ValueError as err:
+        raise SystemExit(f"geoavatar eval: {err}") from None
+    results = []
+    for run_dir in runs:
+        try:
+            run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
+            result = evaluate_run(run, config, data=data, progress=progress, flame_dir=flame_dir)
+            written = write_run_report(result)
+        except (RunError, DatasetError, LPIPSWeightsError) as err:
+            raise SystemExit(f"geoavatar eval: {err}") from None
+        except ValueError as err:
+            raise SystemExit(f"geoavatar eval: {run_dir}: {err}") from None
+        results.append(result)
+        print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
+    if len(results) == 1:
+        print(metric_table(results, mark_best=False), end="")
+        return 0
+    target = out if out is not None else _common_parent(list(runs)) / f"eval_{split}_comparison.md"
+    written = write_comparison(results, target)
+    print(comparison_markdown(results), end="")
+    print(f"comparison: {written['markdown']} (+ {written['json'].name})")
+    return 0
+
+
+__all__ = ["eval_runs"]

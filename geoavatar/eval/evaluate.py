@@ -1,0 +1,388 @@
+"""Evaluate a trained run on a split of its dataset (`geoavatar eval`), frame by frame.
+
+    run = load_run("runs/E")
+    result = evaluate_run(run, EvalConfig(split="test"))     # EvalResult: per-frame metrics + summary
+
+Protocol (what the paper's Table 1 measures, as GaussianAvatars and INSTA evaluate):
+
+- pred   the render on the dataset's background colour (the rasterizer composites it), clamped to [0, 1];
+- gt     image * mask + background * (1 - mask): pixels outside the foreground mask become the
+         background colour, exactly the training target (train.trainer.composite_target);
+- MSE, PSNR, SSIM, LPIPS per frame on (pred, gt) over the whole image; the summary is the mean and
+  the (population, ddof 0) standard deviation over frames, PSNR averaged in dB per frame as 3DGS does.
+
+Head parameters and the deformer's time input (render_run_frames):
+- test frames are unseen timesteps (the last frames of the video): their per-frame parameters were
+  never refined (the trainer only renders training frames), so they come from the dataset's tracking,
+  and the frame-conditioned code gamma(T) of the mouth deformer was never trained for them, so T = 0,
+  as the paper does at inference ("T = 0 at inference");
+- train / val frames (val frames are training frames) use the run's refined parameters and their own T,
+  which reproduces what training saw.
+`timestep_mode` ("auto", "zero", "frame") overrides the T rule.
+
+Mouth region (per frame): the posed head mesh (with the mouth structure) is z-buffered with the mesh
+rasterizer, and a pixel belongs to the region when its visible face is a mouth-structure face
+(face_groups["mouth"], F_m) or a lips face (all 3 vertices in the "lips" region). The mask is dilated
+by `mouth_dilate` of the longer image side (Gaussians extend a little beyond their faces). Mouth PSNR
+is the PSNR over the mask's pixels; mouth LPIPS is LPIPS on the crop of the mask's bounding box,
+grown about its centre to at least `mouth_min_crop` px per side (AlexNet needs >= 32 px) and clamped
+to the image. Frames where no mouth pixel is visible get no mouth numbers (null) and are left out of
+the mouth means (the summary's `count` says how many frames each mean covers).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterator, Literal, NamedTuple, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from geoavatar.avatar import posed_head
+from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
+from geoavatar.eval import metrics
+from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
+from geoavatar.render.camera import world_to_camera
+from geoavatar.render.mesh import rasterize_mesh
+from geoavatar.train.checkpoint import LoadedRun, RunError
+from geoavatar.train.frame_params import FrameParams
+from geoavatar.train.trainer import composite_target, render_frame
+
+SPLITS = ("test", "val", "train")
+TimestepMode = Literal["auto", "zero", "frame"]
+METRIC_NAMES = ("mse", "psnr", "ssim", "lpips", "mouth_psnr", "mouth_lpips")
+
+
+@dataclass
+class EvalConfig:
+    """What `evaluate_run` measures and how."""
+
+    split: str = "test"
+    lpips_net: str = "vgg"
+    """LPIPS backbone: vgg (3DGS-family evaluation scripts) or alex."""
+    lpips_unit_inputs: bool = False
+    """Feed [0, 1] images to LPIPS unscaled, as the 3DGS / GaussianAvatars scripts do (default: the
+    [-1, 1] inputs LPIPS is defined on)."""
+    max_frames: int | None = None
+    """Evaluate only this many frames, spread evenly over the split (None: all)."""
+    mouth: bool = True
+    mouth_dilate: float = 0.01
+    """Dilation of the mouth mask, as a fraction of the longer image side (at least 1 px)."""
+    mouth_min_crop: int = 32
+    timestep_mode: str = "auto"
+    backend: str = "auto"
+    keep_images: bool = False
+    """Keep each frame's pred / gt / mouth mask on the result (for --save-images)."""
+
+    def validate(self) -> "EvalConfig":
+        if self.split not in SPLITS:
+            raise ValueError(f"--split must be one of {', '.join(SPLITS)}, got {self.split!r}")
+        if self.lpips_net not in LPIPS_NETS:
+            raise ValueError(f"--lpips-net must be one of {', '.join(LPIPS_NETS)}, got {self.lpips_net!r}")
+        if self.max_frames is not None and self.max_frames <= 0:
+            raise ValueError(f"--max-frames must be positive, got {self.max_frames}")
+        if self.timestep_mode not in ("auto", "zero", "frame"):
+            raise ValueError(f"timestep_mode must be auto, zero or frame, got {self.timestep_mode!r}")
+        if self.mouth_dilate < 0:
+            raise ValueError(f"mouth_dilate must be >= 0, got {self.mouth_dilate}")
+        if self.mouth_min_crop < MIN_SIZE[self.lpips_net]:
+            raise ValueError(f"mouth_min_crop must be >= {MIN_SIZE[self.lpips_net]} for LPIPS {self.lpips_net}")
+        return self
+
+
+@dataclass
+class FrameMetrics:
+    index: int  # position in the split
+    timestep: int
+    camera: int
+    mse: float
+    psnr: float
+    ssim: float
+    lpips: float
+    mouth_psnr: float | None = None
+    mouth_lpips: float | None = None
+    mouth_pixels: int = 0
+    mouth_box: list[int] | None = None  # [y0, y1, x0, x1] of the LPIPS crop
+
+
+@dataclass
+class EvalResult:
+    run_dir: Path
+    label: str
+    preset: str | None
+    subject: str
+    split: str
+    step: int
+    checkpoint: str
+    frames: list[FrameMetrics]
+    summary: dict[str, dict[str, float | int | None]]  # metric -> {mean, std, count}
+    settings: dict
+    seconds: float
+    images: list[dict[str, Tensor]] = field(default_factory=list)  # with keep_images: pred, gt, mouth
+
+
+class RenderedFrame(NamedTuple):
+    index: int  # position in the dataset
+    item: dict  # the dataset item (tensors on the run's device)
+    pred: Tensor  # [H, W, 3] render on the background, clamped to [0, 1]
+    target: Tensor  # [H, W, 3] image composited on the background
+    vertices: Tensor  # [V, 3] posed head (with mouth deformation)
+
+
+# --- opening the data of a run -------------------------------------------------------------------
+
+
+def open_run_dataset(run: LoadedRun, split: str, data: str | Path | None = None,
+                     flame_dir: str | Path | None = None) -> HeadAvatarDataset:
+    """The split of the dataset the run trained on, loaded as training loaded it (resolution, split rule).
+
+    `data` overrides the dataset folder recorded in the run (a moved dataset). RunError when the
+    folder is gone or its split / frames no longer match the run."""
+    info = run.info
+    root = Path(data) if data is not None else info.data_root
+    if not root.is_dir():
+        raise RunError(f"{info.run_dir}: its dataset folder {root} is not found; pass --data DIR to point at it")
+    config = DataConfig(resolution=info.resolution, test_frames=info.run_options.get("test_frames"))
+    head_options = {"flame_dir": flame_dir or info.run_options.get("flame_dir")} if info.head_model == "flame" else {}
+    try:
+        subject = open_subject(root)
+        dataset = HeadAvatarDataset(subject, split, config, head_options=head_options)
+    except DatasetError as err:
+        raise RunError(f"{info.run_dir}: cannot open its dataset: {err}") from err
+    if subject.head_model != info.head_model:
+        raise RunError(f"{root}: tracked with head model '{subject.head_model}', the run {info.run_dir} with "
+                       f"'{info.head_model}'")
+    expected = info.timesteps.get(split)
+    if expected is not None and sorted(set(dataset.timesteps)) != sorted(set(expected)):
+        raise RunError(f"{root}: its '{split}' split ({len(set(dataset.timesteps))} timesteps) differs from the one "
+                       f"the run {info.run_dir} recorded ({len(set(expected))}); the dataset changed since training")
+    rows = int(info.frame_params["expr"].shape[0])
+    if rows != subject.num_timesteps:
+        raise RunError(f"{root}: has {subject.num_timesteps} timesteps, the run {info.run_dir} has parameters for {rows}")
+    return dataset
+
+
+def evenly_spaced(count: int, limit: int | None) -> list[int]:
+    """`limit` indices spread evenly over range(count) (all of them when limit is None or >= count)."""
+    if limit is None or limit >= count:
+        return list(range(count))
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, limit)})
+
+
+# --- rendering the frames of a run ---------------------------------------------------------------
+
+
+def _item_to(item: dict, device: torch.device) -> dict:
+    out = {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in item.items()}
+    out["params"] = {k: v.to(device) for k, v in item["params"].items()}
+    return out
+
+
+@torch.no_grad()
+def render_run_frames(
+    run: LoadedRun,
+    dataset: HeadAvatarDataset,
+    indices: Sequence[int] | None = None,
+    timestep_mode: TimestepMode = "auto",
+    backend: str = "auto",
+) -> Iterator[RenderedFrame]:
+    """Render frames of `dataset` with the run's avatar (see the module docstring for the rules).
+
+    Yields RenderedFrame(index, item, pred, target, vertices) on the device of the run's modules.
+    """
+    device = next(run.avatar.parameters()).device
+    train_timesteps = set(run.info.timesteps.get("train", []))
+    refined = FrameParams(run.info.frame_params, refine=False).to(device)
+    for index in (range(len(dataset)) if indices is None else indices):
+        item = _item_to(dataset[index], device)
+        seen = item["timestep"] in train_timesteps
+        params = refined(item["row"]) if seen else item["params"]
+        if timestep_mode == "zero" or (timestep_mode == "auto" and not seen):
+            timestep = None  # T = 0: the paper's inference setting
+        else:
+            timestep = item["timestep"]
+        result, _ = render_frame(run.head, run.avatar, run.deformer, params, timestep, item["viewmat"], item["K"],
+                                 item["width"], item["height"], item["background"], backend)
+        vertices = posed_head(run.head, params, run.deformer, timestep).vertices[0]  # [V, 3]
+        pred = result.rgb.clamp(0.0, 1.0)
+        target = composite_target(item["image"], item["mask"], item["background"])
+        yield RenderedFrame(index, item, pred, target, vertices)
+
+
+# --- mouth region --------------------------------------------------------------------------------
+
+
+def mouth_face_mask(head) -> Tensor:
+    """[F] bool: mouth-structure faces (F_m) and lips faces (all 3 vertices in the 'lips' region)."""
+    faces = head.faces.detach().cpu().numpy()
+    selected = np.zeros(len(faces), dtype=bool)
+    mouth = head.face_groups.get("mouth")
+    if mouth is not None:
+        selected[np.asarray(mouth, dtype=np.int64)] = True
+    lips = head.regions.get("lips")
+    if lips is not None:
+        in_lips = np.zeros(head.num_vertices, dtype=bool)
+        in_lips[np.asarray(lips, dtype=np.int64)] = True
+        selected |= in_lips[faces].all(axis=1)
+    if not selected.any():
+        raise ValueError("the head model has neither a mouth structure nor a 'lips' region: no mouth metrics")
+    return torch.from_numpy(selected)
+
+
+def mouth_mask(
+    vertices: Tensor,  # [V, 3] posed head, world coordinates
+    faces: Tensor,  # [F, 3]
+    selected: Tensor,  # [F] bool, mouth_face_mask
+    viewmat: Tensor,  # [4, 4]
+    K: Tensor,  # [3, 3]
+    width: int,
+    height: int,
+    dilate_px: int = 0,
+) -> Tensor:
+    """[H, W] bool: pixels whose visible face (z-buffer over the whole head) is a selected face."""
+    frags = rasterize_mesh(world_to_camera(vertices, viewmat), faces, K, width, height)
+    selected = selected.to(frags.face_id.device)
+    mask = (frags.face_id >= 0) & selected[frags.face_id.clamp_min(0)]  # [H, W]
+    if dilate_px > 0 and bool(mask.any()):
+        size = 2 * dilate_px + 1
+        mask = F.max_pool2d(mask[None, None].float(), size, stride=1, padding=dilate_px)[0, 0] > 0
+    return mask
+
+
+def crop_box(mask: Tensor, min_size: int) -> list[int] | None:
+    """[y0, y1, x0, x1] (end-exclusive) around the mask, grown to >= min_size per side, inside the image."""
+    ys, xs = torch.nonzero(mask, as_tuple=True)
+    if ys.numel() == 0:
+        return None
+    height, width = mask.shape
+    box = []
+    for lo, hi, limit in ((int(ys.min()), int(ys.max()) + 1, height), (int(xs.min()), int(xs.max()) + 1, width)):
+        size = min(max(hi - lo, min_size), limit)
+        centre = (lo + hi) / 2.0
+        start = int(round(centre - size / 2.0))
+        start = min(max(start, 0), limit - size)
+        box += [start, start + size]
+    return box
+
+
+# --- the evaluation ------------------------------------------------------------------------------
+
+
+def summarize(frames: Sequence[FrameMetrics]) -> dict[str, dict[str, float | int | None]]:
+    """mean / std (ddof 0) / count of every metric over the frames where it is finite."""
+    out = {}
+    for name in METRIC_NAMES:
+        values = np.array([getattr(f, name) for f in frames if getattr(f, name) is not None], dtype=np.float64)
+        values = values[np.isfinite(values)]
+        out[name] = {"mean": float(values.mean()) if values.size else None,
+                     "std": float(values.std()) if values.size else None, "count": int(values.size)}
+    return out
+
+
+def run_label(run: LoadedRun) -> tuple[str, str | None, str]:
+    """(label, preset, subject): 'E · wojtek' from the run's preset and its dataset folder name."""
+    preset = run.info.run_options.get("preset")
+    subject = run.info.data_root.name or str(run.info.data_root)
+    return (f"{preset} · {subject}" if preset else f"{run.info.run_dir.name} · {subject}"), preset, subject
+
+
+def evaluate_run(
+    run: LoadedRun,
+    config: EvalConfig | None = None,
+    data: str | Path | None = None,
+    progress: bool = True,
+    flame_dir: str | Path | None = None,
+) -> EvalResult:
+    """Per-frame MSE / PSNR / SSIM / LPIPS (+ mouth PSNR / LPIPS) of a loaded run on config.split."""
+    config = (config or EvalConfig()).validate()
+    started = time.perf_counter()
+    dataset = open_run_dataset(run, config.split, data, flame_dir)
+    if len(dataset) == 0:
+        raise RunError(f"{run.info.run_dir}: the '{config.split}' split of {dataset.subject.root} is empty")
+    indices = evenly_spaced(len(dataset), config.max_frames)
+    selected = mouth_face_mask(run.head) if config.mouth else None
+    from tqdm.auto import tqdm
+
+    label, preset, subject = run_label(run)
+    frames: list[FrameMetrics] = []
+    images: list[dict[str, Tensor]] = []
+    bar = tqdm(total=len(indices), disable=not progress, dynamic_ncols=True, unit="frame", desc=f"eval {label}")
+    try:
+        for frame in render_run_frames(run, dataset, indices, config.timestep_mode, config.backend):
+            pred, target, item = frame.pred, frame.target, frame.item
+            mse = metrics.mse(pred, target)
+            record = FrameMetrics(
+                index=frame.index, timestep=int(item["timestep"]), camera=int(item["camera"]), mse=mse,
+                psnr=metrics.psnr_from_mse(mse), ssim=metrics.ssim(pred, target),
+                lpips=float(metrics.lpips(pred, target, config.lpips_net, config.lpips_unit_inputs)[0]),
+            )
+            mask = None
+            if selected is not None:
+                dilate = max(1, int(round(config.mouth_dilate * max(item["width"], item["height"])))) \
+                    if config.mouth_dilate > 0 else 0
+                mask = mouth_mask(frame.vertices, run.head.faces, selected, item["viewmat"], item["K"],
+                                  item["width"], item["height"], dilate)
+                box = crop_box(mask, config.mouth_min_crop)
+                if box is not None:
+                    y0, y1, x0, x1 = box
+                    record.mouth_pixels = int(mask.sum())
+                    record.mouth_psnr = metrics.masked_psnr(pred, target, mask)
+                    record.mouth_box = box
+                    if min(y1 - y0, x1 - x0) >= MIN_SIZE[config.lpips_net]:  # else the image itself is too small
+                        record.mouth_lpips = float(metrics.lpips(pred[y0:y1, x0:x1], target[y0:y1, x0:x1],
+                                                                 config.lpips_net, config.lpips_unit_inputs)[0])
+            frames.append(record)
+            if config.keep_images:
+                images.append({"pred": pred.cpu(), "gt": target.cpu(),
+                               "mouth": mask.cpu() if mask is not None else None})
+            bar.update(1)
+            bar.set_postfix(psnr=f"{record.psnr:.2f}", refresh=False)
+    finally:
+        bar.close()
+    settings = {
+        "split": config.split,
+        "frames_in_split": len(dataset),
+        "frames_evaluated": len(indices),
+        "max_frames": config.max_frames,
+        "data_root": str(dataset.subject.root),
+        "resolution": run.info.resolution,
+        "background": [float(c) for c in dataset.background],
+        "lpips_net": config.lpips_net,
+        "lpips_inputs": "[0,1] unscaled (3DGS scripts)" if config.lpips_unit_inputs else "[-1,1] (LPIPS definition)",
+        "ssim": "Gaussian window 11x11, sigma 1.5, K1 0.01, K2 0.03, zero padding (3DGS ssim)",
+        "composite": "pred: render on the dataset background; gt: image * mask + background * (1 - mask)",
+        "timestep_mode": config.timestep_mode,
+        "params": "refined per-frame parameters for training timesteps, the dataset's tracking otherwise",
+        "mouth": ({"faces": "mouth structure (F_m) + lips faces, z-buffered", "dilate_fraction": config.mouth_dilate,
+                   "min_crop": config.mouth_min_crop} if config.mouth else None),
+        "std": "population (ddof 0) over frames",
+        "backend": config.backend,
+    }
+    return EvalResult(
+        run_dir=run.info.run_dir, label=label, preset=preset, subject=subject, split=config.split,
+        step=run.info.step, checkpoint=str(run.info.checkpoint), frames=frames, summary=summarize(frames),
+        settings=settings, seconds=time.perf_counter() - started, images=images,
+    )
+
+
+def frame_dicts(result: EvalResult) -> list[dict]:
+    """Per-frame records as JSON-safe dicts (non-finite numbers become null)."""
+    out = []
+    for frame in result.frames:
+        record = asdict(frame)
+        for key, value in record.items():
+            if isinstance(value, float) and not np.isfinite(value):
+                record[key] = None
+        out.append(record)
+    return out
+
+
+__all__ = [
+    "EvalConfig", "EvalResult", "FrameMetrics", "METRIC_NAMES", "RenderedFrame", "SPLITS", "crop_box",
+    "evaluate_run", "evenly_spaced", "frame_dicts", "mouth_face_mask", "mouth_mask", "open_run_dataset",
+    "render_run_frames", "run_label", "summarize",
+]

@@ -1,0 +1,197 @@
+"""Evaluation reports: one run's metrics.json + metrics.md, and one comparison table over runs.
+
+Markdown follows the paper. Table 1 layout (`metric_table`): one row per metric, one column per run,
+"mean ± std" with the paper's scaling (MSE x 10^-3, LPIPS x 10^-1, 3 decimals for the mean and 2 for
+the std). Ablation layout (`ablation_table`, Tables 3 / 6): one row per run, one column per metric.
+In comparisons the best value of each metric is bold and the second underlined, as in the paper.
+
+Files (all written atomically: temporary file in the same folder, then os.replace):
+
+    RUN/eval/<split>/metrics.json    per-frame metrics, summary (mean, std, count), settings, run info
+    RUN/eval/<split>/metrics.md      the Table 1 column of this run
+    RUN/eval/<split>/frames/*.png    with --save-images: gt | pred | |error| x 4 | mouth mask per frame
+    OUT.md / OUT.json                with several runs: the comparison (both layouts) and every summary
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from geoavatar.eval.evaluate import EvalResult, frame_dicts
+from geoavatar.train.checkpoint import atomic_write_bytes, atomic_write_json, atomic_write_text
+
+REPORT_FORMAT = "geoavatar-eval"
+REPORT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MetricColumn:
+    key: str
+    title: str
+    scale: float
+    higher_is_better: bool
+
+
+COLUMNS: tuple[MetricColumn, ...] = (
+    MetricColumn("mse", "MSE (×10⁻³) ↓", 1e3, False),
+    MetricColumn("psnr", "PSNR ↑", 1.0, True),
+    MetricColumn("ssim", "SSIM ↑", 1.0, True),
+    MetricColumn("lpips", "LPIPS (×10⁻¹) ↓", 1e1, False),
+    MetricColumn("mouth_psnr", "Mouth PSNR ↑", 1.0, True),
+    MetricColumn("mouth_lpips", "Mouth LPIPS (×10⁻¹) ↓", 1e1, False),
+)
+
+
+def eval_dir(run_dir: str | Path, split: str) -> Path:
+    return Path(run_dir) / "eval" / split
+
+
+def _fmt(stats: dict, column: MetricColumn, with_std: bool = True) -> str:
+    mean, std = stats.get("mean"), stats.get("std")
+    if mean is None or not math.isfinite(mean):
+        return "–"
+    text = f"{mean * column.scale:.3f}"
+    if with_std and std is not None and math.isfinite(std):
+        text += f" ± {std * column.scale:.2f}"
+    return text
+
+
+def _ranks(results: Sequence[EvalResult], column: MetricColumn) -> dict[int, int]:
+    """Position -> rank (0 best, 1 second) of the runs with a value, on the rounded printed mean."""
+    values = [(i, round(r.summary[column.key]["mean"] * column.scale, 3)) for i, r in enumerate(results)
+              if r.summary.get(column.key, {}).get("mean") is not None]
+    distinct = sorted({v for _, v in values}, reverse=column.higher_is_better)
+    return {i: distinct.index(v) for i, v in values if distinct.index(v) < 2}
+
+
+def _mark(text: str, rank: int | None) -> str:
+    if rank == 0:
+        return f"**{text}**"
+    if rank == 1:
+        return f"<u>{text}</u>"
+    return text
+
+
+def _escape(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def metric_table(results: Sequence[EvalResult], mark_best: bool | None = None) -> str:
+    """Table 1 layout: rows = metrics, columns = runs, 'mean ± std'."""
+    mark_best = len(results) > 1 if mark_best is None else mark_best
+    lines = ["| Metric | " + " | ".join(_escape(r.label) for r in results) + " |",
+             "|---|" + "---:|" * len(results)]
+    for column in COLUMNS:
+        ranks = _ranks(results, column) if mark_best else {}
+        cells = [_mark(_fmt(r.summary.get(column.key, {}), column), ranks.get(i)) for i, r in enumerate(results)]
+        lines.append(f"| {column.title} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def ablation_table(results: Sequence[EvalResult], with_std: bool = False) -> str:
+    """Tables 3 / 6 layout: rows = runs (preset, subject), columns = metrics (means; best bold)."""
+    lines = ["| Run | Preset | Subject | " + " | ".join(c.title for c in COLUMNS) + " |",
+             "|---|---|---|" + "---:|" * len(COLUMNS)]
+    ranks = {c.key: _ranks(results, c) for c in COLUMNS}
+    for i, r in enumerate(results):
+        cells = [_mark(_fmt(r.summary.get(c.key, {}), c, with_std), ranks[c.key].get(i)) for c in COLUMNS]
+        lines.append(f"| {_escape(str(r.run_dir))} | {_escape(r.preset or '–')} | {_escape(r.subject)} | "
+                     + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _settings_lines(result: EvalResult) -> str:
+    s = result.settings
+    frames = f"{s['frames_evaluated']} of {s['frames_in_split']} frames" if s["frames_evaluated"] != s["frames_in_split"] \
+        else f"{s['frames_in_split']} frames"
+    mouth = s.get("mouth")
+    mouth_text = (f"mouth region: mouth-structure + lips faces visible in the z-buffer, dilated by "
+                  f"{mouth['dilate_fraction']:g} of the image side; LPIPS on its bounding box (>= {mouth['min_crop']} px)"
+                  if mouth else "mouth region: off")
+    return "\n".join([
+        f"- split `{result.split}`: {frames} of `{s['data_root']}` (resolution {s['resolution'] or 'as stored'})",
+        f"- checkpoint `{result.checkpoint}` (step {result.step})",
+        f"- images composited on the dataset background {s['background']}; LPIPS {s['lpips_net']}, inputs "
+        f"{s['lpips_inputs']}; SSIM {s['ssim']}",
+        f"- {mouth_text}",
+        f"- mean ± std ({s['std']}); test frames: T = 0 and tracked parameters",
+    ]) + "\n"
+
+
+def run_markdown(result: EvalResult) -> str:
+    return (f"# Evaluation of {result.label}\n\n" + metric_table([result], mark_best=False) + "\n"
+            + _settings_lines(result))
+
+
+def run_json(result: EvalResult) -> dict:
+    return {
+        "format": REPORT_FORMAT, "version": REPORT_VERSION,
+        "run": str(result.run_dir), "label": result.label, "preset": result.preset, "subject": result.subject,
+        "checkpoint": result.checkpoint, "step": result.step, "split": result.split,
+        "seconds": round(result.seconds, 3),
+        "summary": result.summary, "settings": result.settings, "frames": frame_dicts(result),
+    }
+
+
+def _png(image: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def write_frame_images(result: EvalResult, folder: Path) -> list[Path]:
+    """gt | pred | |error| x 4 | mouth mask for each kept frame, as PNG files named by timestep and camera."""
+    paths = []
+    for frame, images in zip(result.frames, result.images):
+        gt, pred = images["gt"], images["pred"]
+        error = ((pred - gt).abs() * 4.0).clamp(0.0, 1.0)
+        panels = [gt, pred, error]
+        if images.get("mouth") is not None:
+            panels.append(images["mouth"].float()[..., None].expand_as(gt))
+        row = (np.concatenate([p.numpy() for p in panels], axis=1) * 255.0 + 0.5).astype(np.uint8)
+        path = folder / f"{frame.timestep:05d}_{frame.camera:02d}.png"
+        paths.append(atomic_write_bytes(path, _png(row)))
+    return paths
+
+
+def write_run_report(result: EvalResult, out_dir: str | Path | None = None) -> dict[str, Path]:
+    """RUN/eval/<split>/metrics.json and metrics.md (+ frames/*.png when the result kept images)."""
+    folder = Path(out_dir) if out_dir is not None else eval_dir(result.run_dir, result.split)
+    written = {"json": atomic_write_json(folder / "metrics.json", run_json(result)),
+               "markdown": atomic_write_text(folder / "metrics.md", run_markdown(result))}
+    if result.images:
+        write_frame_images(result, folder / "frames")
+        written["frames"] = folder / "frames"
+    return written
+
+
+def comparison_markdown(results: Sequence[EvalResult]) -> str:
+    splits = sorted({r.split for r in results})
+    nets = sorted({r.settings["lpips_net"] for r in results})
+    return (f"# Comparison on the {'/'.join(splits)} split ({len(results)} runs, LPIPS {'/'.join(nets)})\n\n"
+            "## Table 1 layout (mean ± std)\n\n" + metric_table(results)
+            + "\n## Ablation layout (means)\n\n" + ablation_table(results)
+            + "\n**Bold**: best, <u>underlined</u>: second. Per-run details: `RUN/eval/<split>/metrics.json`.\n")
+
+
+def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[str, Path]:
+    """The comparison Markdown at `path` (.md added when missing) and a JSON of every summary beside it."""
+    path = Path(path)
+    markdown = path if path.suffix.lower() == ".md" else path.with_name(path.name + ".md")
+    body = {"format": REPORT_FORMAT + "-comparison", "version": REPORT_VERSION, "runs": [
+        {k: v for k, v in run_json(r).items() if k != "frames"} for r in results]}
+    return {"markdown": atomic_write_text(markdown, comparison_markdown(results)),
+            "json": atomic_write_text(markdown.with_suffix(".json"), json.dumps(body, indent=2) + "\n")}
+
+
+__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "comparison_markdown", "eval_dir", "metric_table",
+           "run_json", "run_markdown", "write_comparison", "write_frame_images", "write_run_report"]
