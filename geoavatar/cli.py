@@ -20,6 +20,7 @@ COMMANDS: CommandTable = {
     },
     "synth": "geoavatar.apps.synth:synth",
     "train": "geoavatar.apps.train:train",
+    "eval": "geoavatar.apps.eval:eval_runs",
 }
 
 _DESCRIPTIONS = {
@@ -27,6 +28,7 @@ _DESCRIPTIONS = {
     "head show": "Render a contact sheet of a head model (front/side, expressions, open jaw).",
     "synth": "Generate a synthetic monocular dataset of a ground-truth actor (the embedded default).",
     "train": "Train a GeoAvatar (or an ablation preset) on a dataset.",
+    "eval": "Evaluate runs on the test split: MSE, PSNR, SSIM, LPIPS (+ mouth); Table 1 / ablation tables.",
 }
 
 
