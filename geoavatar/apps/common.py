@@ -1,0 +1,405 @@
+"""Shared pieces of the commands that use a trained run: render, reenact, orbit, export, view, bench.
+
+    run = open_run(run_dir, device)                 # LoadedRun; RunError names the folder
+    frames = RunFrames(run)                          # per-timestep parameters + the dataset's cameras
+    params, T = frames.params(timestep)              # the head parameters of a frame and its T rule
+    result = render_params(run, params, camera, T)   # posed head -> mouth deformer -> avatar -> rasterize
+    with Mp4Writer(path, fps=25) as video: video.write(frame_uint8)   # atomic mp4 (PyAV, libx264)
+
+The T rule (the mouth deformer's time input gamma(T)), the same as `geoavatar eval`: a training
+timestep renders with its own T and the run's refined parameters, which reproduces what training
+saw; any other timestep (test frames, a driver's frames, edited parameters) renders with T = 0, the
+paper's inference setting, and the parameters as tracked (the trainer never refines test rows).
+
+Errors: functions raise RunError (bad run, dataset gone or changed) or ValueError (bad option); the
+command functions turn both, and DatasetError, into `SystemExit("geoavatar <cmd>: <message>")` with
+`command_errors`, so a user sees one clear line and a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+from typing import Annotated, Iterable, Iterator, NamedTuple
+
+import numpy as np
+import torch
+import tyro
+from torch import Tensor
+
+from geoavatar.avatar import GlobalGaussians, posed_head
+from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
+from geoavatar.data.subject import SUBJECT_KEYS, Subject
+from geoavatar.render import RasterizeResult, rasterize
+from geoavatar.train.checkpoint import LoadedRun, RunError, load_run
+from geoavatar.train.trainer import resolve_device
+
+# The RUN folder: the first, positional argument of every command (`geoavatar render RUN`).
+RunPath = Annotated[Path, tyro.conf.Positional]
+
+VIDEO_DIR = "videos"  # RUN/videos/<command>_....mp4 unless --out says otherwise
+EXPORT_DIR = "export"
+
+
+# --- errors and devices ---------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def command_errors(command: str) -> Iterator[None]:
+    """Turn RunError / DatasetError / ValueError / FileExistsError into SystemExit('geoavatar CMD: msg')."""
+    try:
+        yield
+    except (RunError, DatasetError, ValueError, FileExistsError, NotADirectoryError) as err:
+        raise SystemExit(f"geoavatar {command}: {err}") from None
+
+
+def synchronize(device: torch.device | str) -> None:
+    """Wait for queued kernels on `device` (a no-op on CPU): timings need it on asynchronous devices."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    elif device.type == "mps":
+        torch.mps.synchronize()
+
+
+def open_run(run_dir: str | os.PathLike, device: str = "auto", flame_dir: str | os.PathLike | None = None) -> LoadedRun:
+    """load_run on the resolved device (auto: CUDA when available). RunError / ValueError on bad input."""
+    return load_run(run_dir, resolve_device(device), flame_dir=flame_dir)
+
+
+def run_device(run: LoadedRun) -> torch.device:
+    return run.avatar.binding.device
+
+
+# --- cameras and per-frame parameters ---------------------------------------------------------------
+
+
+class Camera(NamedTuple):
+    viewmat: Tensor  # [4, 4] world-to-camera, OpenCV axes
+    K: Tensor  # [3, 3] pixels, pixel centres at +0.5
+    width: int
+    height: int
+
+    def to(self, device: torch.device) -> "Camera":
+        return Camera(self.viewmat.to(device), self.K.to(device), self.width, self.height)
+
+    def resized(self, longer_side: int) -> "Camera":
+        """The same camera for an image whose longer side is `longer_side` pixels (K scaled)."""
+        scale = longer_side / max(self.width, self.height)
+        width, height = max(1, round(self.width * scale)), max(1, round(self.height * scale))
+        factors = torch.tensor([width / self.width, height / self.height, 1.0], dtype=self.K.dtype, device=self.K.device)
+        return Camera(self.viewmat, self.K * factors[:, None], width, height)
+
+
+def record_camera(subject: Subject, timestep: int, resolution: int | None) -> Camera:
+    """The camera of `timestep` in a subject (its first camera), at `resolution` (longer side; None: stored)."""
+    frames = subject.frames_of([timestep])
+    if not frames:
+        raise ValueError(f"{subject.root}: has no frame with timestep {timestep}")
+    frame = frames[0]
+    camera = Camera(torch.from_numpy(frame.viewmat).float(), torch.from_numpy(frame.K).float(), frame.width, frame.height)
+    if resolution is not None and resolution < max(frame.width, frame.height):
+        camera = camera.resized(resolution)
+    return camera
+
+
+def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None = None,
+                     flame_dir: str | os.PathLike | None = None) -> HeadAvatarDataset:
+    """A split of the dataset the run trained on, loaded as training loaded it (resolution, split rule).
+
+    `data` overrides the dataset folder recorded in the run (a moved dataset). RunError when the folder
+    is gone, belongs to another head model, or its frames no longer match the run."""
+    info = run.info
+    root = Path(data) if data is not None else info.data_root
+    if not root.is_dir():
+        raise RunError(f"{info.run_dir}: its dataset folder {root} is not found; pass --data DIR to point at it")
+    config = DataConfig(resolution=info.resolution, test_frames=info.run_options.get("test_frames"))
+    head_options = {"flame_dir": flame_dir or info.run_options.get("flame_dir")} if info.head_model == "flame" else {}
+    try:
+        subject = open_subject(root)
+        dataset = HeadAvatarDataset(subject, split, config, head_options=head_options)
+    except DatasetError as err:
+        raise RunError(f"{info.run_dir}: cannot open its dataset: {err}") from err
+    if subject.head_model != info.head_model:
+        raise RunError(f"{root}: tracked with head model '{subject.head_model}', the run {info.run_dir} with "
+                       f"'{info.head_model}'")
+    if list(subject.timesteps) != info.timesteps["all"]:
+        raise RunError(f"{root}: has {subject.num_timesteps} timesteps, the run {info.run_dir} was trained on "
+                       f"{len(info.timesteps['all'])} different ones; the dataset changed since training")
+    expected = info.timesteps.get(split) if split != "all" else info.timesteps["all"]
+    if expected is not None and sorted(set(dataset.timesteps)) != sorted(set(expected)):
+        raise RunError(f"{root}: its '{split}' split ({len(set(dataset.timesteps))} timesteps) differs from the one "
+                       f"the run {info.run_dir} recorded ({len(set(expected))}); the dataset changed since training")
+    return dataset
+
+
+class RunFrames:
+    """The per-timestep head parameters of a run (refined for training frames) and the T rule."""
+
+    def __init__(self, run: LoadedRun):
+        self.run = run
+        self.device = run_device(run)
+        self.timesteps: list[int] = list(run.info.timesteps["all"])
+        self._row = {t: i for i, t in enumerate(self.timesteps)}
+        self._train = set(run.info.timesteps.get("train", []))
+        self.values = {k: v.to(self.device) for k, v in run.info.frame_params.items()}  # [T, ...]; shape [S]
+        rows = int(self.values["expr"].shape[0])
+        if rows != len(self.timesteps):
+            raise RunError(f"{run.info.checkpoint}: parameters of {rows} frames for {len(self.timesteps)} timesteps")
+
+    def __len__(self) -> int:
+        return len(self.timesteps)
+
+    def resolve(self, timestep: int | None) -> int:
+        """`timestep` (None: the first one) checked against the run's timesteps."""
+        if timestep is None:
+            return self.timesteps[0]
+        if timestep not in self._row:
+            lo, hi = self.timesteps[0], self.timesteps[-1]
+            raise ValueError(f"--frame {timestep}: not a timestep of the run's dataset ({len(self)} frames, {lo}..{hi})")
+        return int(timestep)
+
+    def params(self, timestep: int) -> tuple[dict[str, Tensor], int | None]:
+        """(parameters in the npz layout with per-frame keys [1, ...], T or None) of a timestep."""
+        row = self._row[self.resolve(timestep)]
+        params = {k: (v if k in SUBJECT_KEYS else v[row:row + 1]) for k, v in self.values.items()}
+        return params, (timestep if timestep in self._train else None)
+
+    def identity(self) -> dict[str, Tensor]:
+        """The subject keys (shape [S], static_offset [1, V, 3] when present): the avatar's identity."""
+        return {k: v for k, v in self.values.items() if k in SUBJECT_KEYS}
+
+
+# --- the animation path ----------------------------------------------------------------------------
+
+
+def posed_head_vertices(run: LoadedRun, params: dict[str, Tensor], timestep: int | None = None) -> Tensor:
+    """[V, 3] the run's head model posed by `params`, with the mouth deformer's offsets."""
+    return posed_head(run.head, params, run.deformer, timestep).vertices[0]
+
+
+def pose_gaussians(run: LoadedRun, params: dict[str, Tensor], timestep: int | None = None) -> GlobalGaussians:
+    """Head model (with the mouth deformer) posed by `params`, then the avatar's local -> global."""
+    return run.avatar(posed_head_vertices(run, params, timestep))
+
+
+def rasterize_gaussians(g: GlobalGaussians, camera: Camera, background: Tensor, backend: str = "auto") -> RasterizeResult:
+    return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmat, camera.K,
+                     camera.width, camera.height, background, backend=backend)
+
+
+@torch.no_grad()
+def render_params(run: LoadedRun, params: dict[str, Tensor], camera: Camera, timestep: int | None = None,
+                  background: Tensor | None = None, backend: str = "auto") -> Tensor:
+    """The avatar posed by `params`, seen by `camera`: rgb [H, W, 3] in [0, 1] on the run's background."""
+    device = run_device(run)
+    if background is None:
+        background = torch.tensor(run.info.background, dtype=torch.float32)
+    g = pose_gaussians(run, params, timestep)
+    result = rasterize_gaussians(g, camera.to(device), background.to(device), backend)
+    return result.rgb.clamp(0.0, 1.0)
+
+
+def head_centre(run: LoadedRun, params: dict[str, Tensor]) -> Tensor:
+    """[3] centre of the posed head: the bounding-box centre of the skin without the neck.
+
+    The neck and the mouth structure are left out so that an orbit turns about the middle of the
+    skull and face, not about a point pulled down toward the shoulders."""
+    vertices = posed_head(run.head, params, None, None).vertices[0]  # [V, 3]
+    keep = torch.ones(vertices.shape[0], dtype=torch.bool, device=vertices.device)
+    regions = run.head.regions
+    if "neck" in regions:
+        keep[torch.as_tensor(np.asarray(regions["neck"]), dtype=torch.long, device=vertices.device)] = False
+    for group in ("mouth_upper", "mouth_lower"):
+        if group in run.head.vertex_groups:
+            keep[torch.as_tensor(np.asarray(run.head.vertex_groups[group]), dtype=torch.long, device=vertices.device)] = False
+    if not bool(keep.any()):
+        keep[:] = True
+    points = vertices[keep]
+    return 0.5 * (points.min(dim=0).values + points.max(dim=0).values)
+
+
+# --- images ------------------------------------------------------------------------------------------
+
+
+def to_uint8(image: Tensor | np.ndarray) -> np.ndarray:
+    """[H, W, 3] float in [0, 1] -> uint8 numpy (rounded)."""
+    if isinstance(image, Tensor):
+        image = image.detach().float().cpu().numpy()
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+_COLORMAP_CACHE: dict[str, Tensor] = {}
+
+
+def colormap_lut(name: str = "inferno") -> Tensor:
+    """[256, 3] float RGB lookup table of a matplotlib colormap."""
+    if name not in _COLORMAP_CACHE:
+        with warnings.catch_warnings():  # matplotlib's import warns about its own pyparsing use
+            warnings.simplefilter("ignore", DeprecationWarning)
+            import matplotlib
+
+        try:
+            cmap = matplotlib.colormaps[name]
+        except KeyError as err:
+            raise ValueError(f"unknown colormap {name!r} (any matplotlib colormap, e.g. inferno, turbo)") from err
+        _COLORMAP_CACHE[name] = torch.from_numpy(cmap(np.linspace(0.0, 1.0, 256))[:, :3]).float()
+    return _COLORMAP_CACHE[name]
+
+
+def error_map(pred: Tensor, target: Tensor, error_max: float = 0.25, colormap: str = "inferno") -> Tensor:
+    """Per-pixel mean absolute error over the channels, colour-mapped: [H, W, 3] in [0, 1].
+
+    pred, target [H, W, 3]; errors of `error_max` and above get the top colour, so one scale holds for
+    every frame of a video."""
+    if error_max <= 0:
+        raise ValueError(f"--error-max must be positive, got {error_max}")
+    error = (pred - target).abs().mean(dim=-1)  # [H, W]
+    index = (error / error_max).clamp(0.0, 1.0).mul(255.0).round().long()
+    return colormap_lut(colormap).to(pred.device)[index]
+
+
+def side_by_side(*images: np.ndarray) -> np.ndarray:
+    """uint8 images [H, W_i, 3] of one height, left to right."""
+    heights = {image.shape[0] for image in images}
+    if len(heights) != 1:
+        raise ValueError(f"side_by_side: images of different heights {sorted(heights)}")
+    return np.concatenate(images, axis=1)
+
+
+def fit_height(image: np.ndarray, height: int) -> np.ndarray:
+    """Resize a uint8 [H, W, 3] image to `height` rows, keeping its aspect ratio (area filter)."""
+    if image.shape[0] == height:
+        return image
+    from PIL import Image
+
+    width = max(1, round(image.shape[1] * height / image.shape[0]))
+    return np.asarray(Image.fromarray(image).resize((width, height), Image.Resampling.BOX))
+
+
+# --- video -------------------------------------------------------------------------------------------
+
+
+class Mp4Writer:
+    """Frames -> H.264 mp4 (PyAV, libx264, yuv420p), written atomically.
+
+    Frames go to a temporary file beside `path`; leaving the `with` block normally moves it into place
+    (os.replace), an exception deletes it, so `path` is either the old file or the complete new one.
+    yuv420p needs even sizes: odd frames get one edge row/column repeated. Every frame must have the
+    size of the first.
+    """
+
+    def __init__(self, path: str | os.PathLike, fps: float = 25.0, crf: int = 18):
+        if fps <= 0:
+            raise ValueError(f"--fps must be positive, got {fps}")
+        if not 0 <= crf <= 51:
+            raise ValueError(f"--crf must be in [0, 51], got {crf}")
+        self.path = Path(path)
+        if self.path.suffix.lower() != ".mp4":
+            raise ValueError(f"{self.path}: the video file name must end in .mp4")
+        self.fps, self.crf = fps, crf
+        self.frames = 0
+        self._container = self._stream = None
+        self._tmp: str | None = None
+        self._size: tuple[int, int] | None = None  # (height, width) of the input frames
+
+    def __enter__(self) -> "Mp4Writer":
+        import av
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, self._tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=".tmp.mp4", dir=self.path.parent)
+        os.close(fd)
+        self._container = av.open(self._tmp, mode="w", format="mp4")
+        return self
+
+    def write(self, frame: np.ndarray) -> None:
+        """Append one uint8 RGB frame [H, W, 3]."""
+        import av
+
+        frame = np.asarray(frame)
+        if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+            raise ValueError(f"Mp4Writer: frames must be uint8 [H, W, 3], got {frame.dtype} {frame.shape}")
+        if self._size is None:
+            self._size = frame.shape[:2]
+            height, width = (s + s % 2 for s in self._size)
+            rate = Fraction(self.fps).limit_denominator(1001)
+            self._stream = self._container.add_stream("libx264", rate=rate)
+            self._stream.width, self._stream.height = width, height
+            self._stream.pix_fmt = "yuv420p"
+            self._stream.options = {"crf": str(self.crf), "preset": "medium"}
+        elif frame.shape[:2] != self._size:
+            raise ValueError(f"Mp4Writer: frame {self.frames} has size {frame.shape[1]}x{frame.shape[0]}, the first "
+                             f"{self._size[1]}x{self._size[0]}; every frame of a video needs one size")
+        pad = ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0))
+        if any(p[1] for p in pad):
+            frame = np.pad(frame, pad, mode="edge")
+        video_frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
+        for packet in self._stream.encode(video_frame):
+            self._container.mux(packet)
+        self.frames += 1
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if exc_type is None:
+                if self.frames == 0:
+                    raise ValueError(f"{self.path}: no frames to write")
+                for packet in self._stream.encode():
+                    self._container.mux(packet)
+            self._container.close()
+            if exc_type is None:
+                os.chmod(self._tmp, 0o644)
+                os.replace(self._tmp, self.path)
+        finally:
+            if self._tmp is not None and os.path.exists(self._tmp):
+                os.unlink(self._tmp)
+
+
+def default_output(run: LoadedRun, folder: str, name: str) -> Path:
+    return Path(run.info.run_dir) / folder / name
+
+
+def progress(iterable: Iterable, total: int | None = None, enabled: bool = True, desc: str | None = None):
+    """A tqdm bar over `iterable` (silent when not enabled)."""
+    from tqdm.auto import tqdm
+
+    return tqdm(iterable, total=total, disable=not enabled, desc=desc, dynamic_ncols=True, unit="frame")
+
+
+@dataclass
+class Timer:
+    """Wall seconds of a block, with the device synchronised at both ends."""
+
+    device: torch.device
+    seconds: float = 0.0
+
+    def __enter__(self) -> "Timer":
+        synchronize(self.device)
+        self._start = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        synchronize(self.device)
+        self.seconds = time.perf_counter() - self._start
+
+
+def even_frames(count: int, limit: int | None) -> list[int]:
+    """`limit` indices spread evenly over range(count) (all of them when limit is None or >= count)."""
+    if limit is not None and limit <= 0:
+        raise ValueError(f"--max-frames must be positive, got {limit}")
+    if limit is None or limit >= count:
+        return list(range(count))
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, limit)})
+
+
+__all__ = [
+    "Camera", "EXPORT_DIR", "Mp4Writer", "RunFrames", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut", "command_errors",
+    "default_output", "error_map", "even_frames", "fit_height", "head_centre", "open_run", "open_run_dataset",
+    "pose_gaussians", "posed_head_vertices", "progress", "rasterize_gaussians", "record_camera", "render_params", "run_device",
+    "side_by_side", "synchronize", "to_uint8",
+]

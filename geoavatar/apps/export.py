@@ -1,0 +1,193 @@
+"""`geoavatar export RUN --out FILE.ply`: the avatar's Gaussians as a standard 3DGS PLY.
+
+What is exported: the *global* Gaussians of one frame, i.e. the avatar posed with that frame's
+parameters (the run's refined ones for a training frame), with the mouth deformation and the T rule
+of apps/common.py (a training frame with its own T, any other frame with T = 0). A splat viewer shows
+exactly what `geoavatar render` shows for that frame. Scales are log standard deviations in metres
+(local log-scale + log of the face scale k), rotations the global quaternions (face rotation composed
+with the local one), colour and opacity are the learned SH-0 coefficient and opacity logit.
+
+`--sequence` exports every frame of a split:
+- `--format ply` (default): a folder FRAME_<timestep>.ply, one per frame, built in a temporary folder
+  beside OUT and renamed into place when complete;
+- `--format npz`: one npz, written atomically, with
+    timesteps [T] int64, means [T, N, 3], quats [T, N, 4] (w, x, y, z), log_scales [T, N, 3],
+    opacity_logits [N], f_dc [N, 3], binding [N] (face of each Gaussian), faces [F, 3];
+  the per-Gaussian colour and opacity do not change over time, so they are stored once.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+
+from geoavatar.apps.common import (EXPORT_DIR, RunFrames, RunPath, command_errors, default_output, open_run,
+                                   pose_gaussians, progress)
+from geoavatar.avatar import GlobalGaussians
+from geoavatar.io.ply import GaussianPly, write_gaussian_ply
+from geoavatar.train.checkpoint import LoadedRun, atomic_write_bytes
+
+FRAME_FILE = "frame_{:05d}.ply"
+
+
+def to_ply_gaussians(run: LoadedRun, g: GlobalGaussians) -> GaussianPly:
+    """Global Gaussians of one posed frame in the PLY parametrisation (numpy float32)."""
+    p = run.avatar.params
+
+    def numpy(t: torch.Tensor) -> np.ndarray:
+        return t.detach().float().cpu().numpy()
+
+    return GaussianPly(
+        means=numpy(g.means),
+        f_dc=numpy(p["f_dc"]),
+        opacity_logits=numpy(p["opacities"]),
+        log_scales=numpy(torch.log(g.scales.clamp_min(1e-30))),
+        quats=numpy(torch.nn.functional.normalize(g.quats, dim=-1)),
+    )
+
+
+@torch.no_grad()
+def frame_gaussians(run: LoadedRun, frames: RunFrames, timestep: int) -> GlobalGaussians:
+    params, t = frames.params(timestep)
+    return pose_gaussians(run, params, t)
+
+
+def export_frame(run: LoadedRun, out: Path, timestep: int | None = None) -> Path:
+    """Write the PLY of one frame (default: the first timestep) to `out`."""
+    frames = RunFrames(run)
+    return write_gaussian_ply(out, to_ply_gaussians(run, frame_gaussians(run, frames, frames.resolve(timestep))))
+
+
+def sequence_timesteps(run: LoadedRun, split: str) -> list[int]:
+    if split == "all":
+        return list(run.info.timesteps["all"])
+    if split not in run.info.timesteps:
+        raise ValueError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
+    return list(run.info.timesteps[split])
+
+
+def export_sequence_ply(run: LoadedRun, out: Path, split: str = "all", overwrite: bool = False,
+                        show_progress: bool = True) -> Path:
+    """One PLY per frame into the folder `out`, which appears complete or not at all."""
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"--out {out} already exists; pass --overwrite to replace it")
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"--out {out} exists and is not a folder")
+    frames = RunFrames(run)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        for t in progress(sequence_timesteps(run, split), enabled=show_progress, desc="export"):
+            gaussians = to_ply_gaussians(run, frame_gaussians(run, frames, t))
+            write_gaussian_ply(tmp / FRAME_FILE.format(t), gaussians)
+        os.chmod(tmp, 0o755)
+        _replace_folder(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
+def _replace_folder(new: Path, out: Path) -> None:
+    """Move the folder `new` to `out`; an existing `out` is moved aside first and deleted after."""
+    if not out.exists():
+        os.replace(new, out)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+    os.rmdir(old)
+    os.replace(out, old)
+    try:
+        os.replace(new, out)
+    except BaseException:
+        os.replace(old, out)  # put the previous export back
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def export_sequence_npz(run: LoadedRun, out: Path, split: str = "all", show_progress: bool = True) -> Path:
+    """Per-frame Gaussian parameters of a split in one npz (see the module docstring for the keys)."""
+    frames = RunFrames(run)
+    timesteps = sequence_timesteps(run, split)
+    means, quats, log_scales = [], [], []
+    for t in progress(timesteps, enabled=show_progress, desc="export"):
+        g = to_ply_gaussians(run, frame_gaussians(run, frames, t))
+        means.append(g.means)
+        quats.append(g.quats)
+        log_scales.append(g.log_scales)
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        timesteps=np.asarray(timesteps, dtype=np.int64),
+        means=np.stack(means), quats=np.stack(quats), log_scales=np.stack(log_scales),  # [T, N, ...]
+        opacity_logits=g.opacity_logits, f_dc=g.f_dc,  # the same in every frame
+        binding=run.avatar.binding.cpu().numpy(), faces=run.avatar.faces.cpu().numpy(),
+    )
+    path = atomic_write_bytes(out, buffer.getvalue())
+    os.chmod(path, 0o644)
+    return path
+
+
+def export(
+    run: RunPath,
+    out: Optional[Path] = None,
+    frame: Optional[int] = None,
+    sequence: bool = False,
+    format: Literal["ply", "npz"] = "ply",
+    split: str = "all",
+    overwrite: bool = False,
+    device: str = "cpu",
+    flame_dir: Optional[Path] = None,
+    progress: bool = True,
+) -> int:
+    """Export the avatar's Gaussians of a frame as a standard 3DGS PLY (for splat viewers).
+
+    The Gaussians are posed with the frame's parameters (the run's refined ones for training frames);
+    the PLY has x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3 (opacity as logit, scale as log,
+    rotation w x y z), binary little-endian.
+
+    Args:
+        run: Run folder written by `geoavatar train`.
+        out: File to write (.ply; with --sequence a folder, or an .npz with --format npz). Default:
+            RUN/export/frame_<K>.ply, RUN/export/sequence_<split>/ or RUN/export/sequence_<split>.npz.
+        frame: Timestep (frame index of the video) to pose the avatar with (default: the first one).
+        sequence: Export every frame of --split instead of one frame.
+        format: With --sequence: ply (a folder of per-frame PLYs) or npz (one file of per-frame arrays).
+        split: With --sequence: all, train, val or test.
+        overwrite: Replace an existing --sequence folder.
+        device: cpu, auto (CUDA when available), cuda or cuda:N.
+        flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
+        progress: Show a progress bar (--sequence).
+    """
+    with command_errors("export"):
+        if frame is not None and sequence:
+            raise ValueError("--frame and --sequence exclude each other (--sequence exports every frame of --split)")
+        if out is not None and not sequence and out.suffix.lower() != ".ply":
+            raise ValueError(f"--out {out}: a single frame is written as a .ply file")
+        if out is not None and sequence and format == "npz" and out.suffix.lower() != ".npz":
+            raise ValueError(f"--out {out}: --format npz writes an .npz file")
+        loaded = open_run(run, device, flame_dir)
+        if not sequence:
+            timestep = RunFrames(loaded).resolve(frame)
+            target = out or default_output(loaded, EXPORT_DIR, FRAME_FILE.format(timestep))
+            export_frame(loaded, target, timestep)
+            print(f"wrote {target} ({loaded.avatar.num_gaussians} Gaussians, frame {timestep})")
+        elif format == "ply":
+            target = out or default_output(loaded, EXPORT_DIR, f"sequence_{split}")
+            export_sequence_ply(loaded, target, split, overwrite, progress)
+            print(f"wrote {target}/ ({len(sequence_timesteps(loaded, split))} frames)")
+        else:
+            target = out or default_output(loaded, EXPORT_DIR, f"sequence_{split}.npz")
+            export_sequence_npz(loaded, target, split, progress)
+            print(f"wrote {target} ({len(sequence_timesteps(loaded, split))} frames)")
+    return 0
+
+
+__all__ = ["export", "export_frame", "export_sequence_npz", "export_sequence_ply", "frame_gaussians", "to_ply_gaussians"]

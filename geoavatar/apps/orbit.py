@@ -1,0 +1,138 @@
+"""`geoavatar orbit RUN [--frame K]`: novel views of one frame, a yaw sweep then a pitch sweep; mp4.
+
+The avatar is posed with frame K's parameters (T rule of apps/common.py). The cameras keep the
+dataset camera's intrinsics and its distance to the head centre (apps.common.head_centre: the
+bounding-box centre of the posed skin without the neck) and turn about that centre:
+
+    first half of the frames:  yaw(s)   = yaw_max   * sin(2 pi s), s in [0, 1)   about the camera's up axis
+    second half:               pitch(s) = pitch_max * sin(2 pi s)                about the camera's right axis
+
+so the video starts and ends at the dataset's own viewpoint (aimed at the head centre) and loops.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal, Optional
+
+import torch
+from torch import Tensor
+
+from geoavatar.apps.common import (VIDEO_DIR, Camera, Mp4Writer, RunFrames, RunPath, command_errors, default_output,
+                                   head_centre, open_run, progress, record_camera, render_params, to_uint8)
+from geoavatar.data import open_subject
+from geoavatar.geometry import axis_angle_to_matrix
+from geoavatar.render.camera import look_at, rigid_inverse
+from geoavatar.train.checkpoint import RunError
+
+
+def sweep_angles(frames: int, yaw_max: float, pitch_max: float) -> list[tuple[float, float]]:
+    """(yaw, pitch) in degrees per frame: a sinusoidal yaw sweep, then a pitch sweep (none when 0)."""
+    if frames < 1:
+        raise ValueError(f"--frames must be positive, got {frames}")
+    yaw_frames = frames if pitch_max == 0 else (frames + 1) // 2
+    angles = [(yaw_max * math.sin(2 * math.pi * i / yaw_frames), 0.0) for i in range(yaw_frames)]
+    pitch_frames = frames - yaw_frames
+    angles += [(0.0, pitch_max * math.sin(2 * math.pi * i / pitch_frames)) for i in range(pitch_frames)]
+    return angles
+
+
+def orbit_cameras(base: Camera, centre: Tensor, angles: list[tuple[float, float]]) -> list[Camera]:
+    """Cameras turned about `centre` [3] by (yaw, pitch) degrees, at base's distance and intrinsics."""
+    viewmat = base.viewmat.to(centre)
+    c2w = rigid_inverse(viewmat)  # [4, 4] columns: camera axes in world, then the camera centre
+    right, up = c2w[:3, 0], -c2w[:3, 1]  # OpenCV: +y is down in the image
+    offset = c2w[:3, 3] - centre  # [3]
+    if float(offset.norm()) < 1e-9:
+        raise ValueError("orbit: the camera sits at the head centre")
+    cameras = []
+    for yaw, pitch in angles:
+        turn = axis_angle_to_matrix(up * math.radians(yaw)) @ axis_angle_to_matrix(right * math.radians(pitch))
+        eye = centre + turn @ offset
+        cameras.append(Camera(look_at(eye, centre, turn @ up), base.K, base.width, base.height))
+    return cameras
+
+
+@torch.no_grad()
+def orbit_video(
+    run,
+    out: Path,
+    timestep: int | None = None,
+    frames: int = 60,
+    yaw: float = 60.0,
+    pitch: float = 20.0,
+    resolution: int | None = None,
+    fps: float = 25.0,
+    crf: int = 18,
+    backend: str = "auto",
+    data: Path | None = None,
+    show_progress: bool = True,
+) -> int:
+    """Write the orbit video of one frame; returns the number of frames."""
+    if not 0 <= yaw < 180 or not 0 <= pitch < 90:
+        raise ValueError(f"--yaw must be in [0, 180) and --pitch in [0, 90) degrees, got {yaw}, {pitch}")
+    run_frames = RunFrames(run)
+    timestep = run_frames.resolve(timestep)
+    params, t = run_frames.params(timestep)
+    root = Path(data) if data is not None else run.info.data_root
+    if not root.is_dir():
+        raise RunError(f"{run.info.run_dir}: its dataset folder {root} is not found (the camera comes from it); "
+                       "pass --data DIR")
+    base = record_camera(open_subject(root), timestep, run.info.resolution)  # as training saw it
+    if resolution is not None:
+        base = base.resized(resolution)
+    centre = head_centre(run, params)  # [3]
+    cameras = orbit_cameras(base.to(centre.device), centre, sweep_angles(frames, yaw, pitch))
+    with Mp4Writer(out, fps=fps, crf=crf) as video:
+        for camera in progress(cameras, enabled=show_progress, desc="orbit"):
+            video.write(to_uint8(render_params(run, params, camera, t, None, backend)))
+    return video.frames
+
+
+def orbit(
+    run: RunPath,
+    frame: Optional[int] = None,
+    out: Optional[Path] = None,
+    frames: int = 60,
+    yaw: float = 60.0,
+    pitch: float = 20.0,
+    resolution: Optional[int] = None,
+    fps: float = 25.0,
+    crf: int = 18,
+    data: Optional[Path] = None,
+    device: str = "auto",
+    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    flame_dir: Optional[Path] = None,
+    progress: bool = True,
+) -> int:
+    """Novel views: orbit the camera around the head of one frame (a yaw sweep, then a pitch sweep).
+
+    Args:
+        run: Run folder written by `geoavatar train`.
+        frame: Timestep (frame index of the video) whose pose and expression are shown (default: the first).
+        out: Video file to write (default RUN/videos/orbit_<frame>.mp4); written atomically.
+        frames: Number of video frames (half yaw sweep, half pitch sweep).
+        yaw: Largest yaw to either side, in degrees.
+        pitch: Largest pitch up and down, in degrees (0: yaw sweep only).
+        resolution: Longer image side in pixels (default: the run's training resolution).
+        fps: Frames per second of the video.
+        crf: H.264 quality (0 lossless ... 51 worst; 18 is visually lossless).
+        data: The run's dataset folder, when it moved since training (its camera is read from it).
+        device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
+        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
+        progress: Show a progress bar.
+    """
+    with command_errors("orbit"):
+        if resolution is not None and resolution <= 0:
+            raise ValueError(f"--resolution must be positive, got {resolution}")
+        loaded = open_run(run, device, flame_dir)
+        timestep = RunFrames(loaded).resolve(frame)
+        target = out or default_output(loaded, VIDEO_DIR, f"orbit_{timestep:05d}.mp4")
+        count = orbit_video(loaded, target, timestep, frames, yaw, pitch, resolution, fps, crf, backend, data, progress)
+    print(f"wrote {target} ({count} frames, yaw +-{yaw:g} deg, pitch +-{pitch:g} deg)")
+    return 0
+
+
+__all__ = ["orbit", "orbit_cameras", "orbit_video", "sweep_angles"]

@@ -1,0 +1,259 @@
+"""`geoavatar reenact RUN --driver DATASET`: cross-re-enactment, the driver's motion on the avatar.
+
+Parameters of every driver frame (FLAME npz layout; what is taken from whom):
+
+    shape, static_offset        the avatar's (its identity, from the run)
+    expr, jaw, eyes, neck,      absolute (default): the driver's values
+      rotation                  --relative: the avatar's neutral + the driver's change from its neutral
+                                  expr = expr_avatar_neutral + (expr_driver(t) - expr_driver_neutral)
+                                  R    = R_driver(t) R_driver_neutral^T R_avatar_neutral   (each joint,
+                                         and the global rotation: rotation matrices, not axis-angles)
+    translation                 the avatar's neutral translation + the driver's displacement from its
+                                neutral frame (tracked translations depend on each video's camera, so
+                                only the motion carries over); with --camera driver the driver's own
+
+"Neutral" is a frame of each sequence, `--driver-neutral` / `--avatar-neutral`: `first` (default),
+`mean` (the mean over the sequence's frames, the avatar's training frames; the mean of axis-angles
+for rotations, fine for the small angles of a talking head), or a timestep number. Relative transfer
+is what users of GaussianAvatars / FlashAvatar / NerFace ask for: tracked expression coefficients
+carry some of the tracked person's identity (a neutral face is not expr = 0), so transferring the
+change from a neutral frame onto the avatar's own neutral frame leaks less of the driver's face shape.
+
+The driver must be tracked with the same head model as the avatar (expression coefficients mean
+nothing across models); a model with fewer modes uses the leading ones (zero-padded).
+
+Camera: by default the avatar's own dataset camera (that of its neutral frame, or its first frame
+with `mean`), at the run's resolution: the driver's camera may differ (another focal length, another
+distance). `--camera driver` renders each frame with the driver's camera instead, for drivers whose
+tracker moves the camera rather than the head (INSTA / metrical-tracker data). The mouth deformer
+runs with T = 0 (novel animation, as the paper does at inference).
+
+Output: an mp4 with driver | avatar side by side (the driver's frame scaled to the render's height),
+or the avatar alone with --no-side-by-side.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, Optional
+
+import torch
+from torch import Tensor
+
+from geoavatar.apps.common import (VIDEO_DIR, Camera, Mp4Writer, RunFrames, RunPath, command_errors, default_output,
+                                   even_frames, fit_height, open_run, progress, record_camera, render_params,
+                                   side_by_side, to_uint8)
+from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
+from geoavatar.data.subject import SUBJECT_KEYS, Subject
+from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
+from geoavatar.train.checkpoint import LoadedRun, RunError
+from geoavatar.train.trainer import composite_target
+
+ROTATION_KEYS = ("rotation", "neck_pose", "jaw_pose", "eyes_pose")  # axis-angle, 3 numbers per joint
+TRANSFERRED_KEYS = ("expr", *ROTATION_KEYS, "translation")
+
+
+def reference_frame(values: dict[str, Tensor], timesteps: list[int], spec: str, mean_over: list[int] | None = None,
+                    what: str = "--driver-neutral") -> dict[str, Tensor]:
+    """The neutral frame of a sequence: per-frame keys [1, ...] of row `spec` ('first', 'mean', a timestep).
+
+    values: per-timestep keys [T, ...]; mean_over: the timesteps averaged by 'mean' (default: all)."""
+    if spec == "first":
+        rows = [0]
+    elif spec == "mean":
+        wanted = set(mean_over if mean_over else timesteps)
+        rows = [i for i, t in enumerate(timesteps) if t in wanted]
+    else:
+        try:
+            timestep = int(spec)
+        except ValueError:
+            raise ValueError(f"{what} must be 'first', 'mean' or a timestep number, got {spec!r}") from None
+        if timestep not in timesteps:
+            raise ValueError(f"{what} {timestep}: not a timestep of the sequence ({timesteps[0]}..{timesteps[-1]})")
+        rows = [timesteps.index(timestep)]
+    index = torch.as_tensor(rows, dtype=torch.long, device=values["expr"].device)
+    return {key: values[key].index_select(0, index).mean(dim=0, keepdim=True) for key in TRANSFERRED_KEYS}
+
+
+def _match_width(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """Zero-pad the last dimension of the narrower of a, b (expression coefficients of different lengths)."""
+    width = max(a.shape[-1], b.shape[-1])
+    pad = lambda x: torch.nn.functional.pad(x, (0, width - x.shape[-1]))  # noqa: E731
+    return pad(a), pad(b)
+
+
+def _compose_relative(driver: Tensor, driver_ref: Tensor, avatar_ref: Tensor) -> Tensor:
+    """Axis-angles [T, 3k]: R_driver R_driver_ref^T R_avatar_ref per joint (k joints of 3 numbers)."""
+    count = driver.shape[0]
+    d = axis_angle_to_matrix(driver.reshape(count, -1, 3))  # [T, k, 3, 3]
+    d0 = axis_angle_to_matrix(driver_ref.reshape(1, -1, 3))  # [1, k, 3, 3]
+    a0 = axis_angle_to_matrix(avatar_ref.reshape(1, -1, 3))
+    return matrix_to_axis_angle(d @ d0.transpose(-1, -2) @ a0).reshape(count, -1)
+
+
+def driven_params(
+    identity: dict[str, Tensor],  # shape [S], static_offset [1, V, 3] (optional): the avatar's
+    avatar_ref: dict[str, Tensor],  # the avatar's neutral frame, per-frame keys [1, ...]
+    driver: dict[str, Tensor],  # the driver's per-timestep keys [T, ...]
+    driver_ref: dict[str, Tensor],  # the driver's neutral frame [1, ...]
+    relative: bool = False,
+    driver_translation: bool = False,  # keep the driver's absolute translation (--camera driver)
+) -> dict[str, Tensor]:
+    """Per-frame parameters [T, ...] of the avatar driven by `driver` (rules in the module docstring)."""
+    out: dict[str, Tensor] = {}
+    driver_expr, ref_expr = _match_width(driver["expr"], driver_ref["expr"])
+    if relative:
+        avatar_expr, delta = _match_width(avatar_ref["expr"], driver_expr - ref_expr)
+        out["expr"] = avatar_expr + delta  # [T, E]
+        for key in ROTATION_KEYS:
+            out[key] = _compose_relative(driver[key], driver_ref[key], avatar_ref[key])
+    else:
+        out["expr"] = driver["expr"].clone()
+        for key in ROTATION_KEYS:
+            out[key] = driver[key].clone()
+    if driver_translation:
+        out["translation"] = driver["translation"].clone()
+    else:
+        out["translation"] = avatar_ref["translation"] + (driver["translation"] - driver_ref["translation"])
+    out.update({key: value for key, value in identity.items() if key in SUBJECT_KEYS})
+    return out
+
+
+def frame_of(params: dict[str, Tensor], row: int) -> dict[str, Tensor]:
+    return {k: (v if k in SUBJECT_KEYS else v[row:row + 1]) for k, v in params.items()}
+
+
+def open_driver(driver: Path, run: LoadedRun) -> Subject:
+    try:
+        subject = open_subject(driver)
+    except Exception as err:  # DatasetError and friends: name the option
+        raise RunError(f"--driver {driver}: {err}") from err
+    if subject.head_model != run.info.head_model:
+        raise RunError(f"--driver {driver}: tracked with head model '{subject.head_model}', but the avatar uses "
+                       f"'{run.info.head_model}'; expression and pose parameters do not carry across head models")
+    return subject
+
+
+@torch.no_grad()
+def reenact_video(
+    run: LoadedRun,
+    driver_root: Path,
+    out: Path,
+    relative: bool = False,
+    driver_neutral: str = "first",
+    avatar_neutral: str = "first",
+    camera_mode: str = "avatar",
+    driver_split: str = "all",
+    max_frames: int | None = None,
+    fps: float = 25.0,
+    crf: int = 18,
+    show_driver: bool = True,
+    backend: str = "auto",
+    data: Path | None = None,
+    show_progress: bool = True,
+) -> int:
+    """Write the re-enactment video; returns the number of frames."""
+    if camera_mode not in ("avatar", "driver"):
+        raise ValueError(f"--camera must be avatar or driver, got {camera_mode!r}")
+    frames = RunFrames(run)
+    device = frames.device
+    subject = open_driver(driver_root, run)
+    driver_values = {k: v.to(device) for k, v in subject.params.items()}
+    driver_timesteps = list(subject.timesteps)
+    driver_ref = reference_frame(driver_values, driver_timesteps, driver_neutral, what="--driver-neutral")
+    avatar_ref = reference_frame(frames.values, frames.timesteps, avatar_neutral,
+                                 mean_over=run.info.timesteps.get("train"), what="--avatar-neutral")
+    params = driven_params(frames.identity(), avatar_ref, driver_values, driver_ref, relative,
+                           driver_translation=camera_mode == "driver")
+
+    driver_set = HeadAvatarDataset(subject, driver_split, DataConfig(cache="none"), check_head=False)
+    if len(driver_set) == 0:
+        raise ValueError(f"--driver-split {driver_split}: the driver has no frames in this split")
+    if camera_mode == "avatar":
+        avatar_root = Path(data) if data is not None else run.info.data_root
+        if not avatar_root.is_dir():
+            raise RunError(f"{run.info.run_dir}: its dataset folder {avatar_root} is not found (the camera comes from "
+                           "it); pass --data DIR, or --camera driver")
+        camera_timestep = frames.timesteps[0] if avatar_neutral == "mean" else frames.resolve(
+            frames.timesteps[0] if avatar_neutral == "first" else int(avatar_neutral))
+        fixed_camera = record_camera(open_subject(avatar_root), camera_timestep, run.info.resolution)
+    background = torch.tensor(run.info.background, dtype=torch.float32, device=device)
+    row_of = {t: i for i, t in enumerate(driver_timesteps)}
+    with Mp4Writer(out, fps=fps, crf=crf) as video:
+        for index in progress(even_frames(len(driver_set), max_frames), enabled=show_progress, desc="reenact"):
+            item = driver_set[index]
+            if camera_mode == "avatar":
+                camera = fixed_camera
+            else:
+                camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+                if run.info.resolution is not None and max(camera.width, camera.height) > run.info.resolution:
+                    camera = camera.resized(run.info.resolution)
+            pred = to_uint8(render_params(run, frame_of(params, row_of[item["timestep"]]), camera, None, background,
+                                          backend))
+            if show_driver:
+                shown = composite_target(item["image"], item["mask"], item["background"])
+                pred = side_by_side(fit_height(to_uint8(shown), pred.shape[0]), pred)
+            video.write(pred)
+    return video.frames
+
+
+def reenact(
+    run: RunPath,
+    driver: Path,
+    out: Optional[Path] = None,
+    relative: bool = False,
+    driver_neutral: str = "first",
+    avatar_neutral: str = "first",
+    camera: Literal["avatar", "driver"] = "avatar",
+    driver_split: Literal["all", "train", "val", "test"] = "all",
+    max_frames: Optional[int] = None,
+    side_by_side: bool = True,
+    fps: float = 25.0,
+    crf: int = 18,
+    data: Optional[Path] = None,
+    device: str = "auto",
+    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    flame_dir: Optional[Path] = None,
+    progress: bool = True,
+) -> int:
+    """Cross-re-enactment: drive the avatar with another video's expression, jaw, eyes and head motion.
+
+    The avatar keeps its identity (shape and static offsets); every frame of the driver dataset gives the
+    expression, the jaw/neck/eye rotations and the head rotation; the head's translation is the avatar's
+    plus the driver's displacement. Writes an mp4 of driver | avatar.
+
+    Args:
+        run: Run folder written by `geoavatar train` (the avatar).
+        driver: Dataset folder of the driving video (any layout `geoavatar train` reads), tracked with the
+            same head model as the avatar.
+        out: Video file to write (default RUN/videos/reenact_<driver name>[_relative].mp4); atomic.
+        relative: Transfer the driver's change from its neutral frame onto the avatar's neutral frame
+            (expression added, rotations composed) instead of the driver's absolute values.
+        driver_neutral: The driver's neutral frame for --relative and for the translation: first, mean
+            (over all its frames) or a timestep number.
+        avatar_neutral: The avatar's neutral frame: first, mean (over its training frames) or a timestep.
+        camera: avatar: the avatar's own dataset camera (default); driver: each driver frame's camera
+            (for trackers that move the camera, not the head), with the driver's own translation.
+        driver_split: Frames of the driver to use: all, train, val or test (INSTA protocol: its last frames).
+        max_frames: Use only this many driver frames, spread evenly (default: all).
+        side_by_side: Put the driver's frame left of the avatar.
+        fps: Frames per second of the video.
+        crf: H.264 quality (0 lossless ... 51 worst; 18 is visually lossless).
+        data: The avatar's dataset folder, when it moved since training (its camera is read from it).
+        device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
+        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        flame_dir: Folder with your FLAME model files (FLAME-tracked data only).
+        progress: Show a progress bar.
+    """
+    with command_errors("reenact"):
+        loaded = open_run(run, device, flame_dir)
+        name = f"reenact_{Path(driver).name}{'_relative' if relative else ''}.mp4"
+        target = out or default_output(loaded, VIDEO_DIR, name)
+        count = reenact_video(loaded, Path(driver), target, relative, driver_neutral, avatar_neutral, camera,
+                              driver_split, max_frames, fps, crf, side_by_side, backend, data, progress)
+    shown = "driver | avatar" if side_by_side else "avatar"
+    print(f"wrote {target} ({count} frames: {shown}, {'relative' if relative else 'absolute'} transfer)")
+    return 0
+
+
+__all__ = ["driven_params", "reenact", "reenact_video", "reference_frame"]

@@ -1,0 +1,101 @@
+"""`geoavatar render RUN`: ground truth | render | error map, side by side, as an mp4 (PyAV).
+
+Each frame of the chosen split is rendered as `geoavatar eval` renders it (see apps/common.py for the
+T rule: training frames with their own T and refined parameters, other frames with T = 0 and the
+tracked parameters), on the run's background colour. The ground truth is the image composited on the
+same background with its mask, the training target. The error map is the per-pixel absolute error
+averaged over the colour channels, colour-mapped from 0 to --error-max (one scale for the whole video).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, Optional
+
+import torch
+
+from geoavatar.apps.common import (VIDEO_DIR, Camera, Mp4Writer, RunFrames, RunPath, command_errors, default_output,
+                                   error_map, even_frames, open_run, open_run_dataset, progress, render_params,
+                                   side_by_side, to_uint8)
+from geoavatar.train.checkpoint import LoadedRun
+from geoavatar.train.trainer import composite_target
+
+Split = Literal["test", "val", "train", "all"]
+
+
+@torch.no_grad()
+def render_split_video(
+    run: LoadedRun,
+    out: Path,
+    split: str = "test",
+    max_frames: int | None = None,
+    fps: float = 25.0,
+    crf: int = 18,
+    error_max: float = 0.25,
+    colormap: str = "inferno",
+    backend: str = "auto",
+    data: Path | None = None,
+    show_progress: bool = True,
+) -> int:
+    """Write the gt | render | error video of a split to `out`; returns the number of frames."""
+    dataset = open_run_dataset(run, split, data)
+    if len(dataset) == 0:
+        raise ValueError(f"--split {split}: the run's dataset has no frames in this split")
+    frames = RunFrames(run)
+    device = frames.device
+    indices = even_frames(len(dataset), max_frames)
+    with Mp4Writer(out, fps=fps, crf=crf) as video:
+        for index in progress(indices, enabled=show_progress, desc=f"render {split}"):
+            item = dataset[index]
+            params, timestep = frames.params(item["timestep"])
+            camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+            background = item["background"].to(device)
+            pred = render_params(run, params, camera, timestep, background, backend)  # [H, W, 3]
+            target = composite_target(item["image"].to(device), item["mask"].to(device), background)
+            errors = error_map(pred, target, error_max, colormap)
+            video.write(side_by_side(to_uint8(target), to_uint8(pred), to_uint8(errors)))
+    return video.frames
+
+
+def render(
+    run: RunPath,
+    split: Split = "test",
+    out: Optional[Path] = None,
+    max_frames: Optional[int] = None,
+    fps: float = 25.0,
+    crf: int = 18,
+    error_max: float = 0.25,
+    colormap: str = "inferno",
+    data: Optional[Path] = None,
+    device: str = "auto",
+    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    flame_dir: Optional[Path] = None,
+    progress: bool = True,
+) -> int:
+    """Render a split of the run's dataset into an mp4: ground truth | render | error map.
+
+    Args:
+        run: Run folder written by `geoavatar train`.
+        split: Frames to render: test (held-out end of the video), val, train or all.
+        out: Video file to write (default RUN/videos/render_<split>.mp4); written atomically.
+        max_frames: Render only this many frames, spread evenly over the split (default: all).
+        fps: Frames per second of the video.
+        crf: H.264 quality (0 lossless ... 51 worst; 18 is visually lossless).
+        error_max: Absolute error (0..1, mean over RGB) that gets the top colour of the error map.
+        colormap: Matplotlib colormap of the error map (inferno, turbo, viridis, ...).
+        data: The run's dataset folder, when it moved since training (default: the recorded one).
+        device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
+        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
+        progress: Show a progress bar.
+    """
+    with command_errors("render"):
+        loaded = open_run(run, device, flame_dir)
+        target = out or default_output(loaded, VIDEO_DIR, f"render_{split}.mp4")
+        count = render_split_video(loaded, target, split, max_frames, fps, crf, error_max, colormap, backend, data,
+                                   progress)
+    print(f"wrote {target} ({count} frames: ground truth | render | error)")
+    return 0
+
+
+__all__ = ["render", "render_split_video"]
