@@ -1,8 +1,8 @@
 """Trainer: a short run learns and writes a loadable RUN, resume is exact, NaN stops cleanly,
 seeded CPU runs repeat (to 1e-6), bad input fails with a clear message.
 
-One tiny generated subject (64 px, 12 frames) serves every test; runs are 6 steps of (a variant of)
-preset E that densifies (clone/split/prune) at every step and runs APS at step 3 (see small_config).
+One tiny generated subject (48 px, 12 frames) serves every test; runs are 4 steps of (a variant of)
+preset E that densifies (clone/split/prune) at every step and runs APS at step 2 (see small_config).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from geoavatar.train import checkpoint as ckpt
 from geoavatar.train import trainer as trainer_module
 from geoavatar.train.trainer import RunOptions, TrainingDiverged, new_state, open_training_data, render_frame, train
 
-STEPS = 6
+STEPS = 4
 
 
 @pytest.fixture(scope="module")
@@ -33,17 +33,17 @@ def subject(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("train-subject") / "tiny"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ShortVideoWarning)
-        generate_dataset(out, SynthConfig(subject=0, frames=12, size=64, seed=0), progress=False)
+        generate_dataset(out, SynthConfig(subject=0, frames=12, size=48, seed=0), progress=False)
     return out
 
 
 def small_config():
-    """Preset E on a 6-step schedule, changed so that 6 steps at 64 px show progress:
-    - Gaussians start at opacity 0.5 (0.1 leaves the sub-pixel Gaussians of a 64 px head nearly
+    """Preset E on a 4-step schedule, changed so that 4 steps at 48 px show progress:
+    - Gaussians start at opacity 0.5 (0.1 leaves the sub-pixel Gaussians of a 48 px head nearly
       transparent) and colours learn 20x faster;
     - no opacity reset (scaled, it would fall every 2 steps and leave no step to recover; the reset
       itself is tested in test_avatar).
-    The scaled schedule densifies at every step and runs APS at step 3, so the resume test crosses
+    The scaled schedule densifies at every step and runs APS at step 2, so the resume test crosses
     densification (random split samples) and APS.
     """
     config = preset("E", steps=STEPS)
@@ -135,12 +135,12 @@ def test_short_run_lowers_loss_and_writes_loadable_run(subject, straight_run, tm
     assert loaded.config == config and loaded.info.step == STEPS
     assert loaded.deformer is not None and loaded.info.num_frames == 12
     assert loaded.avatar.num_gaussians == loaded.avatar.binding.shape[0] >= loaded.head.num_faces
-    assert loaded.info.aps["done"] and loaded.info.aps["step"] == config.aps_step == 3
+    assert loaded.info.aps["done"] and loaded.info.aps["step"] == config.aps_step == 2
     for name in ("config.json", "aps.json", "train.log", "checkpoints/final.pt"):
         assert (straight_run / name).is_file(), name
     assert sorted(p.name for p in (straight_run / "val").iterdir()) == [f"step_{STEPS:06d}.png"]
     log = (straight_run / "train.log").read_text()
-    assert "APS at step 3" in log and "validation PSNR" in log
+    assert "APS at step 2" in log and "validation PSNR" in log
     # Test frames are never refined: their parameters equal the tracked ones.
     subject_params = trainer_module.open_subject(subject).params
     test_rows = [loaded.info.timesteps["all"].index(t) for t in loaded.info.timesteps["test"]]
@@ -162,31 +162,31 @@ def test_seeded_runs_repeat(subject, straight_run, tmp_path):
 def test_resume_after_ctrl_c_and_after_a_kill_equals_straight_run(subject, straight_run, tmp_path):
     out = tmp_path / "resumed"
 
-    def ctrl_c_at_2(step, state, report):  # a real SIGINT, as Ctrl-C sends it
-        if step == 2:
+    def ctrl_c_at_1(step, state, report):  # a real SIGINT, as Ctrl-C sends it
+        if step == 1:
             os.kill(os.getpid(), signal.SIGINT)
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ShortVideoWarning)
-        first = train(options(subject, out, ckpt_every=4), small_config(), callback=ctrl_c_at_2)
-    assert first.status == "interrupted" and first.step == 2
-    assert ckpt.load_checkpoint(ckpt.run_checkpoint_path(out, "last"))["step"] == 2
+        first = train(options(subject, out, ckpt_every=2), small_config(), callback=ctrl_c_at_1)
+    assert first.status == "interrupted" and first.step == 1
+    assert ckpt.load_checkpoint(ckpt.run_checkpoint_path(out, "last"))["step"] == 1
 
-    def killed_at_5(step, state, report):  # dies without saving: the checkpoint of step 4 remains
-        if step == 5:
+    def killed_at_3(step, state, report):  # dies without saving: the checkpoint of step 2 remains
+        if step == 3:
             raise RuntimeError("simulated kill")
 
     with warnings.catch_warnings(), pytest.raises(RuntimeError, match="simulated kill"):
         warnings.simplefilter("ignore", ShortVideoWarning)
-        train(options(subject, out, ckpt_every=4), None, resume=True, callback=killed_at_5)
-    assert ckpt.load_checkpoint(ckpt.run_checkpoint_path(out, "last"))["step"] == 4
+        train(options(subject, out, ckpt_every=2), None, resume=True, callback=killed_at_3)
+    assert ckpt.load_checkpoint(ckpt.run_checkpoint_path(out, "last"))["step"] == 2
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ShortVideoWarning)
-        final = train(options(subject, out, ckpt_every=4), None, resume=True)
+        final = train(options(subject, out, ckpt_every=2), None, resume=True)
     assert final.status == "finished" and final.step == STEPS
     assert_same(learned_tensors(straight_run), learned_tensors(out), tolerance=TOLERANCE)
-    assert "resume at step 4" in (out / "train.log").read_text()
+    assert "resume at step 2" in (out / "train.log").read_text()
 
 
 def test_nan_loss_stops_with_last_good_checkpoint(subject, tmp_path, monkeypatch):
