@@ -21,6 +21,12 @@ COMMANDS: CommandTable = {
     "synth": "geoavatar.apps.synth:synth",
     "train": "geoavatar.apps.train:train",
     "eval": "geoavatar.apps.eval:eval_runs",
+    "render": "geoavatar.apps.render_video:render",
+    "reenact": "geoavatar.apps.reenact:reenact",
+    "orbit": "geoavatar.apps.orbit:orbit",
+    "export": "geoavatar.apps.export:export",
+    "view": "geoavatar.apps.view:view",
+    "bench": "geoavatar.apps.bench:bench",
 }
 
 _DESCRIPTIONS = {
@@ -29,6 +35,12 @@ _DESCRIPTIONS = {
     "synth": "Generate a synthetic monocular dataset of a ground-truth actor (the embedded default).",
     "train": "Train a GeoAvatar (or an ablation preset) on a dataset.",
     "eval": "Evaluate runs on the test split: MSE, PSNR, SSIM, LPIPS (+ mouth); Table 1 / ablation tables.",
+    "render": "Self re-enactment video of a run: ground truth | render | error map (mp4).",
+    "reenact": "Cross re-enactment: drive a trained avatar with another dataset's motion (mp4).",
+    "orbit": "Novel views: a yaw/pitch sweep around the head (mp4).",
+    "export": "Export Gaussians as a standard 3DGS PLY (one frame, or a sequence as PLYs / npz).",
+    "view": "Web viewer (viser) with expression, jaw and head-pose sliders and sequence playback.",
+    "bench": "Frames per second of the full animation path and of rasterization alone.",
 }
 
 
