@@ -18,6 +18,8 @@ from geoavatar.apps import view as view_app
 from geoavatar.apps.common import RunFrames, head_centre, open_run, pose_gaussians
 from geoavatar.geometry import axis_angle_to_matrix
 
+pytest.importorskip("viser")  # the optional [viewer] extra
+
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):

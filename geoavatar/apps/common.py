@@ -41,7 +41,7 @@ from geoavatar.train.checkpoint import LoadedRun, RunError, load_run
 from geoavatar.train.trainer import resolve_device
 
 # The RUN folder: the first, positional argument of every command (`geoavatar render RUN`).
-RunPath = Annotated[Path, tyro.conf.Positional]
+RunPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
 
 VIDEO_DIR = "videos"  # RUN/videos/<command>_....mp4 unless --out says otherwise
 EXPORT_DIR = "export"

@@ -174,8 +174,8 @@ def reenact_video(
         if not avatar_root.is_dir():
             raise RunError(f"{run.info.run_dir}: its dataset folder {avatar_root} is not found (the camera comes from "
                            "it); pass --data DIR, or --camera driver")
-        camera_timestep = frames.timesteps[0] if avatar_neutral == "mean" else frames.resolve(
-            frames.timesteps[0] if avatar_neutral == "first" else int(avatar_neutral))
+        # the camera of the avatar's neutral frame (its first frame for 'first' and 'mean')
+        camera_timestep = frames.timesteps[0] if avatar_neutral in ("first", "mean") else int(avatar_neutral)
         fixed_camera = record_camera(open_subject(avatar_root), camera_timestep, run.info.resolution)
     background = torch.tensor(run.info.background, dtype=torch.float32, device=device)
     row_of = {t: i for i, t in enumerate(driver_timesteps)}

@@ -81,7 +81,10 @@ class Viewer:
 
     def __init__(self, run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr_sliders: int = 10,
                  fps: float = 25.0, data: Path | None = None):
-        import viser
+        try:
+            import viser
+        except ImportError as err:
+            raise ImportError(f"the viewer needs viser ({err}); install it with: pip install 'geoavatar[viewer]'") from err
 
         self.run = run
         self.frames = RunFrames(run)
@@ -117,6 +120,7 @@ class Viewer:
         self.centre = head_centre(run, params)  # [3], fixed: the edits turn the head about it
         g = self._gaussians()
         self.splats = self.server.scene.add_gaussian_splats("/avatar", **g)
+        self._show_info()
         self._aim_camera(data)
         self._player = threading.Thread(target=self._play, name="geoavatar-view-player", daemon=True)
         self._player.start()
@@ -155,8 +159,11 @@ class Viewer:
         with self._lock:
             g = self._gaussians()
             self.splats.set_gaussians(g["centers"], g["covariances"], g["rgbs"], g["opacities"])
-            timestep = self.frames.timesteps[min(int(self.frame.value), len(self.frames) - 1)]
-            self.info.content = f"timestep {timestep} of {len(self.frames)}, {self.run.avatar.num_gaussians} Gaussians"
+            self._show_info()
+
+    def _show_info(self) -> None:
+        timestep = self.frames.timesteps[min(int(self.frame.value), len(self.frames) - 1)]
+        self.info.content = f"timestep {timestep} ({len(self.frames)} frames), {self.run.avatar.num_gaussians} Gaussians"
 
     def reset_edits(self) -> None:
         self._batch = True
@@ -237,7 +244,10 @@ def view(
     """
     with command_errors("view"):
         loaded = open_run(run, device, flame_dir)
-        viewer = start_viewer(loaded, host, port, expr_sliders, fps, data)
+        try:
+            viewer = start_viewer(loaded, host, port, expr_sliders, fps, data)
+        except (ImportError, OSError) as err:  # viser missing; the address cannot be bound
+            raise ValueError(str(err)) from err
     print(f"GeoAvatar viewer: {viewer.url}  ({loaded.avatar.num_gaussians} Gaussians, {len(viewer.frames)} frames; "
           "Ctrl-C stops)", flush=True)
     try:
