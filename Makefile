@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 REQS := requirements/base.txt requirements/nodeps.txt requirements/dev.txt pyproject.toml
 
-.PHONY: test install install-cuda head-show clean-venv
+.PHONY: test install install-cuda demo head-show clean-venv
 
 install: $(STAMP)
 
@@ -23,6 +23,10 @@ install-cuda: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# The main job: generate a subject, train, evaluate, render; read demo_output/report.md.
+demo: $(STAMP)
+	$(VENV)/bin/geoavatar demo --out demo_output
 
 head-show: $(STAMP)
 	$(VENV)/bin/geoavatar head show --out head.png

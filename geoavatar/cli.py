@@ -15,6 +15,7 @@ from typing import Callable, Union
 CommandTable = dict[str, Union[str, "CommandTable"]]
 
 COMMANDS: CommandTable = {
+    "demo": "geoavatar.apps.demo:demo",
     "head": {
         "show": "geoavatar.apps.head_show:head_show",
     },
@@ -30,6 +31,7 @@ COMMANDS: CommandTable = {
 }
 
 _DESCRIPTIONS = {
+    "demo": "The main job end to end on a generated subject: train, evaluate, render; writes report.md.",
     "head": "Head models: inspect the template, expressions and mouth structure.",
     "head show": "Render a contact sheet of a head model (front/side, expressions, open jaw).",
     "synth": "Generate a synthetic monocular dataset of a ground-truth actor (the embedded default).",

@@ -34,10 +34,10 @@ import tyro
 from torch import Tensor
 
 from geoavatar.avatar import GlobalGaussians, posed_head
-from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
+from geoavatar.data import DatasetError
 from geoavatar.data.subject import SUBJECT_KEYS, Subject
 from geoavatar.render import RasterizeResult, rasterize
-from geoavatar.train.checkpoint import LoadedRun, RunError, load_run
+from geoavatar.train.checkpoint import LoadedRun, RunError, load_run, open_run_dataset
 from geoavatar.train.trainer import resolve_device
 
 # The RUN folder: the first, positional argument of every command (`geoavatar render RUN`).
@@ -107,36 +107,6 @@ def record_camera(subject: Subject, timestep: int, resolution: int | None) -> Ca
     if resolution is not None and resolution < max(frame.width, frame.height):
         camera = camera.resized(resolution)
     return camera
-
-
-def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None = None,
-                     flame_dir: str | os.PathLike | None = None) -> HeadAvatarDataset:
-    """A split of the dataset the run trained on, loaded as training loaded it (resolution, split rule).
-
-    `data` overrides the dataset folder recorded in the run (a moved dataset). RunError when the folder
-    is gone, belongs to another head model, or its frames no longer match the run."""
-    info = run.info
-    root = Path(data) if data is not None else info.data_root
-    if not root.is_dir():
-        raise RunError(f"{info.run_dir}: its dataset folder {root} is not found; pass --data DIR to point at it")
-    config = DataConfig(resolution=info.resolution, test_frames=info.run_options.get("test_frames"))
-    head_options = {"flame_dir": flame_dir or info.run_options.get("flame_dir")} if info.head_model == "flame" else {}
-    try:
-        subject = open_subject(root)
-        dataset = HeadAvatarDataset(subject, split, config, head_options=head_options)
-    except DatasetError as err:
-        raise RunError(f"{info.run_dir}: cannot open its dataset: {err}") from err
-    if subject.head_model != info.head_model:
-        raise RunError(f"{root}: tracked with head model '{subject.head_model}', the run {info.run_dir} with "
-                       f"'{info.head_model}'")
-    if list(subject.timesteps) != info.timesteps["all"]:
-        raise RunError(f"{root}: has {subject.num_timesteps} timesteps, the run {info.run_dir} was trained on "
-                       f"{len(info.timesteps['all'])} different ones; the dataset changed since training")
-    expected = info.timesteps.get(split) if split != "all" else info.timesteps["all"]
-    if expected is not None and sorted(set(dataset.timesteps)) != sorted(set(expected)):
-        raise RunError(f"{root}: its '{split}' split ({len(set(dataset.timesteps))} timesteps) differs from the one "
-                       f"the run {info.run_dir} recorded ({len(set(expected))}); the dataset changed since training")
-    return dataset
 
 
 class RunFrames:

@@ -43,12 +43,12 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from geoavatar.avatar import posed_head
-from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
+from geoavatar.data import HeadAvatarDataset
 from geoavatar.eval import metrics
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import rasterize_mesh
-from geoavatar.train.checkpoint import LoadedRun, RunError
+from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
 from geoavatar.train.frame_params import FrameParams
 from geoavatar.train.trainer import composite_target, render_frame
 
@@ -134,36 +134,6 @@ class RenderedFrame(NamedTuple):
 
 
 # --- opening the data of a run -------------------------------------------------------------------
-
-
-def open_run_dataset(run: LoadedRun, split: str, data: str | Path | None = None,
-                     flame_dir: str | Path | None = None) -> HeadAvatarDataset:
-    """The split of the dataset the run trained on, loaded as training loaded it (resolution, split rule).
-
-    `data` overrides the dataset folder recorded in the run (a moved dataset). RunError when the
-    folder is gone or its split / frames no longer match the run."""
-    info = run.info
-    root = Path(data) if data is not None else info.data_root
-    if not root.is_dir():
-        raise RunError(f"{info.run_dir}: its dataset folder {root} is not found; pass --data DIR to point at it")
-    config = DataConfig(resolution=info.resolution, test_frames=info.run_options.get("test_frames"))
-    head_options = {"flame_dir": flame_dir or info.run_options.get("flame_dir")} if info.head_model == "flame" else {}
-    try:
-        subject = open_subject(root)
-        dataset = HeadAvatarDataset(subject, split, config, head_options=head_options)
-    except DatasetError as err:
-        raise RunError(f"{info.run_dir}: cannot open its dataset: {err}") from err
-    if subject.head_model != info.head_model:
-        raise RunError(f"{root}: tracked with head model '{subject.head_model}', the run {info.run_dir} with "
-                       f"'{info.head_model}'")
-    expected = info.timesteps.get(split)
-    if expected is not None and sorted(set(dataset.timesteps)) != sorted(set(expected)):
-        raise RunError(f"{root}: its '{split}' split ({len(set(dataset.timesteps))} timesteps) differs from the one "
-                       f"the run {info.run_dir} recorded ({len(set(expected))}); the dataset changed since training")
-    rows = int(info.frame_params["expr"].shape[0])
-    if rows != subject.num_timesteps:
-        raise RunError(f"{root}: has {subject.num_timesteps} timesteps, the run {info.run_dir} has parameters for {rows}")
-    return dataset
 
 
 def evenly_spaced(count: int, limit: int | None) -> list[int]:
