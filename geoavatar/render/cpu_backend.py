@@ -1,0 +1,206 @@
+"""Native CPU backend ("cpu") of rasterize(): projection in PyTorch, rasterize-to-pixels in C++.
+
+The split is gsplat's: `project_gaussians` (torch_backend.py: EWA, Jacobian clamp, 0.3 px dilation,
+opacity-aware radii, near plane) stays in PyTorch, where it is O(N) and differentiable by autograd;
+the per-pixel work (tile binning, per-tile depth order, front-to-back compositing with the 1/255,
+0.999 and T <= 1e-4 rules, and the hand-written back-to-front backward) runs in
+csrc/rasterize_cpu.cpp on OpenMP threads (torch.get_num_threads() of them, dynamic over tiles).
+Gradients reach means/quats/scales through the torch projection, and means2d.grad (densification)
+is the gradient the kernel returns for the screen-space means.
+
+The extension is built on first use with torch.utils.cpp_extension (g++ and ninja; about 35 s on
+our machines) into $GEOAVATAR_CACHE/ext/<key> (else ~/.cache/geoavatar/ext/<key>); the key hashes
+the C++ source, the compiler flags, torch, Python and the machine, so a cache is never reused by a
+different build. Without a compiler, or when the build fails, `load_extension()` warns once and
+returns None; rasterize(backend="auto") then uses the torch backend.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import shutil
+import sys
+import threading
+import warnings
+from pathlib import Path
+from types import ModuleType
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from geoavatar.render.torch_backend import project_gaussians
+
+SOURCE = Path(__file__).with_name("csrc") / "rasterize_cpu.cpp"
+# -O3 and OpenMP only: no -march=native, so a cache built on one machine runs on any x86-64 one.
+CFLAGS = ["-O3", "-fopenmp", "-std=c++17"]
+LDFLAGS = ["-fopenmp"]
+DEFAULT_TILE_SIZE = 16
+
+_lock = threading.Lock()
+_state: dict = {"module": None, "tried": False, "error": None}
+
+
+def _cache_root() -> Path:
+    env = os.environ.get("GEOAVATAR_CACHE")
+    return (Path(env) if env else Path.home() / ".cache" / "geoavatar") / "ext"
+
+
+def _build_key() -> str:
+    digest = hashlib.sha256()
+    digest.update(SOURCE.read_bytes())
+    for part in (CFLAGS, LDFLAGS, torch.__version__, sys.version, platform.machine(), platform.system()):
+        digest.update(repr(part).encode())
+    return digest.hexdigest()[:16]
+
+
+def _compiler() -> Optional[str]:
+    return shutil.which(os.environ.get("CXX", "c++"))
+
+
+def load_extension(verbose: bool = False) -> Optional[ModuleType]:
+    """The compiled kernel module (built on first use, then loaded from the cache), or None with one
+    warning when it cannot be built. Safe to call from several threads; later calls are free."""
+    with _lock:
+        if _state["tried"]:
+            return _state["module"]
+        _state["tried"] = True
+        try:
+            _state["module"] = _build(verbose)
+        except Exception as error:  # any build or load failure: fall back, say why once
+            _state["error"] = f"{type(error).__name__}: {str(error).strip().splitlines()[-1] if str(error).strip() else ''}"
+            warnings.warn(
+                "geoavatar: the native CPU rasterizer (backend 'cpu') could not be built, so rendering on CPU "
+                f"uses the slower PyTorch backend. Reason: {_state['error']}. Install g++ (e.g. apt-get install "
+                "g++) and ninja (pip install ninja) to enable it.",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        return _state["module"]
+
+
+def _build(verbose: bool) -> ModuleType:
+    from torch.utils import cpp_extension
+
+    if _compiler() is None:
+        raise RuntimeError(f"no C++ compiler found (looked for {os.environ.get('CXX', 'c++')!r} on PATH)")
+    if not cpp_extension.is_ninja_available():
+        raise RuntimeError("ninja is not available (pip install ninja)")
+    key = _build_key()
+    build_dir = _cache_root() / f"rasterize_cpu-{key}"
+    build_dir.mkdir(parents=True, exist_ok=True)
+    return cpp_extension.load(
+        name=f"geoavatar_rasterize_cpu_{key}",  # unique per build: never clashes with another in sys.modules
+        sources=[str(SOURCE)],
+        extra_cflags=CFLAGS,
+        extra_ldflags=LDFLAGS,
+        build_directory=str(build_dir),
+        verbose=verbose,
+    )
+
+
+def cpu_backend_available() -> bool:
+    """True when the native kernel is built and loaded (builds it on the first call)."""
+    return load_extension() is not None
+
+
+def cpu_backend_error() -> Optional[str]:
+    """Why the native kernel is unavailable (None when it loaded or was not tried yet)."""
+    return _state["error"]
+
+
+class _RasterizeToPixels(torch.autograd.Function):
+    """Native tile compositing of projected Gaussians with a native backward."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, background, radii, depths, width, height, tile_size):
+        ext = load_extension()
+        args = [t.detach().contiguous() for t in (means2d, conics, opacities, colors, background)]
+        radii, depths = radii.contiguous(), depths.detach().contiguous()
+        rgb, alpha, offsets, ids, last, t_final = ext.forward(*args, radii, depths, width, height, tile_size)
+        ctx.save_for_backward(*args, radii, offsets, ids, last, t_final)
+        ctx.geometry = (width, height, tile_size)
+        return rgb, alpha
+
+    @staticmethod
+    def backward(ctx, grad_rgb, grad_alpha):
+        means2d, conics, opacities, colors, background, radii, offsets, ids, last, t_final = ctx.saved_tensors
+        width, height, tile_size = ctx.geometry
+        dtype = means2d.dtype
+        grad_rgb = grad_rgb.to(dtype).contiguous()  # [H, W, 3]
+        grad_alpha = grad_alpha.to(dtype).contiguous()  # [H, W, 1]
+        g_means2d, g_conics, g_opacities, g_colors = load_extension().backward(
+            means2d, conics, opacities, colors, background, radii, offsets, ids, last, t_final, grad_rgb,
+            grad_alpha, width, height, tile_size,
+        )
+        g_background = (t_final.to(dtype)[..., None] * grad_rgb).sum((0, 1))  # [3]
+        return g_means2d, g_conics, g_opacities, g_colors, g_background, None, None, None, None, None
+
+
+def rasterize_to_pixels_cpu(
+    means2d: Tensor,  # [N, 2] pixels
+    conics: Tensor,  # [N, 3] (a, b, c) of the inverse 2D covariance
+    opacities: Tensor,  # [N]
+    colors: Tensor,  # [N, 3]
+    background: Tensor,  # [3]
+    radii: Tensor,  # [N, 2] int32; 0 = culled
+    depths: Tensor,  # [N]
+    width: int,
+    height: int,
+    tile_size: int = DEFAULT_TILE_SIZE,
+) -> tuple[Tensor, Tensor]:
+    """rgb [H, W, 3] (background composited) and alpha [H, W, 1], differentiable in the first five."""
+    if load_extension() is None:
+        raise RuntimeError(f"rasterize: backend 'cpu' is unavailable: {cpu_backend_error()}")
+    tensors = (means2d, conics, opacities, colors, background, depths)
+    if any(t.device.type != "cpu" for t in tensors):
+        raise ValueError("rasterize: backend 'cpu' needs CPU tensors; use backend 'torch' or 'auto' on other devices")
+    if isinstance(tile_size, bool) or not isinstance(tile_size, int) or tile_size <= 0:
+        raise ValueError(f"rasterize_to_pixels_cpu: tile_size must be a positive int, got {tile_size!r}")
+    return _RasterizeToPixels.apply(means2d, conics, opacities, colors, background, radii.to(torch.int32), depths,
+                                    width, height, tile_size)
+
+
+def rasterize_cpu(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4] wxyz
+    scales: Tensor,  # [N, 3] linear
+    opacities: Tensor,  # [N] in [0, 1]
+    colors: Tensor,  # [N, 3]
+    viewmats: Tensor,  # [C, 4, 4] world-to-camera, OpenCV axes
+    Ks: Tensor,  # [C, 3, 3]
+    width: int,
+    height: int,
+    backgrounds: Tensor,  # [C, 3]
+    batched: bool = True,
+    tile_size: int = DEFAULT_TILE_SIZE,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Same contract as torch_backend.rasterize_torch: rgb [C,H,W,3], alpha [C,H,W,1], means2d [C,N,2]
+    (a graph node whose .grad is d loss / d means2d; [N, 2] when batched=False), radii [C,N,2] int32,
+    visible [C,N] bool, depths [C,N]. tile_size changes speed only, never results."""
+    projections = [
+        project_gaussians(means, quats, scales, opacities, viewmats[c], Ks[c], width, height)
+        for c in range(viewmats.shape[0])
+    ]
+    means2d = torch.stack([p.means2d for p in projections])  # [C, N, 2]
+    per_camera = means2d.unbind(0)  # the [N, 2] nodes the compositing consumes
+    if not batched:
+        means2d = per_camera[0]
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    rgbs, alphas = [], []
+    for c, proj in enumerate(projections):
+        rgb, alpha = rasterize_to_pixels_cpu(per_camera[c], proj.conics, opacities, colors, backgrounds[c],
+                                             proj.radii, proj.depths, width, height, tile_size)
+        rgbs.append(rgb)
+        alphas.append(alpha)
+    return (
+        torch.stack(rgbs),
+        torch.stack(alphas),
+        means2d,
+        torch.stack([p.radii for p in projections]),
+        torch.stack([p.visible for p in projections]),
+        torch.stack([p.depths for p in projections]),
+    )

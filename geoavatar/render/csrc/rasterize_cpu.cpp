@@ -1,0 +1,391 @@
+// Native CPU rasterize-to-pixels for geoavatar.render (backend "cpu").
+//
+// The same split as gsplat: projection (EWA, culling, radii) stays in PyTorch (torch_backend.py) and
+// this file does the per-pixel work that the PyTorch backend spends its time on:
+//   bin_gaussians  - visible Gaussians sorted front to back (depth, then index, like the torch
+//                    backend's stable argsort), then a counting sort by tile, so every tile's list is
+//                    in depth order; only tiles holding a pixel centre of the Gaussian's box get it.
+//   forward        - per tile (OpenMP, dynamic schedule), Gaussians front to back over the pixels of
+//                    their box: alpha = min(0.999, o exp(-sigma)), alpha < 1/255 skipped, a pixel
+//                    stops before the Gaussian that would take T to <= 1e-4; the tile stops when all
+//                    its pixels have. Keeps T_final and, per pixel, the end of its composited range.
+//   backward       - per tile, back to front from T_final, recovering T by division as gsplat does,
+//                    with a running sum of what lies behind; gradients per (tile, Gaussian) entry,
+//                    then summed per Gaussian in a fixed order (deterministic for any thread count).
+// Per-pixel state (T, colour sums, the running sums of backward) is kept in double for both float32
+// and float64 inputs, so float32 results match the torch backend's float64 scans.
+// Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels are
+// evaluated.
+
+#include <torch/extension.h>
+
+#include <ATen/Parallel.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <numeric>
+#include <vector>
+
+namespace {
+
+constexpr double kAlphaMin = 1.0 / 255.0;
+constexpr double kAlphaMax = 0.999;
+constexpr double kTransmittanceMin = 1e-4;
+
+// One visible Gaussian, gathered once so the tile loops read one contiguous record.
+template <typename scalar_t>
+struct Splat {
+  scalar_t mx, my;     // mean in pixels
+  scalar_t a, b, c;    // conic [[a, b], [b, c]]
+  scalar_t opacity;
+  scalar_t sigma_cut;  // sigma above which o exp(-sigma) < 1/255 surely (a cheap test before exp)
+  scalar_t r, g, bl;   // colour
+  int32_t x0, x1, y0, y1;  // pixel box (inclusive), clipped to the image
+};
+
+struct Grid {
+  int64_t width, height, tile, tiles_x, tiles_y;
+  int64_t n_tiles() const { return tiles_x * tiles_y; }
+};
+
+int threads_for_torch() { return std::max(1, at::get_num_threads()); }
+
+template <typename scalar_t>
+std::vector<Splat<scalar_t>> gather_splats(const torch::Tensor& means2d, const torch::Tensor& conics,
+                                           const torch::Tensor& opacities, const torch::Tensor& colors,
+                                           const torch::Tensor& radii, const Grid& grid) {
+  const int64_t n = means2d.size(0);
+  const scalar_t* m = means2d.data_ptr<scalar_t>();
+  const scalar_t* q = conics.data_ptr<scalar_t>();
+  const scalar_t* o = opacities.data_ptr<scalar_t>();
+  const scalar_t* col = colors.data_ptr<scalar_t>();
+  const int32_t* rad = radii.data_ptr<int32_t>();
+  std::vector<Splat<scalar_t>> splats(n);
+#pragma omp parallel for schedule(static) num_threads(threads_for_torch())
+  for (int64_t i = 0; i < n; ++i) {
+    Splat<scalar_t>& s = splats[i];
+    s.mx = m[2 * i];
+    s.my = m[2 * i + 1];
+    s.a = q[3 * i];
+    s.b = q[3 * i + 1];
+    s.c = q[3 * i + 2];
+    s.opacity = o[i];
+    // margin: the exact test on alpha decides; this one only skips exp far from the threshold
+    s.sigma_cut = s.opacity > 0 ? static_cast<scalar_t>(std::log(255.0 * static_cast<double>(s.opacity)) + 1e-3)
+                                : static_cast<scalar_t>(-1);
+    s.r = col[3 * i];
+    s.g = col[3 * i + 1];
+    s.bl = col[3 * i + 2];
+    const int32_t rx = rad[2 * i], ry = rad[2 * i + 1];
+    if (rx <= 0 && ry <= 0) {  // culled by the projection
+      s.x0 = 0, s.x1 = -1, s.y0 = 0, s.y1 = -1;
+      continue;
+    }
+    // pixel centres j + 0.5 inside [mx - rx, mx + rx]
+    const double fx0 = std::ceil(static_cast<double>(s.mx) - rx - 0.5);
+    const double fx1 = std::floor(static_cast<double>(s.mx) + rx - 0.5);
+    const double fy0 = std::ceil(static_cast<double>(s.my) - ry - 0.5);
+    const double fy1 = std::floor(static_cast<double>(s.my) + ry - 0.5);
+    s.x0 = static_cast<int32_t>(std::max(fx0, 0.0));
+    s.x1 = static_cast<int32_t>(std::min(fx1, static_cast<double>(grid.width - 1)));
+    s.y0 = static_cast<int32_t>(std::max(fy0, 0.0));
+    s.y1 = static_cast<int32_t>(std::min(fy1, static_cast<double>(grid.height - 1)));
+  }
+  return splats;
+}
+
+// Tile lists: offsets [T + 1] into ids [M], each tile's ids front to back.
+template <typename scalar_t>
+void bin_gaussians(const std::vector<Splat<scalar_t>>& splats, const torch::Tensor& depths, const Grid& grid,
+                   std::vector<int64_t>& offsets, std::vector<int32_t>& ids) {
+  const int64_t n = static_cast<int64_t>(splats.size());
+  const scalar_t* z = depths.data_ptr<scalar_t>();
+  std::vector<int32_t> order;
+  order.reserve(n);
+  for (int64_t i = 0; i < n; ++i) {
+    const auto& s = splats[i];
+    if (s.x0 <= s.x1 && s.y0 <= s.y1) order.push_back(static_cast<int32_t>(i));
+  }
+  std::sort(order.begin(), order.end(), [z](int32_t i, int32_t j) { return z[i] < z[j] || (z[i] == z[j] && i < j); });
+  const int64_t t = grid.tile;
+  std::vector<int64_t> counts(grid.n_tiles() + 1, 0);
+  for (int32_t i : order) {
+    const auto& s = splats[i];
+    for (int64_t ty = s.y0 / t; ty <= s.y1 / t; ++ty)
+      for (int64_t tx = s.x0 / t; tx <= s.x1 / t; ++tx) ++counts[ty * grid.tiles_x + tx + 1];
+  }
+  std::partial_sum(counts.begin(), counts.end(), counts.begin());
+  offsets = counts;
+  ids.resize(offsets.back());
+  std::vector<int64_t> cursor(offsets.begin(), offsets.end() - 1);
+  for (int32_t i : order) {
+    const auto& s = splats[i];
+    for (int64_t ty = s.y0 / t; ty <= s.y1 / t; ++ty)
+      for (int64_t tx = s.x0 / t; tx <= s.x1 / t; ++tx) ids[cursor[ty * grid.tiles_x + tx]++] = i;
+  }
+}
+
+template <typename scalar_t>
+void forward_tiles(const std::vector<Splat<scalar_t>>& splats, const std::vector<int64_t>& offsets,
+                   const std::vector<int32_t>& ids, const double* background, const Grid& grid, scalar_t* out_rgb,
+                   scalar_t* out_alpha, int32_t* out_last, double* out_t_final) {
+  const int64_t t = grid.tile, tp = t * t;
+#pragma omp parallel num_threads(threads_for_torch())
+  {
+    std::vector<double> trans(tp), rgb(3 * tp);
+    std::vector<int32_t> last(tp);
+    std::vector<uint8_t> done(tp);
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
+      const int64_t tx0 = (tile % grid.tiles_x) * t, ty0 = (tile / grid.tiles_x) * t;
+      const int64_t tw = std::min(t, grid.width - tx0), th = std::min(t, grid.height - ty0);
+      std::fill(trans.begin(), trans.end(), 1.0);
+      std::fill(rgb.begin(), rgb.end(), 0.0);
+      std::fill(last.begin(), last.end(), 0);
+      std::fill(done.begin(), done.end(), 0);
+      int64_t n_done = 0;
+      const int64_t begin = offsets[tile], end = offsets[tile + 1];
+      for (int64_t k = begin; k < end && n_done < tw * th; ++k) {
+        const Splat<scalar_t>& s = splats[ids[k]];
+        const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
+        const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
+        for (int64_t y = y0; y <= y1; ++y) {
+          const scalar_t dy = s.my - (static_cast<scalar_t>(y) + scalar_t(0.5));
+          for (int64_t x = x0; x <= x1; ++x) {
+            const int64_t p = (y - ty0) * t + (x - tx0);
+            if (done[p]) continue;
+            const scalar_t dx = s.mx - (static_cast<scalar_t>(x) + scalar_t(0.5));
+            const scalar_t sigma = scalar_t(0.5) * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
+            if (sigma > s.sigma_cut) continue;
+            const scalar_t alpha_raw = s.opacity * std::exp(-sigma);
+            if (alpha_raw < static_cast<scalar_t>(kAlphaMin)) continue;
+            const double alpha = std::min(static_cast<double>(alpha_raw), kAlphaMax);
+            const double next_t = trans[p] * (1.0 - alpha);
+            if (next_t <= kTransmittanceMin) {
+              done[p] = 1;
+              ++n_done;
+              continue;
+            }
+            const double w = alpha * trans[p];
+            rgb[3 * p] += w * s.r;
+            rgb[3 * p + 1] += w * s.g;
+            rgb[3 * p + 2] += w * s.bl;
+            trans[p] = next_t;
+            last[p] = static_cast<int32_t>(k - begin + 1);
+          }
+        }
+      }
+      for (int64_t y = 0; y < th; ++y) {
+        for (int64_t x = 0; x < tw; ++x) {
+          const int64_t p = y * t + x, pix = (ty0 + y) * grid.width + (tx0 + x);
+          for (int ch = 0; ch < 3; ++ch)
+            out_rgb[3 * pix + ch] = static_cast<scalar_t>(rgb[3 * p + ch] + trans[p] * background[ch]);
+          out_alpha[pix] = static_cast<scalar_t>(1.0 - trans[p]);
+          out_last[pix] = last[p];
+          out_t_final[pix] = trans[p];
+        }
+      }
+    }
+  }
+}
+
+// Gradient record of one (tile, Gaussian) entry: means2d (2), conic (3), opacity, colour (3).
+constexpr int kEntryGrads = 9;
+
+template <typename scalar_t>
+void backward_tiles(const std::vector<Splat<scalar_t>>& splats, const int64_t* offsets, const int32_t* ids,
+                    const int32_t* last_in, const double* t_final, const scalar_t* grad_rgb,
+                    const scalar_t* grad_alpha, const double* background, const Grid& grid,
+                    std::vector<double>& entry_grads) {
+  const int64_t t = grid.tile, tp = t * t;
+#pragma omp parallel num_threads(threads_for_torch())
+  {
+    std::vector<double> trans(tp), behind(tp), g(3 * tp);
+    std::vector<int32_t> last(tp);
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
+      const int64_t begin = offsets[tile], end = offsets[tile + 1];
+      if (begin == end) continue;
+      const int64_t tx0 = (tile % grid.tiles_x) * t, ty0 = (tile / grid.tiles_x) * t;
+      const int64_t tw = std::min(t, grid.width - tx0), th = std::min(t, grid.height - ty0);
+      int32_t max_last = 0;
+      for (int64_t y = 0; y < th; ++y) {
+        for (int64_t x = 0; x < tw; ++x) {
+          const int64_t p = y * t + x, pix = (ty0 + y) * grid.width + (tx0 + x);
+          double dot_bg = 0.0;
+          for (int ch = 0; ch < 3; ++ch) {
+            g[3 * p + ch] = static_cast<double>(grad_rgb[3 * pix + ch]);
+            dot_bg += g[3 * p + ch] * background[ch];
+          }
+          trans[p] = t_final[pix];
+          // T_final times d loss / d T_final (rgb gains T_final * background, alpha = 1 - T_final)
+          behind[p] = t_final[pix] * (dot_bg - static_cast<double>(grad_alpha[pix]));
+          last[p] = last_in[pix];
+          max_last = std::max(max_last, last[p]);
+        }
+      }
+      for (int64_t k = begin + max_last - 1; k >= begin; --k) {
+        const Splat<scalar_t>& s = splats[ids[k]];
+        const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
+        const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
+        const int32_t position = static_cast<int32_t>(k - begin);
+        double gm_x = 0, gm_y = 0, gc_a = 0, gc_b = 0, gc_c = 0, g_op = 0, gr = 0, gg = 0, gb = 0;
+        const double a = s.a, b = s.b, c = s.c;
+        for (int64_t y = y0; y <= y1; ++y) {
+          const scalar_t dy = s.my - (static_cast<scalar_t>(y) + scalar_t(0.5));
+          for (int64_t x = x0; x <= x1; ++x) {
+            const int64_t p = (y - ty0) * t + (x - tx0);
+            if (position >= last[p]) continue;
+            const scalar_t dx = s.mx - (static_cast<scalar_t>(x) + scalar_t(0.5));
+            const scalar_t sigma = scalar_t(0.5) * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
+            if (sigma > s.sigma_cut) continue;
+            const scalar_t alpha_raw = s.opacity * std::exp(-sigma);
+            if (alpha_raw < static_cast<scalar_t>(kAlphaMin)) continue;
+            const double alpha = std::min(static_cast<double>(alpha_raw), kAlphaMax);
+            const double keep = 1.0 - alpha;
+            const double t_before = trans[p] / keep;
+            trans[p] = t_before;
+            const double gr_p = g[3 * p], gg_p = g[3 * p + 1], gb_p = g[3 * p + 2];
+            const double color_dot = gr_p * s.r + gg_p * s.g + gb_p * s.bl;
+            const double grad_alpha_pair = t_before * color_dot - behind[p] / keep;
+            const double w = alpha * t_before;
+            behind[p] += color_dot * w;
+            gr += w * gr_p;
+            gg += w * gg_p;
+            gb += w * gb_p;
+            if (alpha < kAlphaMax) {  // a capped alpha does not depend on sigma or opacity
+              const double g_sigma = -alpha * grad_alpha_pair;
+              const double ddx = dx, ddy = dy;
+              gm_x += g_sigma * (a * ddx + b * ddy);
+              gm_y += g_sigma * (b * ddx + c * ddy);
+              gc_a += 0.5 * g_sigma * ddx * ddx;
+              gc_b += g_sigma * ddx * ddy;
+              gc_c += 0.5 * g_sigma * ddy * ddy;
+              g_op += alpha / static_cast<double>(s.opacity) * grad_alpha_pair;
+            }
+          }
+        }
+        double* out = entry_grads.data() + kEntryGrads * k;
+        out[0] = gm_x, out[1] = gm_y, out[2] = gc_a, out[3] = gc_b, out[4] = gc_c, out[5] = g_op;
+        out[6] = gr, out[7] = gg, out[8] = gb;
+      }
+    }
+  }
+}
+
+void check_input(const torch::Tensor& t, const char* name, int64_t dim, torch::ScalarType dtype) {
+  TORCH_CHECK(t.device().is_cpu(), "rasterize_cpu: '", name, "' must be a CPU tensor");
+  TORCH_CHECK(t.is_contiguous(), "rasterize_cpu: '", name, "' must be contiguous");
+  TORCH_CHECK(t.dim() == dim, "rasterize_cpu: '", name, "' must have ", dim, " dimensions");
+  TORCH_CHECK(t.scalar_type() == dtype, "rasterize_cpu: '", name, "' has dtype ", t.scalar_type(), ", expected ",
+              dtype);
+}
+
+Grid make_grid(int64_t width, int64_t height, int64_t tile) {
+  TORCH_CHECK(width > 0 && height > 0 && tile > 0, "rasterize_cpu: width, height and tile must be positive");
+  return Grid{width, height, tile, (width + tile - 1) / tile, (height + tile - 1) / tile};
+}
+
+// Returns rgb [H, W, 3], alpha [H, W, 1] and the state backward needs: tile offsets [T + 1] int64,
+// tile ids [M] int32, last [H, W] int32 (end of each pixel's composited range in its tile list),
+// t_final [H, W] float64.
+std::vector<torch::Tensor> forward(const torch::Tensor& means2d, const torch::Tensor& conics,
+                                   const torch::Tensor& opacities, const torch::Tensor& colors,
+                                   const torch::Tensor& background, const torch::Tensor& radii,
+                                   const torch::Tensor& depths, int64_t width, int64_t height, int64_t tile) {
+  const auto dtype = means2d.scalar_type();
+  check_input(means2d, "means2d", 2, dtype);
+  check_input(conics, "conics", 2, dtype);
+  check_input(opacities, "opacities", 1, dtype);
+  check_input(colors, "colors", 2, dtype);
+  check_input(background, "background", 1, dtype);
+  check_input(radii, "radii", 2, torch::kInt32);
+  check_input(depths, "depths", 1, dtype);
+  const Grid grid = make_grid(width, height, tile);
+  auto opts = means2d.options();
+  torch::Tensor rgb = torch::empty({height, width, 3}, opts);
+  torch::Tensor alpha = torch::empty({height, width, 1}, opts);
+  torch::Tensor last = torch::empty({height, width}, opts.dtype(torch::kInt32));
+  torch::Tensor t_final = torch::empty({height, width}, opts.dtype(torch::kFloat64));
+  torch::Tensor offsets_t, ids_t;
+  const torch::Tensor bg64 = background.to(torch::kFloat64).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(dtype, "rasterize_cpu_forward", [&] {
+    auto splats = gather_splats<scalar_t>(means2d, conics, opacities, colors, radii, grid);
+    std::vector<int64_t> offsets;
+    std::vector<int32_t> ids;
+    bin_gaussians<scalar_t>(splats, depths, grid, offsets, ids);
+    forward_tiles<scalar_t>(splats, offsets, ids, bg64.data_ptr<double>(), grid, rgb.data_ptr<scalar_t>(),
+                            alpha.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), t_final.data_ptr<double>());
+    offsets_t = torch::from_blob(offsets.data(), {static_cast<int64_t>(offsets.size())}, torch::kInt64).clone();
+    ids_t = torch::from_blob(ids.data(), {static_cast<int64_t>(ids.size())}, torch::kInt32).clone();
+  });
+  return {rgb, alpha, offsets_t, ids_t, last, t_final};
+}
+
+// Returns the gradients of means2d [N, 2], conics [N, 3], opacities [N], colors [N, 3].
+std::vector<torch::Tensor> backward(const torch::Tensor& means2d, const torch::Tensor& conics,
+                                    const torch::Tensor& opacities, const torch::Tensor& colors,
+                                    const torch::Tensor& background, const torch::Tensor& radii,
+                                    const torch::Tensor& offsets, const torch::Tensor& ids,
+                                    const torch::Tensor& last, const torch::Tensor& t_final,
+                                    const torch::Tensor& grad_rgb, const torch::Tensor& grad_alpha, int64_t width,
+                                    int64_t height, int64_t tile) {
+  const auto dtype = means2d.scalar_type();
+  check_input(means2d, "means2d", 2, dtype);
+  check_input(conics, "conics", 2, dtype);
+  check_input(opacities, "opacities", 1, dtype);
+  check_input(colors, "colors", 2, dtype);
+  check_input(background, "background", 1, dtype);
+  check_input(radii, "radii", 2, torch::kInt32);
+  check_input(offsets, "offsets", 1, torch::kInt64);
+  check_input(ids, "ids", 1, torch::kInt32);
+  check_input(last, "last", 2, torch::kInt32);
+  check_input(t_final, "t_final", 2, torch::kFloat64);
+  check_input(grad_rgb, "grad_rgb", 3, dtype);
+  check_input(grad_alpha, "grad_alpha", 3, dtype);
+  const Grid grid = make_grid(width, height, tile);
+  TORCH_CHECK(offsets.numel() == grid.n_tiles() + 1, "rasterize_cpu: 'offsets' does not match the tile grid");
+  const int64_t n = means2d.size(0), m = ids.numel();
+  auto opts = means2d.options();
+  torch::Tensor g_means2d = torch::zeros({n, 2}, opts), g_conics = torch::zeros({n, 3}, opts);
+  torch::Tensor g_opacities = torch::zeros({n}, opts), g_colors = torch::zeros({n, 3}, opts);
+  const torch::Tensor bg64 = background.to(torch::kFloat64).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(dtype, "rasterize_cpu_backward", [&] {
+    auto splats = gather_splats<scalar_t>(means2d, conics, opacities, colors, radii, grid);
+    std::vector<double> entry_grads(static_cast<size_t>(kEntryGrads) * m, 0.0);
+    backward_tiles<scalar_t>(splats, offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(), last.data_ptr<int32_t>(),
+                             t_final.data_ptr<double>(), grad_rgb.data_ptr<scalar_t>(),
+                             grad_alpha.data_ptr<scalar_t>(), bg64.data_ptr<double>(), grid, entry_grads);
+    // Sum the entries of each Gaussian in tile order: a fixed order, whatever the thread count.
+    std::vector<double> sums(static_cast<size_t>(kEntryGrads) * n, 0.0);
+    const int32_t* id = ids.data_ptr<int32_t>();
+    for (int64_t k = 0; k < m; ++k) {
+      const double* e = entry_grads.data() + kEntryGrads * k;
+      double* s = sums.data() + kEntryGrads * static_cast<int64_t>(id[k]);
+      for (int j = 0; j < kEntryGrads; ++j) s[j] += e[j];
+    }
+    scalar_t* gm = g_means2d.data_ptr<scalar_t>();
+    scalar_t* gc = g_conics.data_ptr<scalar_t>();
+    scalar_t* go = g_opacities.data_ptr<scalar_t>();
+    scalar_t* gcol = g_colors.data_ptr<scalar_t>();
+    for (int64_t i = 0; i < n; ++i) {
+      const double* s = sums.data() + kEntryGrads * i;
+      gm[2 * i] = s[0], gm[2 * i + 1] = s[1];
+      gc[3 * i] = s[2], gc[3 * i + 1] = s[3], gc[3 * i + 2] = s[4];
+      go[i] = s[5];
+      gcol[3 * i] = s[6], gcol[3 * i + 1] = s[7], gcol[3 * i + 2] = s[8];
+    }
+  });
+  return {g_means2d, g_conics, g_opacities, g_colors};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
+  module.doc() = "geoavatar native CPU rasterize-to-pixels (tile binning, compositing, backward)";
+  module.def("forward", &forward, "rgb, alpha, tile offsets, tile ids, last, t_final");
+  module.def("backward", &backward, "grads of means2d, conics, opacities, colors");
+  module.def("max_threads", []() { return omp_get_max_threads(); });
+}
