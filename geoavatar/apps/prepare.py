@@ -1,0 +1,59 @@
+"""`geoavatar prepare`: turn a monocular video into a tracked dataset (frames, masks, head-model parameters)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Literal, Optional
+
+from geoavatar.prep.errors import PrepareError
+from geoavatar.prep.pipeline import PrepareConfig, run_prepare
+
+
+def prepare(
+    video: Path,
+    out: Path,
+    head: Literal["openhead", "flame"] = "openhead",
+    size: int = 512,
+    fps: Optional[float] = None,
+    max_frames: Optional[int] = None,
+    missing: Literal["interpolate", "drop"] = "interpolate",
+    test_fraction: float = 0.2,
+    flame_dir: Optional[Path] = None,
+    flame_landmarks: Optional[Path] = None,
+    overlay: bool = True,
+    progress: bool = True,
+) -> int:
+    """Prepare a dataset from a monocular head video: crop, landmarks, masks, head-model tracking.
+
+    Writes OUT/dataset (VHAP / GaussianAvatars layout, ready for `geoavatar train --data OUT/dataset`),
+    OUT/overlay.mp4 (tracked mesh and landmarks over the frames: green MediaPipe, red model) and
+    OUT/report.json (per-frame landmark reprojection error, frames without a face). Stages are
+    resumable: a re-run skips the stages whose outputs are complete (OUT/.prepare/).
+
+    Args:
+        video: Input video (any container/codec PyAV decodes; rotation metadata is honoured).
+        out: Output folder.
+        head: Head model to track: openhead (built in) or flame (your FLAME files, see --flame-dir).
+        size: Side in pixels of the square, face-centred crop written to the dataset.
+        fps: Subsample the video to this frame rate (default: every frame).
+        max_frames: Use at most this many frames (after subsampling).
+        missing: Frames where no face is found: interpolate their landmarks, or drop them.
+        test_fraction: The last fraction of frames forms the test split.
+        flame_dir: Folder with FLAME (flame2023.pkl or generic_model.pkl, FLAME_masks.pkl) for --head flame.
+        flame_landmarks: FLAME's MediaPipe landmark embedding (default FLAME_DIR/mediapipe_landmark_embedding.npz).
+        overlay: Write OUT/overlay.mp4.
+        progress: Show progress bars.
+    """
+    config = PrepareConfig(
+        video=video, out=out, head=head, size=size, fps=fps, max_frames=max_frames, missing=missing,
+        test_fraction=test_fraction, flame_dir=flame_dir, flame_landmarks=flame_landmarks, overlay=overlay,
+        progress=progress,
+    )
+    try:
+        dataset = run_prepare(config)
+    except PrepareError as err:
+        print(f"geoavatar prepare: {err}", file=sys.stderr)
+        return 2
+    print(f"dataset: {dataset}\noverlay: {Path(out) / 'overlay.mp4'}\nreport: {Path(out) / 'report.json'}")
+    return 0

@@ -1,0 +1,99 @@
+"""Overlay video: the tracked mesh (shaded, alpha-blended) and the landmarks over the frames.
+
+Green dots are MediaPipe's (filtered) landmarks, red dots the tracked model's projected landmarks;
+where they sit on each other the tracking is right. The mesh is rendered at `mesh_size` pixels and
+resized to the frame (the CPU z-buffer rasterizer is the cost of this stage).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+import torch
+
+from geoavatar.render.mesh import render_mesh, scale_intrinsics
+
+MESH_ALPHA = 0.45
+DETECTED = (60, 230, 60)
+PROJECTED = (240, 40, 40)
+
+
+def overlay_frame(
+    image: np.ndarray,  # [S, S, 3] uint8
+    vertices: torch.Tensor,  # [V, 3] world
+    faces: torch.Tensor,  # [F, 3]
+    viewmat: torch.Tensor,  # [4, 4]
+    K: torch.Tensor,  # [3, 3] in image pixels
+    detected: np.ndarray,  # [L, 2] pixels
+    projected: np.ndarray,  # [L, 2] pixels
+    mesh_size: int = 256,
+) -> np.ndarray:
+    """One overlay picture [S, S, 3] uint8."""
+    import cv2
+
+    height, width = image.shape[:2]
+    factor = mesh_size / max(width, height)
+    mw, mh = max(1, round(width * factor)), max(1, round(height * factor))
+    picture = render_mesh(vertices, faces, viewmat, scale_intrinsics(K.to(vertices), factor), mw, mh, ssaa=1,
+                          background=(0.0, 0.0, 0.0))
+    shaded = (picture.image.numpy() * 255.0).astype(np.float32)
+    coverage = picture.mask.numpy().astype(np.float32)
+    if (mw, mh) != (width, height):
+        shaded = cv2.resize(shaded, (width, height), interpolation=cv2.INTER_LINEAR)
+        coverage = cv2.resize(coverage, (width, height), interpolation=cv2.INTER_LINEAR)
+    alpha = MESH_ALPHA * coverage[..., None]
+    out = np.clip(image.astype(np.float32) * (1 - alpha) + shaded * alpha, 0, 255).astype(np.uint8)
+    radius = max(1, round(width / 256))
+    for points, colour in ((detected, DETECTED), (projected, PROJECTED)):
+        for x, y in points:
+            cv2.circle(out, (int(round(x - 0.5)), int(round(y - 0.5))), radius, colour, -1, lineType=cv2.LINE_AA)
+    return out
+
+
+def write_video(path: Path, frames: Iterable[np.ndarray], fps: float) -> Path:
+    """Encode RGB frames [H, W, 3] uint8 as H.264 mp4 (PyAV), atomically (temp file + rename)."""
+    import av
+    from fractions import Fraction
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.mp4")
+    try:
+        with av.open(str(tmp), mode="w") as container:
+            stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+            stream.pix_fmt = "yuv420p"
+            stream.options = {"crf": "20", "preset": "veryfast"}
+            started = False
+            for rgb in frames:
+                if not started:
+                    # yuv420p needs even sizes
+                    stream.height, stream.width = rgb.shape[0] // 2 * 2, rgb.shape[1] // 2 * 2
+                    started = True
+                rgb = np.ascontiguousarray(rgb[: stream.height, : stream.width])
+                for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def contact_sheet(pictures: list[np.ndarray], labels: list[str] | None = None) -> np.ndarray:
+    """Pictures side by side [H, sum W, 3] with an optional label in each corner."""
+    import cv2
+
+    sheet = np.concatenate(pictures, axis=1).copy()
+    if labels:
+        x = 0
+        for picture, label in zip(pictures, labels):
+            cv2.putText(sheet, label, (x + 8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
+            x += picture.shape[1]
+    return sheet
+
+
+__all__ = ["overlay_frame", "write_video", "contact_sheet"]

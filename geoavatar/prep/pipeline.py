@@ -1,0 +1,440 @@
+"""`geoavatar prepare`: video -> dataset, in resumable stages.
+
+    run_prepare(PrepareConfig(video="talk.mp4", out="data/talk"))
+
+Output folder OUT:
+    OUT/dataset/          the VHAP / GaussianAvatars layout (LayoutWriter: appears atomically)
+    OUT/overlay.mp4       tracked mesh + landmarks over the frames (green: MediaPipe, red: model)
+    OUT/report.json       per-frame reprojection error, missing frames, focal, timings
+    OUT/.prepare/         work files of the stages and their completion markers
+
+Stages (each writes `.prepare/<stage>.json` last; a re-run skips a stage whose marker exists and
+whose options key matches, and redoes it and every later stage otherwise):
+    frames     decode, face detection on whole frames, smoothed square crop, crops as PNG
+    landmarks  face mesh on the crops, One-Euro filtering, confidence, missing frames
+    masks      selfie segmentation x landmark head region (see geoavatar.prep.masks)
+    tracking   the head-model fit (geoavatar.prep.tracking)
+    write      the dataset through LayoutWriter, then the overlay video and the report
+
+Bad input raises PrepareError with a message naming the file or option; OUT/dataset is only ever
+created complete. A run that fails before any stage completes removes an OUT it created itself.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Literal
+
+import numpy as np
+
+from geoavatar.prep.errors import PrepareError
+
+STAGES = ("frames", "landmarks", "masks", "tracking", "write")
+WORK = ".prepare"
+
+
+@dataclass
+class PrepareConfig:
+    video: Path
+    out: Path
+    head: Literal["openhead", "flame"] = "openhead"
+    size: int = 512  # side of the square crop written to the dataset
+    fps: float | None = None  # subsample to this rate (None: every frame)
+    max_frames: int | None = None
+    missing: Literal["interpolate", "drop"] = "interpolate"
+    min_frames: int = 5
+    crop_scale: float = 2.6  # crop side / face-detector box side
+    crop_sigma: float = 12.0  # temporal smoothing of the crop centre, frames
+    test_fraction: float = 0.2  # the last 20 % of the frames are the test split
+    flame_dir: Path | None = None
+    flame_landmarks: Path | None = None  # MediaPipe embedding for FLAME (default: FLAME_DIR/mediapipe_landmark_embedding.npz)
+    tracking_steps: tuple[int, int] = (100, 300)  # rigid, full
+    overlay: bool = True
+    mask_backend: str = "selfie"
+    progress: bool = True
+    log: Callable[[str], None] = field(default=print, repr=False)
+
+
+# --- small helpers ----------------------------------------------------------------------------------
+
+
+def _atomic_bytes(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def _atomic_json(path: Path, value) -> None:
+    _atomic_bytes(path, (json.dumps(value, indent=2) + "\n").encode())
+
+
+def _atomic_npz(path: Path, **arrays) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    from PIL import Image
+
+    tmp = path.with_name(f".{path.name}.tmp")
+    Image.fromarray(image).save(tmp, format="PNG", compress_level=1)
+    os.replace(tmp, path)
+
+
+def _read_png(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as image:
+        return np.asarray(image).copy()
+
+
+def _bar(config: PrepareConfig, total: int | None, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=f"prepare: {desc}", unit="frame", disable=not config.progress, leave=True)
+
+
+class _Stages:
+    """Completion markers `.prepare/<stage>.json` holding the options key of each stage."""
+
+    def __init__(self, work: Path, keys: dict[str, str]):
+        self.work, self.keys = work, keys
+        self.dirty = False  # once a stage reruns, every later stage reruns
+
+    def done(self, stage: str) -> bool:
+        marker = self.work / f"{stage}.json"
+        if self.dirty or not marker.is_file():
+            self.dirty = True
+            return False
+        try:
+            ok = json.loads(marker.read_text()).get("key") == self.keys[stage]
+        except (OSError, json.JSONDecodeError):
+            ok = False
+        self.dirty = not ok
+        return ok
+
+    def start(self, stage: str) -> None:
+        (self.work / f"{stage}.json").unlink(missing_ok=True)
+
+    def finish(self, stage: str, info: dict) -> None:
+        _atomic_json(self.work / f"{stage}.json", {"key": self.keys[stage], **info})
+
+
+def _stage_keys(config: PrepareConfig) -> dict[str, str]:
+    video = Path(config.video).resolve()
+    stat = video.stat()
+    parts = {
+        "frames": [str(video), stat.st_size, int(stat.st_mtime), config.size, config.fps, config.max_frames,
+                   config.crop_scale, config.crop_sigma],
+        "landmarks": [config.missing, config.min_frames],
+        "masks": [config.mask_backend],
+        "tracking": [config.head, str(config.flame_dir), str(config.flame_landmarks), list(config.tracking_steps)],
+        "write": [config.test_fraction, config.overlay],
+    }
+    keys, chain = {}, ""
+    for stage in STAGES:
+        chain = hashlib.sha256((chain + json.dumps(parts[stage])).encode()).hexdigest()[:16]
+        keys[stage] = chain
+    return keys
+
+
+# --- stages -----------------------------------------------------------------------------------------
+
+
+def stage_frames(config: PrepareConfig, work: Path) -> dict:
+    from geoavatar.prep.landmarks import FaceDetector
+    from geoavatar.prep.video import crop_square, decode_frames, probe_video, smooth_crop_boxes
+
+    info = probe_video(config.video)
+    indices, centres, sizes, scores = [], [], [], []
+    with FaceDetector() as detect, _bar(config, config.max_frames or info.num_frames or None, "detect faces") as bar:
+        for index, rgb in decode_frames(config.video, config.fps, config.max_frames):
+            box = detect(rgb)
+            indices.append(index)
+            centres.append(box.centre if box else np.zeros(2))
+            sizes.append(box.size if box else 0.0)
+            scores.append(box.score if box else 0.0)
+            bar.update(1)
+    found = np.array(scores) > 0
+    if len(indices) < config.min_frames:
+        raise PrepareError(
+            f"video '{config.video}': {len(indices)} frame(s) after --fps/--max-frames, fewer than the "
+            f"{config.min_frames} needed (train and test frames)"
+        )
+    if not found.any():
+        raise PrepareError(f"video '{config.video}': no face was found in any of its {len(indices)} frames")
+    boxes = smooth_crop_boxes(np.array(centres), np.array(sizes), found, (info.width, info.height),
+                              config.crop_scale, config.crop_sigma)
+    frames_dir = work / "frames"
+    shutil.rmtree(frames_dir, ignore_errors=True)
+    frames_dir.mkdir(parents=True)
+    by_index = {idx: k for k, idx in enumerate(indices)}
+    with _bar(config, len(indices), "crop") as bar:
+        for index, rgb in decode_frames(config.video, config.fps, config.max_frames):
+            k = by_index[index]
+            _write_png(frames_dir / f"{k:05d}.png", crop_square(rgb, boxes[k], config.size))
+            bar.update(1)
+    source_fps = info.fps
+    fps = min(config.fps, source_fps) if config.fps else source_fps
+    _atomic_npz(work / "frames.npz", source_index=np.array(indices), boxes=boxes, presence=np.array(scores),
+                detected=found, frame_size=np.array([info.width, info.height]), fps=np.array(fps))
+    return {"frames": len(indices), "no_face_detected": [int(indices[k]) for k in np.flatnonzero(~found)],
+            "video": asdict(info)}
+
+
+def stage_landmarks(config: PrepareConfig, work: Path) -> dict:
+    from geoavatar.prep.landmarks import FaceMesh, filter_landmarks, landmark_confidence
+    from geoavatar.prep.video import fill_missing
+
+    frames = np.load(work / "frames.npz")
+    count = len(frames["source_index"])
+    raw = np.zeros((count, 478, 3))
+    found = np.zeros(count, bool)
+    with FaceMesh() as mesh, _bar(config, count, "landmarks") as bar:
+        for k in range(count):
+            points = mesh(_read_png(work / "frames" / f"{k:05d}.png"))
+            if points is not None:
+                raw[k], found[k] = points, True
+            bar.update(1)
+    source = frames["source_index"]
+    missing = [int(source[k]) for k in np.flatnonzero(~found)]
+    if not found.any():
+        raise PrepareError(f"video '{config.video}': the face mesh found no face in any of the {count} cropped frames")
+    if missing:
+        config.log(f"prepare: no face in {len(missing)} frame(s) (source frame numbers): {missing[:50]}"
+                   + (" ..." if len(missing) > 50 else "") + f"; --missing {config.missing}")
+    if config.missing == "drop":
+        keep = np.flatnonzero(found)
+    else:
+        keep = np.arange(count)
+        raw = fill_missing(raw, found)
+    if len(keep) < config.min_frames:
+        raise PrepareError(
+            f"video '{config.video}': only {len(keep)} frame(s) with a face, fewer than the {config.min_frames} needed"
+        )
+    filtered = filter_landmarks(raw[keep], float(frames["fps"]))
+    presence = np.where(found, np.clip(frames["presence"], 0.5, 1.0), 0.0)[keep]  # interpolated frames: 0 presence
+    confidence = landmark_confidence(raw[keep], filtered, presence)
+    _atomic_npz(work / "landmarks.npz", raw=raw[keep], filtered=filtered, confidence=confidence, keep=keep,
+                found=found)
+    return {"frames": int(len(keep)), "missing_source_frames": missing, "mode": config.missing}
+
+
+def stage_masks(config: PrepareConfig, work: Path) -> dict:
+    from geoavatar.prep.masks import PersonSegmenter, foreground_mask
+
+    marks = np.load(work / "landmarks.npz")
+    keep, points = marks["keep"], marks["filtered"]
+    masks_dir = work / "masks"
+    shutil.rmtree(masks_dir, ignore_errors=True)
+    masks_dir.mkdir(parents=True)
+    coverage = []
+    with PersonSegmenter(config.mask_backend) as segment, _bar(config, len(keep), "masks") as bar:
+        for row, k in enumerate(keep):
+            rgb = _read_png(work / "frames" / f"{k:05d}.png")
+            mask = foreground_mask(segment(rgb), points[row])
+            _write_png(masks_dir / f"{k:05d}.png", mask)
+            coverage.append(float(mask.mean() / 255.0))
+            bar.update(1)
+    return {"frames": int(len(keep)), "mean_coverage": float(np.mean(coverage))}
+
+
+def load_tracking_head(config: PrepareConfig):
+    """(full HeadModelData for rendering, landmark-only HeadModel for fitting) of --head."""
+    from geoavatar.head import load_head_data
+    from geoavatar.prep.tracking import landmark_head, load_landmark_embedding, reembed_reference_groups
+
+    if config.head == "openhead":
+        data = load_head_data("openhead")
+        fit_data = reembed_reference_groups(data)
+    elif config.head == "flame":
+        from geoavatar.head.flame import FlameFileNotFoundError, resolve_flame_dir
+
+        try:
+            data = load_head_data("flame", flame_dir=config.flame_dir)
+        except FlameFileNotFoundError as err:
+            raise PrepareError(str(err)) from err
+        path = config.flame_landmarks or resolve_flame_dir(config.flame_dir) / "mediapipe_landmark_embedding.npz"
+        try:
+            ids, faces, bary = load_landmark_embedding(path)
+        except FileNotFoundError:
+            raise PrepareError(
+                f"--head flame needs FLAME's MediaPipe landmark embedding '{path}' (the "
+                "mediapipe_landmark_embedding.npz that metrical-tracker and VHAP use; keys landmark_indices, "
+                "lmk_face_idx, lmk_b_coords): put it in the FLAME folder or pass --flame-landmarks FILE"
+            ) from None
+        except ValueError as err:
+            raise PrepareError(str(err)) from err
+        if faces.max() >= len(data.faces):
+            raise PrepareError(f"'{path}': face ids up to {faces.max()} but FLAME has {len(data.faces)} faces")
+        data = data.copy_with(landmark_ids=ids, landmark_faces=faces, landmark_bary=bary)
+        fit_data = data
+    else:
+        raise PrepareError(f"--head must be openhead or flame, got '{config.head}'")
+    return data, landmark_head(fit_data)
+
+
+def stage_tracking(config: PrepareConfig, work: Path) -> dict:
+    import torch
+
+    from geoavatar.prep.tracking import TrackingConfig, track
+    from geoavatar.prep.video import crop_intrinsics
+
+    frames = np.load(work / "frames.npz")
+    marks = np.load(work / "landmarks.npz")
+    keep = marks["keep"]
+    _, model = load_tracking_head(config)
+    width, height = (int(v) for v in frames["frame_size"])
+    principal = []
+    scale = 1.0
+    for k in keep:
+        scale, ox, oy = crop_intrinsics(frames["boxes"][k], config.size)
+        principal.append([scale * (width / 2 - ox), scale * (height / 2 - oy)])
+    tracking_config = TrackingConfig(rigid_steps=config.tracking_steps[0], full_steps=config.tracking_steps[1])
+    # Initial focal: 25 degrees across the source frame's longer side, in crop pixels.
+    focal = scale * 0.5 * max(width, height) / math.tan(math.radians(tracking_config.fov_deg) / 2)
+    total = sum(config.tracking_steps)
+    bar = _bar(config, total, "tracking (steps)")
+    try:
+        with torch.enable_grad():
+            result = track(model, marks["filtered"], marks["confidence"], np.array(principal), config.size,
+                           tracking_config, focal_init=focal, progress=lambda n, _stage: bar.update(n))
+    finally:
+        bar.close()
+    _atomic_npz(work / "tracking.npz", **{f"param_{k}": v for k, v in result.params.items()}, focal=result.focal,
+                viewmat=result.viewmat, K=result.K, projected=result.projected, landmark_ids=result.landmark_ids,
+                errors=result.errors)
+    for line in result.log:
+        config.log(f"prepare: tracking {line}")
+    return {"focal": result.focal, "median_error": float(np.median(result.errors)), "log": result.log}
+
+
+def stage_write(config: PrepareConfig, work: Path) -> dict:
+    from geoavatar.data.layout import LayoutWriter
+    from geoavatar.data.splits import SplitConfig
+
+    frames = np.load(work / "frames.npz")
+    marks = np.load(work / "landmarks.npz")
+    fit = np.load(work / "tracking.npz")
+    keep = marks["keep"]
+    count = len(keep)
+    test = max(1, math.ceil(config.test_fraction * count)) if config.test_fraction > 0 else 0
+    dataset = Path(config.out) / "dataset"
+    params = {k[len("param_"):]: fit[k] for k in fit.files if k.startswith("param_")}
+    with LayoutWriter(dataset, head_model=config.head, image_size=(config.size, config.size), shape=params["shape"],
+                      background=(1.0, 1.0, 1.0), source=str(Path(config.video).name),
+                      split=SplitConfig(test_frames=test), overwrite=True) as writer, _bar(config, count, "write") as bar:
+        for t, k in enumerate(keep):
+            frame = {name: params[name][t] for name in ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")}
+            writer.add_frame(t, _read_png(work / "frames" / f"{k:05d}.png"), frame, fit["viewmat"], fit["K"][t],
+                             mask=_read_png(work / "masks" / f"{k:05d}.png"))
+            bar.update(1)
+    if config.overlay:
+        write_overlay(config, work, Path(config.out) / "overlay.mp4")
+    errors = fit["errors"]
+    source = frames["source_index"][keep]
+    report = {
+        "video": str(config.video), "frames": int(count), "source_frames": [int(s) for s in source],
+        "missing_source_frames": json.loads((work / "landmarks.json").read_text()).get("missing_source_frames", []),
+        "test_frames": int(test), "focal_px": float(fit["focal"]), "size": config.size,
+        "reprojection_error_over_face_width": {
+            "median": float(np.median(errors)), "p90": float(np.percentile(errors, 90)), "max": float(errors.max()),
+            "frames_below_2pct": float((errors < 0.02).mean()), "per_frame": [round(float(e), 5) for e in errors],
+        },
+        "jaw_open_rad": {"min": float(params["jaw_pose"][:, 0].min()), "max": float(params["jaw_pose"][:, 0].max())},
+    }
+    _atomic_json(Path(config.out) / "report.json", report)
+    return {"dataset": str(dataset), "frames": int(count), "test_frames": int(test)}
+
+
+def overlay_frames(config: PrepareConfig, work: Path, rows=None):
+    """Yield (row, overlay picture) for the rows (dataset timesteps) asked for (all by default)."""
+    import torch
+
+    from geoavatar.head import HeadModel
+    from geoavatar.prep.overlay import overlay_frame
+
+    marks = np.load(work / "landmarks.npz")
+    fit = np.load(work / "tracking.npz")
+    data, _ = load_tracking_head(config)
+    head = HeadModel(data)
+    keep = marks["keep"]
+    ids = fit["landmark_ids"]
+    params = {k[len("param_"):]: torch.as_tensor(fit[k]) for k in fit.files if k.startswith("param_")}
+    viewmat = torch.as_tensor(fit["viewmat"], dtype=torch.float32)
+    for row in rows if rows is not None else range(len(keep)):
+        frame_params = {k: (v if k == "shape" else v[row:row + 1]) for k, v in params.items()}
+        with torch.no_grad():
+            vertices = head.forward_params(frame_params).vertices[0]
+        image = _read_png(work / "frames" / f"{keep[row]:05d}.png")
+        yield row, overlay_frame(image, vertices, head.faces, viewmat, torch.as_tensor(fit["K"][row], dtype=torch.float32),
+                                 marks["filtered"][row, ids, :2], fit["projected"][row])
+
+
+def write_overlay(config: PrepareConfig, work: Path, path: Path) -> Path:
+    from geoavatar.prep.overlay import write_video
+
+    frames = np.load(work / "frames.npz")
+    count = len(np.load(work / "landmarks.npz")["keep"])
+    bar = _bar(config, count, "overlay video")
+
+    def pictures():
+        for _, picture in overlay_frames(config, work):
+            bar.update(1)
+            yield picture
+
+    try:
+        return write_video(path, pictures(), float(frames["fps"]))
+    finally:
+        bar.close()
+
+
+# --- the run ----------------------------------------------------------------------------------------
+
+_RUNNERS = {"frames": stage_frames, "landmarks": stage_landmarks, "masks": stage_masks, "tracking": stage_tracking,
+            "write": stage_write}
+
+
+def run_prepare(config: PrepareConfig) -> Path:
+    """Run (or resume) every stage; returns OUT/dataset."""
+    video, out = Path(config.video), Path(config.out)
+    if config.size < 32:
+        raise PrepareError(f"--size must be at least 32 pixels, got {config.size}")
+    if not 0.0 <= config.test_fraction < 1.0:
+        raise PrepareError(f"--test-fraction must be in [0, 1), got {config.test_fraction}")
+    if not video.is_file():
+        raise PrepareError(f"video '{video}': file not found")
+    created = not out.exists()
+    work = out / WORK
+    work.mkdir(parents=True, exist_ok=True)
+    stages = _Stages(work, _stage_keys(config))
+    timings: dict[str, float] = {}
+    completed_any = False
+    try:
+        for stage in STAGES:
+            if stages.done(stage):
+                config.log(f"prepare: stage '{stage}' is complete, skipped")
+                completed_any = True
+                continue
+            stages.start(stage)
+            start, cpu = time.perf_counter(), time.process_time()
+            info = _RUNNERS[stage](config, work)
+            timings[stage] = time.perf_counter() - start
+            stages.finish(stage, {**info, "seconds": timings[stage], "cpu_seconds": time.process_time() - cpu})
+            completed_any = True
+    except PrepareError:
+        if created and not completed_any:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    return out / "dataset"
+
+
+__all__ = ["PrepareConfig", "STAGES", "run_prepare", "load_tracking_head", "overlay_frames", "write_overlay"]

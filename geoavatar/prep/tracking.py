@@ -1,0 +1,422 @@
+"""Fit a head model to 2D landmarks over a whole video: batched, robust, temporally smooth, on CPU.
+
+    model = landmark_head(load_head_data("openhead"))         # only the vertices landmarks need
+    result = track(model, landmarks [T, 478, 2], confidence [T], K0 [T, 3, 3], TrackingConfig())
+
+Unknowns: one identity `shape` (the model's leading modes), per frame `rotation`, `translation`,
+`neck_pose`, `jaw_pose`, `eyes_pose`, `expr`, and one focal length shared by the video. The camera is
+fixed (VHAP's monocular convention: a fixed camera, a moving head): it sits at (0, 0, D) on the +z
+axis looking at the origin (OpenCV axes: image x = world +x, image y = world -y), D being the median
+head distance found at initialisation, so translations stay small.
+
+Loss (all terms are means over frames, residuals in units of the per-frame face size):
+- data: pseudo-Huber (delta = `huber`) of the 2D reprojection error of every embedded landmark,
+  weighted per landmark group (face oval and brows lower: their MediaPipe points slide along the
+  contour) and per frame by the landmark confidence;
+- priors: L2 on shape, expression, neck, eyes and the jaw's sideways components; the jaw's opening
+  angle is kept in [0, `jaw_max`] by a squared hinge; both eyes look alike (L2 of their difference);
+  a weak log-normal prior on the focal length (it trades off with distance in a monocular video);
+- temporal smoothness: first and second differences of pose, jaw, eyes and expression.
+
+Coarse to fine: (1) rigid pose from the stable landmarks (eye corners, nose, brows, upper face
+oval) with the neutral head, (2) everything. Adam over all frames at once; MediaPipe's z is not used.
+The model is reduced to the vertices the landmark faces touch plus five virtual vertices that
+carry the joint regressor (linear in the shape and expression coefficients), so the forward pass
+is exact and costs O(landmarks), not O(mesh).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from geoavatar.head import landmarks_mediapipe as mpids
+from geoavatar.head.base import HeadModel, HeadModelData
+from geoavatar.render.camera import project
+
+# Landmark groups: weight in the data term, and whether the rigid stage uses them.
+GROUP_WEIGHTS = {
+    "lips": 1.0, "eyes": 1.0, "irises": 0.5, "nose": 1.0, "brows": 0.5, "face_oval_upper": 0.3, "face_oval_lower": 0.3,
+}
+RIGID_GROUPS = ("eyes", "nose", "brows", "face_oval_upper")
+
+
+def _group_of() -> dict[int, str]:
+    groups: dict[int, str] = {}
+    for name, ids in mpids.CONTOURS.items():
+        for i in ids:
+            if name.startswith("lips"):
+                groups[i] = "lips"
+            elif "iris" in name:
+                groups[i] = "irises"
+            elif "eye" in name:
+                groups[i] = "eyes"
+            elif "brow" in name:
+                groups[i] = "brows"
+            elif name.startswith("nose"):
+                groups[i] = "nose"
+    oval = list(mpids.FACE_OVAL)
+    for i in oval:  # upper = above the ear line (the oval's widest points 234 / 454), ids from the reference face
+        groups[i] = "face_oval_upper" if mpids.REFERENCE_FACE.get(i, (0, 0, 0))[1] > -150 else "face_oval_lower"
+    return groups
+
+
+GROUP_OF = _group_of()
+
+
+@dataclass
+class TrackingConfig:
+    """Weights and schedule of the landmark fitter (defaults tuned on real talking-head videos)."""
+
+    rigid_steps: int = 100
+    full_steps: int = 300
+    lr: float = 0.02
+    huber: float = 0.005  # pseudo-Huber delta, in face sizes
+    fov_deg: float = 25.0  # initial / prior field of view across the crop's longer side (before the crop: see pipeline)
+    focal_prior: float = 1e-4  # weight of (log f - log f0)^2
+    fit_focal: bool = True
+    num_shape: int | None = None  # leading identity modes to fit (None: all of the model's, at most 100)
+    num_expr: int | None = None  # leading expression modes to fit (None: all, at most 100)
+    w_shape: float = 1e-5
+    w_expr: float = 2e-5
+    w_neck: float = 1e-2
+    w_eyes: float = 1e-4
+    w_eyes_equal: float = 1e-2
+    w_jaw_side: float = 1e-2
+    w_jaw_range: float = 1.0
+    jaw_max: float = 0.5  # rad
+    w_smooth_pose: float = 1e-1  # first differences of rotation (rad) and translation (in head sizes)
+    w_smooth_expr: float = 1e-4
+    w_smooth_jaw: float = 1e-2
+    w_smooth_eyes: float = 1e-3
+    w_accel: float = 1e-1  # second differences of rotation / translation
+    head_size: float = 0.2  # m: translation differences are measured in this unit
+
+
+@dataclass
+class TrackingResult:
+    params: dict[str, np.ndarray]  # shape [S]; expr [T,E]; rotation, neck_pose, jaw_pose, translation [T,3]; eyes_pose [T,6]
+    focal: float  # pixels of the crop
+    viewmat: np.ndarray  # [4, 4] world-to-camera (OpenCV), the same for every frame
+    K: np.ndarray  # [T, 3, 3]
+    projected: np.ndarray  # [T, L, 2] pixels of the model's landmarks
+    landmark_ids: np.ndarray  # [L] MediaPipe ids of the embedded landmarks
+    errors: np.ndarray  # [T] median over landmarks of the 2D error / face width
+    log: list[str] = field(default_factory=list)
+
+
+def landmark_head(data: HeadModelData) -> HeadModel:
+    """A HeadModel holding only the vertices of the landmark faces plus 5 joint-carrier vertices.
+
+    Its landmarks equal the full model's exactly: joints are linear in the shaped vertices, so the
+    virtual vertex j carries row j of the joint regressor applied to template, shape and expression
+    bases, and the reduced j_regressor picks those vertices.
+    """
+    if data.landmark_faces is None:
+        raise ValueError(f"head model '{data.name}' has no landmark embedding")
+    used = np.unique(data.faces[data.landmark_faces].ravel())  # [U]
+    remap = np.full(data.num_vertices, -1, np.int64)
+    remap[used] = np.arange(len(used))
+    jr = data.j_regressor  # [J, V]
+    num_joints = jr.shape[0]
+
+    def with_joints(vertex_array: np.ndarray) -> np.ndarray:  # [V, 3, K] or [V, 3] -> [U + J, ...]
+        joint_rows = np.tensordot(jr, vertex_array, axes=(1, 0))  # [J, 3, K]
+        return np.concatenate([vertex_array[used], joint_rows], 0).astype(np.float32)
+
+    lbs = np.concatenate([data.lbs_weights[used], np.eye(num_joints, dtype=np.float32)[[0] * num_joints]], 0)
+    posedirs = None
+    if data.posedirs is not None:
+        posedirs = np.concatenate([data.posedirs[used], np.zeros((num_joints, *data.posedirs.shape[1:]), np.float32)], 0)
+    reduced_jr = np.zeros((num_joints, len(used) + num_joints), np.float32)
+    reduced_jr[:, len(used):] = np.eye(num_joints)
+    faces = remap[data.faces[data.landmark_faces]]  # [L, 3]
+    reduced = HeadModelData(
+        name=data.name, v_template=with_joints(data.v_template), faces=faces,
+        shapedirs=with_joints(data.shapedirs), exprdirs=with_joints(data.exprdirs), j_regressor=reduced_jr,
+        lbs_weights=lbs.astype(np.float32), posedirs=posedirs, landmark_ids=data.landmark_ids,
+        landmark_faces=np.arange(len(faces)), landmark_bary=data.landmark_bary, metadata={"reduced_from": data.name},
+    )
+    return HeadModel(reduced)
+
+
+# Groups whose OpenHead positions come from the measured reference face (not from OpenHead's own
+# eye / lip contours); see `reembed_reference_groups`.
+REFERENCE_MAPPED = ("right_brow_upper", "right_brow_lower", "left_brow_upper", "left_brow_lower",
+                    "nose_ridge", "nose_right", "nose_left", "face_oval")
+ANCHOR_GROUPS = ("lips_outer_upper", "lips_outer_lower", "lips_inner_upper", "lips_inner_lower",
+                 "right_eye_upper", "right_eye_lower", "left_eye_upper", "left_eye_lower")
+
+
+def reembed_reference_groups(data: HeadModelData) -> HeadModelData:
+    """Re-place the reference-mapped landmarks (brows, nose, face oval) of a head with a MediaPipe embedding.
+
+    Why: OpenHead v1 maps the reference face into its own frame with a vertical scale fitted on an
+    anchor set whose "chin" is the lowest front mid-line skin vertex, which lies on the neck; its
+    brows, forehead and chin landmarks land ~2x too far from the eyes (the chin point on the neck).
+    This refits the per-axis map (x scale; y scale and offset) on the landmarks OpenHead places from
+    its own contours (eyelids, lips), which are right, and projects the reference positions onto the
+    frontmost skin along -z, as OpenHead's generator does. Landmarks outside those groups are kept.
+    """
+    from geoavatar.head.openhead.landmarks import frontal_hits
+
+    ids = [int(i) for i in data.landmark_ids]
+    rows = {i: k for k, i in enumerate(ids)}
+    tri = data.v_template[data.faces[data.landmark_faces]]  # [L, 3, 3]
+    placed = (tri * data.landmark_bary[:, :, None]).sum(1)  # [L, 3]
+    anchors = [i for name in ANCHOR_GROUPS for i in mpids.CONTOURS[name] if i in rows]
+    ref = np.array([mpids.REFERENCE_FACE[i] for i in anchors], np.float64) * 1e-4
+    got = placed[[rows[i] for i in anchors]]
+    sx = float((ref[:, 0] * got[:, 0]).sum() / (ref[:, 0] ** 2).sum())
+    sy, ty = np.linalg.lstsq(np.stack([ref[:, 1], np.ones(len(ref))], -1), got[:, 1], rcond=None)[0]
+    eyeball = set()
+    for name in ("left_eyeball", "right_eyeball"):
+        eyeball.update(int(v) for v in data.regions.get(name, ()))
+    mouth = set(int(v) for group in ("mouth_upper", "mouth_lower") for v in data.vertex_groups.get(group, ()))
+    excluded = np.zeros(data.num_vertices, bool)
+    excluded[list(eyeball | mouth)] = True
+    skin_faces = np.nonzero(~excluded[data.faces].any(1))[0]
+    targets = [i for name in REFERENCE_MAPPED for i in mpids.CONTOURS[name] if i in rows and i != 1]
+    targets = list(dict.fromkeys(targets))
+    r = np.array([mpids.REFERENCE_FACE[i] for i in targets], np.float64) * 1e-4
+    xy = np.stack([sx * r[:, 0], sy * r[:, 1] + ty], -1)
+    faces, bary = frontal_hits(xy, data.v_template.astype(np.float64), data.faces, skin_faces)
+    new_faces, new_bary = data.landmark_faces.copy(), data.landmark_bary.copy()
+    for k, i in enumerate(targets):
+        step = xy[k].copy()
+        f, b = faces[k], bary[k]
+        while f < 0 and abs(step[0]) > 1e-3:  # off the silhouette: step towards the mid-line
+            step[0] *= 0.98
+            fk, bk = frontal_hits(step[None], data.v_template.astype(np.float64), data.faces, skin_faces)
+            f, b = fk[0], bk[0]
+        if f >= 0:
+            new_faces[rows[i]], new_bary[rows[i]] = f, b.astype(new_bary.dtype)
+    return data.copy_with(landmark_faces=new_faces, landmark_bary=new_bary)
+
+
+def landmark_forward(model: HeadModel, params: dict[str, Tensor]) -> Tensor:
+    """Landmarks [B, L, 3] of `model` (best a `landmark_head`), the same as model.forward_params.
+
+    HeadModel.forward applies the per-vertex transforms with a batched 3x3 matmul, which on CPU costs
+    ~1 us per vertex and frame; here the blended transforms are applied with broadcast products
+    (10-20x faster for the [T x ~400] vertex batches of tracking).
+    """
+    from geoavatar.geometry import axis_angle_to_matrix
+    from geoavatar.head.base import _fit_modes, _rigid_chain
+
+    rotation = params["rotation"]
+    batch, dtype = rotation.shape[0], model.v_template.dtype
+    shape = _fit_modes(params["shape"], model.num_shape, "shape").to(dtype).reshape(-1, model.num_shape)
+    expr = _fit_modes(params["expr"], model.num_expr, "expr").to(dtype)
+    num_v = model.v_template.shape[0]
+    identity = model.v_template + (model.shapedirs @ shape[0]) if shape.shape[0] == 1 else None  # [V, 3]
+    expression = (expr @ model.exprdirs.reshape(num_v * 3, -1).T).reshape(batch, num_v, 3)  # GEMM, [B, V, 3]
+    if identity is None:
+        identity = model.v_template[None] + torch.einsum("bs,vcs->bvc", shape, model.shapedirs)
+    v_shaped = identity + expression  # [B, V, 3]
+    joints = torch.einsum("jv,bvc->bjc", model.j_regressor, v_shaped)  # [B, J, 3]
+    pose = torch.cat([rotation, params["neck_pose"], params["jaw_pose"], params["eyes_pose"]], -1).to(dtype)
+    rot_mats = axis_angle_to_matrix(pose.reshape(batch, -1, 3))  # [B, J, 3, 3]
+    if model.posedirs.shape[-1] > 0:
+        eye = torch.eye(3, dtype=dtype, device=pose.device)
+        feature = (rot_mats[:, 1:] - eye).reshape(batch, -1)  # [B, 9*(J-1)]
+        v_shaped = v_shaped + (feature @ model.posedirs.reshape(num_v * 3, -1).T).reshape(batch, num_v, 3)
+    _, transforms = _rigid_chain(rot_mats, joints, model.parents)  # [B, J, 4, 4]
+    num_j = transforms.shape[1]
+    blended = (model.lbs_weights @ transforms[:, :, :3, :].reshape(batch, num_j, 12)).reshape(batch, num_v, 3, 4)
+    vertices = (blended[..., :3] * v_shaped[:, :, None, :]).sum(-1) + blended[..., 3]  # [B, V, 3]
+    vertices = vertices + params["translation"].to(dtype)[:, None, :]
+    tri = vertices[:, model.faces[model.landmark_faces]]  # [B, L, 3, 3]
+    return (tri * model.landmark_bary[None, :, :, None]).sum(2)
+
+
+def camera_viewmat(distance: float) -> np.ndarray:
+    """World-to-camera [4, 4] (OpenCV) of the fixed camera at (0, 0, distance) looking at the origin."""
+    viewmat = np.diag([1.0, -1.0, -1.0, 1.0])
+    viewmat[2, 3] = distance
+    return viewmat
+
+
+def _pseudo_huber(x: Tensor, delta: float) -> Tensor:
+    return delta * delta * (torch.sqrt(1.0 + (x / delta) ** 2) - 1.0)
+
+
+class _Fit(torch.nn.Module):
+    def __init__(self, frames: int, num_shape: int, num_expr: int, focal: float, translation: Tensor):
+        super().__init__()
+        z = lambda *s: torch.nn.Parameter(torch.zeros(*s, dtype=torch.float32))  # noqa: E731
+        self.shape, self.expr = z(num_shape), z(frames, num_expr)
+        self.rotation, self.neck_pose, self.jaw_pose, self.eyes_pose = z(frames, 3), z(frames, 3), z(frames, 3), z(frames, 6)
+        self.translation = torch.nn.Parameter(translation.clone().float())
+        self.log_focal = torch.nn.Parameter(torch.tensor(math.log(focal), dtype=torch.float32))
+
+    def params(self) -> dict[str, Tensor]:
+        return {"shape": self.shape, "expr": self.expr, "rotation": self.rotation, "neck_pose": self.neck_pose,
+                "jaw_pose": self.jaw_pose, "eyes_pose": self.eyes_pose, "translation": self.translation}
+
+
+def _intrinsics(focal: Tensor, principal: Tensor) -> Tensor:
+    """K [T, 3, 3] from a shared focal (scalar tensor) and per-frame principal points [T, 2]."""
+    T = principal.shape[0]
+    K = torch.zeros(T, 3, 3, dtype=principal.dtype)
+    K[:, 0, 0] = focal
+    K[:, 1, 1] = focal
+    K[:, :2, 2] = principal
+    K[:, 2, 2] = 1.0
+    return K
+
+
+def _diff_penalty(x: Tensor, order: int = 1) -> Tensor:
+    for _ in range(order):
+        x = x[1:] - x[:-1]
+    return (x ** 2).sum(-1).mean() if x.shape[0] > 0 else x.new_zeros(())
+
+
+def track(
+    model: HeadModel,
+    landmarks: np.ndarray,  # [T, 478, >=2] detected landmarks, crop pixels
+    confidence: np.ndarray,  # [T] in [0, 1]
+    principal: np.ndarray,  # [T, 2] principal point per frame (crop pixels)
+    image_size: int,  # crop side in pixels
+    config: TrackingConfig = TrackingConfig(),
+    focal_init: float | None = None,
+    progress=None,  # callable(steps_done, stage_name) after each step, or None
+) -> TrackingResult:
+    """Fit `model` to the landmarks of all frames at once; see the module docstring."""
+    T = landmarks.shape[0]
+    if T == 0:
+        raise ValueError("track: no frames")
+    ids = model.landmark_ids.cpu().numpy()  # [L]
+    target = torch.as_tensor(landmarks[:, ids, :2], dtype=torch.float32)  # [T, L, 2]
+    size = torch.as_tensor(np.linalg.norm(landmarks[:, 10, :2] - landmarks[:, 152, :2], axis=-1), dtype=torch.float32)
+    size = size.clamp_min(1.0)  # [T]
+    conf = torch.as_tensor(confidence, dtype=torch.float32).clamp(0.05, 1.0)  # [T] a low weight, never zero
+    groups = [GROUP_OF.get(int(i), "face_oval_lower") for i in ids]
+    weights = torch.tensor([GROUP_WEIGHTS[g] for g in groups], dtype=torch.float32)  # [L]
+    rigid_mask = torch.tensor([g in RIGID_GROUPS for g in groups], dtype=torch.float32)  # [L]
+    principal_t = torch.as_tensor(principal, dtype=torch.float32)  # [T, 2]
+    f0 = focal_init or 0.5 * image_size / math.tan(math.radians(config.fov_deg) / 2)
+    num_shape = min(model.num_shape, config.num_shape or 100)
+    num_expr = min(model.num_expr, config.num_expr or 100)
+    log: list[str] = []
+
+    # --- initial translation from the neutral head: scale from the landmarks' spread -------------
+    with torch.no_grad():
+        neutral = model.template_output().landmarks[0]  # [L, 3] (unbatched call gives [1, L, 3])
+        neutral = neutral.reshape(-1, 3)
+        model_xy = neutral[:, :2] - neutral[:, :2].mean(0)
+        model_spread = model_xy.norm(dim=-1).mean()
+        image_centroid = target.mean(1)  # [T, 2]
+        image_spread = (target - image_centroid[:, None]).norm(dim=-1).mean(1)  # [T]
+        depth = f0 * model_spread / image_spread  # [T] camera distance of the head
+        distance = float(depth.median())
+        xy = (image_centroid - principal_t) * depth[:, None] / f0  # camera-frame x, y (y down)
+        centre = neutral.mean(0)
+        translation = torch.stack([xy[:, 0] - centre[0], -xy[:, 1] - centre[1], distance - depth - centre[2]], -1)
+    viewmat = torch.as_tensor(camera_viewmat(distance), dtype=torch.float32)
+    fit = _Fit(T, num_shape, num_expr, f0, translation)
+
+    def loss_terms(stage: str) -> dict[str, Tensor]:
+        p = fit.params()
+        if stage == "rigid":
+            rigid = {k: (v if k in ("rotation", "translation") else v.detach() * 0) for k, v in p.items()}
+            landmarks = landmark_forward(model, rigid)
+        else:
+            landmarks = landmark_forward(model, p)
+        K = _intrinsics(fit.log_focal.exp(), principal_t)
+        pixels, _ = project(landmarks, viewmat, K)  # [T, L, 2]
+        residual = (pixels - target).norm(dim=-1) / size[:, None]  # [T, L]
+        w = weights * (rigid_mask if stage == "rigid" else 1.0)
+        data = (_pseudo_huber(residual, config.huber) * w).sum(1) / w.sum()  # [T]
+        terms = {"data": (data * conf).sum() / conf.sum()}
+        unit = config.head_size
+        terms["smooth_pose"] = config.w_smooth_pose * (_diff_penalty(p["rotation"]) + _diff_penalty(p["translation"] / unit))
+        terms["accel"] = config.w_accel * (_diff_penalty(p["rotation"], 2) + _diff_penalty(p["translation"] / unit, 2))
+        if stage == "rigid":
+            return terms
+        jaw = p["jaw_pose"]
+        eyes = p["eyes_pose"]
+        terms.update({
+            "shape": config.w_shape * (p["shape"] ** 2).sum(),
+            "expr": config.w_expr * (p["expr"] ** 2).sum(-1).mean(),
+            "neck": config.w_neck * (p["neck_pose"] ** 2).sum(-1).mean(),
+            "eyes": config.w_eyes * (eyes ** 2).sum(-1).mean() + config.w_eyes_equal * ((eyes[:, :3] - eyes[:, 3:]) ** 2).sum(-1).mean(),
+            "jaw": config.w_jaw_side * (jaw[:, 1:] ** 2).sum(-1).mean()
+            + config.w_jaw_range * (torch.relu(-jaw[:, 0]) ** 2 + torch.relu(jaw[:, 0] - config.jaw_max) ** 2).mean(),
+            "focal": config.focal_prior * (fit.log_focal - math.log(f0)) ** 2,
+            "smooth": config.w_smooth_expr * _diff_penalty(p["expr"]) + config.w_smooth_jaw * _diff_penalty(jaw)
+            + config.w_smooth_eyes * _diff_penalty(eyes) + config.w_smooth_pose * _diff_penalty(p["neck_pose"]),
+        })
+        return terms
+
+    def run(stage: str, steps: int, parameters: list[Tensor]) -> None:
+        if steps <= 0:
+            return
+        optimizer = torch.optim.Adam(parameters, lr=config.lr)
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: 0.1 ** (s / steps))
+        for step in range(steps):
+            optimizer.zero_grad(set_to_none=True)
+            terms = loss_terms(stage)
+            total = sum(terms.values())
+            total.backward()
+            optimizer.step()
+            schedule.step()
+            if progress is not None:
+                progress(1, stage)
+        log.append(f"{stage}: {steps} steps, " + ", ".join(f"{k} {float(v.detach()):.3e}" for k, v in terms.items()))
+
+    # Translation steps are ~1 cm per unit lr at lr 0.02: scale translation by head size via its lr.
+    run("rigid", config.rigid_steps, [fit.rotation, fit.translation])
+    full = [fit.shape, fit.expr, fit.rotation, fit.neck_pose, fit.jaw_pose, fit.eyes_pose, fit.translation]
+    if config.fit_focal:
+        full.append(fit.log_focal)
+    run("full", config.full_steps, full)
+
+    with torch.no_grad():
+        params = fit.params()
+        K = _intrinsics(fit.log_focal.exp(), principal_t)
+        pixels, _ = project(landmark_forward(model, params), viewmat, K)  # [T, L, 2]
+        width = np.linalg.norm(landmarks[:, 234, :2] - landmarks[:, 454, :2], axis=-1)  # [T] cheek to cheek
+        err = (pixels - target).norm(dim=-1).numpy()  # [T, L]
+        errors = np.median(err, axis=1) / np.maximum(width, 1e-6)
+    return TrackingResult(
+        params={k: v.detach().numpy().copy() for k, v in params.items()},
+        focal=float(fit.log_focal.detach().exp()),
+        viewmat=viewmat.numpy().astype(np.float64),
+        K=K.numpy().astype(np.float64),
+        projected=pixels.numpy(),
+        landmark_ids=ids,
+        errors=errors,
+        log=log,
+    )
+
+
+def load_landmark_embedding(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mediapipe ids [L], face ids [L], barycentrics [L, 3]) from a FLAME MediaPipe embedding npz.
+
+    The file is the one metrical-tracker and VHAP use (`mediapipe_landmark_embedding.npz`, keys
+    landmark_indices, lmk_face_idx, lmk_b_coords), read without pickles.
+    """
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    with np.load(path, allow_pickle=False) as npz:
+        missing = [k for k in ("landmark_indices", "lmk_face_idx", "lmk_b_coords") if k not in npz.files]
+        if missing:
+            raise ValueError(f"{path}: not a MediaPipe landmark embedding, keys missing: {', '.join(missing)}")
+        ids = np.asarray(npz["landmark_indices"]).astype(np.int64).ravel()
+        faces = np.asarray(npz["lmk_face_idx"]).astype(np.int64).ravel()
+        bary = np.asarray(npz["lmk_b_coords"], dtype=np.float32).reshape(-1, 3)
+    if not (len(ids) == len(faces) == len(bary)) or ids.min() < 0 or ids.max() >= 478:
+        raise ValueError(f"{path}: landmark_indices, lmk_face_idx and lmk_b_coords disagree in length or range")
+    return ids, faces, bary
+
+
+__all__ = ["GROUP_WEIGHTS", "GROUP_OF", "TrackingConfig", "TrackingResult", "landmark_head", "camera_viewmat", "track",
+           "load_landmark_embedding"]
