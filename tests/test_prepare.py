@@ -1,0 +1,193 @@
+"""`geoavatar prepare` on a few frames of the real test video (128 px), and each bad-input error."""
+
+from __future__ import annotations
+
+import json
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+VIDEO_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
+WOJTEK = VIDEO_DIR / "wojtek.mp4"
+
+needs_video = pytest.mark.skipif(not WOJTEK.is_file(), reason=f"test video folder {VIDEO_DIR} is absent")
+
+
+def _write_video(path: Path, frames: list[np.ndarray], fps: int = 25) -> Path:
+    import av
+
+    with av.open(str(path), mode="w") as container:
+        stream = container.add_stream("libx264", rate=Fraction(fps))
+        stream.height, stream.width = frames[0].shape[:2]
+        stream.pix_fmt = "yuv420p"
+        for rgb in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+def _config(video, out, **changes):
+    from geoavatar.prep.pipeline import PrepareConfig
+
+    options = dict(video=video, out=out, size=128, max_frames=6, tracking_steps=(40, 60), progress=False,
+                   log=lambda message: None)
+    options.update(changes)
+    return PrepareConfig(**options)
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory):
+    if not WOJTEK.is_file():
+        pytest.skip(f"test video folder {VIDEO_DIR} is absent")
+    from geoavatar.prep.pipeline import run_prepare
+
+    out = tmp_path_factory.mktemp("prepare") / "wojtek"
+    messages: list[str] = []
+    config = _config(WOJTEK, out, log=messages.append)
+    dataset = run_prepare(config)
+    return config, out, dataset, messages
+
+
+@needs_video
+def test_prepare_writes_every_output(prepared):
+    from geoavatar.data import open_dataset
+
+    config, out, dataset, _ = prepared
+    assert dataset == out / "dataset"
+    for stage in ("frames", "landmarks", "masks", "tracking", "write"):
+        assert (out / ".prepare" / f"{stage}.json").is_file()
+    for name in ("transforms.json", "transforms_train.json", "transforms_test.json", "canonical_flame_param.npz",
+                 "geoavatar.json"):
+        assert (dataset / name).is_file(), name
+    frames = json.loads((dataset / "transforms.json").read_text())["frames"]
+    assert len(frames) == 6
+    from PIL import Image
+
+    for frame in frames:
+        with Image.open(dataset / frame["file_path"]) as image:
+            assert image.size == (128, 128) and image.mode == "RGB"
+        with Image.open(dataset / frame["fg_mask_path"]) as mask:
+            alpha = np.asarray(mask)
+        assert alpha.shape == (128, 128)
+        assert 0.05 < (alpha > 127).mean() < 0.8  # a head, not everything, not nothing
+        assert alpha[-1].max() < 128 or alpha[0].max() < 128  # clothes at the bottom or background at the top cut
+        with np.load(dataset / frame["flame_param_path"]) as npz:
+            assert npz["expr"].shape == (1, 100) and npz["shape"].shape == (300,)
+    test = json.loads((dataset / "transforms_test.json").read_text())["timestep_indices"]
+    assert test == [4, 5]  # the last 20 %, rounded up
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == 6 and len(report["reprojection_error_over_face_width"]["per_frame"]) == 6
+    assert report["reprojection_error_over_face_width"]["median"] < 0.05
+    import av
+
+    with av.open(str(out / "overlay.mp4")) as container:
+        assert sum(1 for _ in container.decode(video=0)) == 6
+    train = open_dataset(dataset, "train")  # the training side reads it
+    assert len(train) == 4 and train[0]["image"].shape[:2] == (128, 128)
+
+
+@needs_video
+def test_tracking_reprojects_landmarks(prepared):
+    _, out, _, _ = prepared
+    fit = np.load(out / ".prepare" / "tracking.npz")
+    marks = np.load(out / ".prepare" / "landmarks.npz")
+    detected = marks["filtered"][:, fit["landmark_ids"], :2]
+    width = np.linalg.norm(marks["filtered"][:, 234, :2] - marks["filtered"][:, 454, :2], axis=-1)
+    error = np.median(np.linalg.norm(fit["projected"] - detected, axis=-1), axis=1) / width
+    assert np.allclose(error, fit["errors"], atol=1e-5)
+    assert error.max() < 0.05
+    assert 0.0 <= fit["param_jaw_pose"][:, 0].min() + 1e-3
+
+
+@needs_video
+def test_rerun_skips_complete_stages(prepared):
+    from geoavatar.prep.pipeline import run_prepare
+
+    config, out, _, _ = prepared
+    before = (out / "dataset" / "transforms.json").stat().st_mtime_ns
+    messages: list[str] = []
+    config.log = messages.append
+    run_prepare(config)
+    assert sum("skipped" in m for m in messages) == 5
+    assert (out / "dataset" / "transforms.json").stat().st_mtime_ns == before
+
+
+def test_landmark_head_matches_full_model():
+    from geoavatar.head import HeadModel, load_head_data
+    from geoavatar.prep.tracking import landmark_forward, landmark_head
+
+    data = load_head_data("openhead")
+    full, reduced = HeadModel(data), landmark_head(data)
+    params = full.zero_params(3)
+    generator = torch.Generator().manual_seed(0)
+    for key in params:
+        params[key] = 0.2 * torch.randn(params[key].shape, generator=generator)
+    expected = full.forward_params(params).landmarks
+    assert torch.allclose(reduced.forward_params(params).landmarks, expected, atol=1e-6)
+    assert torch.allclose(landmark_forward(reduced, params), expected, atol=1e-6)
+    assert reduced.num_vertices < full.num_vertices // 10
+
+
+def test_crop_boxes_are_smooth_and_inside():
+    from geoavatar.prep.video import smooth_crop_boxes
+
+    rng = np.random.default_rng(0)
+    centres = np.array([200.0, 150.0]) + rng.normal(0, 5, (50, 2))  # jittery detections
+    found = np.ones(50, bool)
+    found[10:13] = False
+    boxes = smooth_crop_boxes(centres, np.full(50, 100.0), found, (640, 360), scale=2.4)
+    assert np.allclose(boxes[:, 2], 240.0)
+    assert np.abs(np.diff(boxes[:, :2], axis=0)).max() < 1.0  # jitter of 5 px smoothed away
+    assert (boxes[:, 0] - 120 >= 0).all() and (boxes[:, 1] + 120 <= 360).all()
+
+
+def test_unreadable_file_is_a_clear_error(tmp_path):
+    from geoavatar.prep.errors import PrepareError
+    from geoavatar.prep.pipeline import run_prepare
+
+    bad = tmp_path / "broken.mp4"
+    bad.write_bytes(b"this is not a video" * 100)
+    out = tmp_path / "out"
+    with pytest.raises(PrepareError, match="broken.mp4.*not a readable video"):
+        run_prepare(_config(bad, out))
+    assert not out.exists()
+    with pytest.raises(PrepareError, match="file not found"):
+        run_prepare(_config(tmp_path / "missing.mp4", out))
+
+
+def test_video_without_a_face_is_a_clear_error(tmp_path):
+    from geoavatar.prep.errors import PrepareError
+    from geoavatar.prep.pipeline import run_prepare
+
+    video = _write_video(tmp_path / "blank.mp4", [np.full((96, 96, 3), 40 + 20 * i, np.uint8) for i in range(8)])
+    out = tmp_path / "out"
+    with pytest.raises(PrepareError, match="no face was found in any of its 6 frames"):
+        run_prepare(_config(video, out))
+    assert not out.exists()
+
+
+@needs_video
+def test_too_short_video_is_a_clear_error(tmp_path):
+    from geoavatar.prep.errors import PrepareError
+    from geoavatar.prep.pipeline import run_prepare
+    from geoavatar.prep.video import decode_frames
+
+    frames = [rgb[::4, ::4].copy() for _, rgb in decode_frames(WOJTEK, max_frames=3)]
+    video = _write_video(tmp_path / "short.mp4", frames)
+    out = tmp_path / "out"
+    with pytest.raises(PrepareError, match="3 frame.*fewer than the 5 needed"):
+        run_prepare(_config(video, out))
+    assert not out.exists()
+
+
+def test_flame_without_files_names_what_is_missing(tmp_path):
+    from geoavatar.prep.errors import PrepareError
+    from geoavatar.prep.pipeline import load_tracking_head
+
+    with pytest.raises(PrepareError, match="flame2023.pkl"):
+        load_tracking_head(_config(tmp_path / "v.mp4", tmp_path / "o", head="flame", flame_dir=tmp_path))
