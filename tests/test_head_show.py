@@ -5,7 +5,6 @@ import time
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from geoavatar.apps.head_show import contact_sheet, head_show

@@ -7,7 +7,6 @@ import math
 import socket
 import time
 import urllib.request
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from typing import Mapping
 
-import torch
 from torch import Tensor, nn
 
 # Refined per-timestep keys, grouped by the learning rate they take (config.LearningRates.tracking_*).

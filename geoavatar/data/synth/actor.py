@@ -572,7 +572,6 @@ def build_actor(subject: Subject, head: HeadModelData | None = None) -> Actor:
         regressor_extra[compensate, count - num_head + np.arange(n)] = 1.0
         count += n
 
-    added = count - num_head
     data = head.copy_with(
         name=f"{head.name}+synth{subject.index}",
         v_template=np.concatenate(v_template).astype(np.float32),
