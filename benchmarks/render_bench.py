@@ -1,15 +1,18 @@
-"""Benchmark of geoavatar.render.rasterize (torch backend) on a head-like scene.
+"""Benchmark of geoavatar.render.rasterize on a head-like scene.
 
 Prints, for 256² and 512² images with 10k, 50k and 100k Gaussians: forward seconds, forward+backward
-seconds and the peak RSS of the process, for the fast renderer ("tiles": tile rows + hand-written
-backward) and the naive variant ("naive": per-pixel pairs + plain autograd) side by side, plus the
-forward-only frames per second at 512²/50k. Each configuration runs in a fresh subprocess so that
+seconds and the peak RSS of the process, for the torch backend's fast renderer ("tiles": tile rows +
+hand-written backward), its naive variant ("naive": per-pixel pairs + plain autograd) and the native
+CPU backend ("cpu": C++/OpenMP kernels, cpu_backend.py) side by side, the forward+backward speed-up of
+"cpu" over "tiles", plus the forward-only frames per second at 512²/50k. --threads takes several
+counts (e.g. 1 2) to report the scaling. Each configuration runs in a fresh subprocess so that
 its peak RSS is its own. Timings are the best of --repeats runs after one warm-up: wall-clock
 seconds, and the CPU seconds of the process (all threads), which a machine shared with other jobs
 disturbs less. The load average is printed before and after.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/render_bench.py
     .venv/bin/python benchmarks/render_bench.py --sizes 256 --counts 50000 --methods tiles
+    .venv/bin/python benchmarks/render_bench.py --sizes 256 512 --counts 50000 100000 --methods tiles cpu --threads 1 2
 """
 
 from __future__ import annotations
@@ -75,6 +78,7 @@ def run_one(method: str, size: int, count: int, repeats: int, tile_size: int) ->
     setup_process()
     import torch
 
+    from geoavatar.render.cpu_backend import rasterize_cpu
     from geoavatar.render.torch_backend import rasterize_torch
 
     means, quats, scales, opacities, colors, viewmat, K = head_scene(count, size)
@@ -84,6 +88,8 @@ def run_one(method: str, size: int, count: int, repeats: int, tile_size: int) ->
     background = torch.ones(1, 3)
 
     def render(tensors):
+        if method == "cpu":
+            return rasterize_cpu(*tensors, viewmat[None], K[None], size, size, background, batched=False)
         return rasterize_torch(*tensors, viewmat[None], K[None], size, size, background, batched=False,
                                method=method, tile_size=tile_size)
 
@@ -123,9 +129,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 50_000, 100_000])
-    parser.add_argument("--methods", nargs="+", default=["tiles", "naive"], choices=["tiles", "naive"])
+    parser.add_argument("--methods", nargs="+", default=["tiles", "naive", "cpu"],
+                        choices=["tiles", "naive", "cpu"])
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, nargs="+", default=[2])
     parser.add_argument("--tile-size", type=int, default=4)
     parser.add_argument("--one", nargs=3, metavar=("METHOD", "SIZE", "COUNT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -134,30 +141,51 @@ def main() -> None:
         print(json.dumps(run_one(method, int(size), int(count), args.repeats, args.tile_size)))
         return
 
-    env = dict(os.environ)
-    env.update(OMP_NUM_THREADS=str(args.threads), GEOAVATAR_THREADS=str(args.threads), MALLOC_MMAP_MAX_="0",
-               MALLOC_TRIM_THRESHOLD_="68719476736")
-    print(f"render_bench: torch backend, {args.threads} threads, best of {args.repeats}, tile size {args.tile_size}, "
-          f"load average {os.getloadavg()[0]:.1f}")
-    print(f"{'method':<7} {'image':>7} {'gaussians':>9} {'visible':>8} {'fwd s':>8} {'fwd+bwd s':>10} "
+    if "cpu" in args.methods:  # build the native kernel once, before any timing (cached for the children)
+        from geoavatar.render.cpu_backend import cpu_backend_available, cpu_backend_error
+
+        if not cpu_backend_available():
+            print(f"render_bench: method 'cpu' skipped: {cpu_backend_error()}")
+            args.methods = [m for m in args.methods if m != "cpu"]
+    print(f"render_bench: methods {' '.join(args.methods)}, threads {' '.join(map(str, args.threads))}, best of "
+          f"{args.repeats}, torch tile size {args.tile_size}, load average {os.getloadavg()[0]:.1f}")
+    print(f"{'method':<7} {'thr':>3} {'image':>7} {'gaussians':>9} {'visible':>8} {'fwd s':>8} {'fwd+bwd s':>10} "
           f"{'fwd cpu s':>10} {'f+b cpu s':>10} {'peak RSS GB':>12}")
     results = []
     for size in args.sizes:
         for count in args.counts:
-            for method in args.methods:
-                cmd = [sys.executable, __file__, "--one", method, str(size), str(count), "--repeats", str(args.repeats),
-                       "--tile-size", str(args.tile_size)]
-                proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
-                if proc.returncode != 0:
-                    print(f"{method:<7} {size:>4}^2 {count:>9}  failed: {proc.stderr.strip().splitlines()[-1:]}")
-                    continue
-                r = json.loads(proc.stdout.strip().splitlines()[-1])
-                results.append(r)
-                print(f"{method:<7} {size:>4}^2 {count:>9} {r['visible']:>8} {r['fwd_s']:>8.3f} {r['fwd_bwd_s']:>10.3f} "
-                      f"{r['fwd_cpu_s']:>10.3f} {r['fwd_bwd_cpu_s']:>10.3f} {r['peak_rss_gb']:>12.2f}", flush=True)
+            for threads in args.threads:
+                env = dict(os.environ)
+                env.update(OMP_NUM_THREADS=str(threads), GEOAVATAR_THREADS=str(threads), MALLOC_MMAP_MAX_="0",
+                           MALLOC_TRIM_THRESHOLD_="68719476736")
+                for method in args.methods:
+                    cmd = [sys.executable, __file__, "--one", method, str(size), str(count), "--repeats",
+                           str(args.repeats), "--tile-size", str(args.tile_size)]
+                    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+                    if proc.returncode != 0:
+                        print(f"{method:<7} {threads:>3} {size:>4}^2 {count:>9}  failed: "
+                              f"{proc.stderr.strip().splitlines()[-1:]}")
+                        continue
+                    r = json.loads(proc.stdout.strip().splitlines()[-1])
+                    results.append(r)
+                    print(f"{method:<7} {threads:>3} {size:>4}^2 {count:>9} {r['visible']:>8} {r['fwd_s']:>8.3f} "
+                          f"{r['fwd_bwd_s']:>10.3f} {r['fwd_cpu_s']:>10.3f} {r['fwd_bwd_cpu_s']:>10.3f} "
+                          f"{r['peak_rss_gb']:>12.2f}", flush=True)
+    by_key = {(r["method"], r["threads"], r["size"], r["count"]): r for r in results}
+    for (method, threads, size, count), r in by_key.items():
+        base = by_key.get(("tiles", threads, size, count))
+        if method == "cpu" and base is not None:
+            print(f"cpu vs tiles, {threads} thread(s), {size}^2 / {count}: forward+backward {base['fwd_bwd_s'] / r['fwd_bwd_s']:.1f}x "
+                  f"(wall), {base['fwd_bwd_cpu_s'] / r['fwd_bwd_cpu_s']:.1f}x (CPU seconds); forward "
+                  f"{base['fwd_s'] / r['fwd_s']:.1f}x")
+        one = by_key.get((method, 1, size, count))
+        if threads > 1 and one is not None:
+            print(f"{method} scaling 1 -> {threads} threads, {size}^2 / {count}: forward+backward "
+                  f"{one['fwd_bwd_s'] / r['fwd_bwd_s']:.2f}x, forward {one['fwd_s'] / r['fwd_s']:.2f}x")
     for r in results:
         if r["size"] == 512 and r["count"] == 50_000:
-            print(f"forward-only frames per second at 512^2 / 50k ({r['method']}): {1.0 / r['fwd_s']:.2f}")
+            print(f"forward-only frames per second at 512^2 / 50k ({r['method']}, {r['threads']} threads): "
+                  f"{1.0 / r['fwd_s']:.2f}")
     print(f"load average at the end: {os.getloadavg()[0]:.1f}")
 
 

@@ -22,6 +22,7 @@ import torch
 
 from geoavatar.geometry import quaternion_to_matrix
 from geoavatar.render import RasterizeResult, rasterize
+from geoavatar.render.cpu_backend import cpu_backend_available
 from geoavatar.render.gsplat_backend import gsplat_available
 from geoavatar.render.torch_backend import plan_rows, project_gaussians, rasterize_torch
 
@@ -392,10 +393,10 @@ def test_bad_background_and_backend():
         rasterize(**scene, backend="cuda")
 
 
-def test_auto_backend_on_cpu_is_torch_and_gsplat_is_never_touched():
+def test_auto_backend_on_cpu_is_native_or_torch_and_gsplat_is_never_touched():
     scene = _valid_scene()
     imported_before = "gsplat" in sys.modules
-    assert rasterize(**scene).backend == "torch"
+    assert rasterize(**scene).backend == ("cpu" if cpu_backend_available() else "torch")
     with pytest.raises((ValueError, RuntimeError), match="gsplat"):
         rasterize(**scene, backend="gsplat")
     if not torch.cuda.is_available() and not imported_before:

@@ -1,11 +1,13 @@
-"""Native CPU backend ("cpu") of rasterize(): projection in PyTorch, rasterize-to-pixels in C++.
+"""Native CPU backend ("cpu") of rasterize(): projection and rasterize-to-pixels in C++.
 
-The split is gsplat's: `project_gaussians` (torch_backend.py: EWA, Jacobian clamp, 0.3 px dilation,
-opacity-aware radii, near plane) stays in PyTorch, where it is O(N) and differentiable by autograd;
-the per-pixel work (tile binning, per-tile depth order, front-to-back compositing with the 1/255,
-0.999 and T <= 1e-4 rules, and the hand-written back-to-front backward) runs in
-csrc/rasterize_cpu.cpp on OpenMP threads (torch.get_num_threads() of them, dynamic over tiles).
-Gradients reach means/quats/scales through the torch projection, and means2d.grad (densification)
+The split is gsplat's: a projection step (EWA, Jacobian clamp, 0.3 px dilation, opacity-aware radii,
+near plane: the rules and operation order of torch_backend.project_gaussians, with a hand-written
+backward to means/quats/scales), then the per-pixel work (tile binning, per-tile depth order,
+front-to-back compositing with the 1/255, 0.999 and T <= 1e-4 rules, and the back-to-front
+backward). Both run in csrc/rasterize_cpu.cpp on OpenMP threads (torch.get_num_threads() of them,
+dynamic over tiles). Projection is native because in PyTorch its many small ops cost as much as the
+kernel itself (measured: 44 ms of 119 ms forward+backward at 256²/50k on one thread); when viewmat or
+K need gradients, the differentiable torch projection is used instead. means2d.grad (densification)
 is the gradient the kernel returns for the screen-space means.
 
 The extension is built on first use with torch.utils.cpp_extension (g++ and ninja; about 35 s on
@@ -31,7 +33,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from geoavatar.render.torch_backend import project_gaussians
+from geoavatar.render.torch_backend import Projection, project_gaussians
 
 SOURCE = Path(__file__).with_name("csrc") / "rasterize_cpu.cpp"
 # -O3 and OpenMP only: no -march=native, so a cache built on one machine runs on any x86-64 one.
@@ -70,7 +72,7 @@ def load_extension(verbose: bool = False) -> Optional[ModuleType]:
         try:
             _state["module"] = _build(verbose)
         except Exception as error:  # any build or load failure: fall back, say why once
-            _state["error"] = f"{type(error).__name__}: {str(error).strip().splitlines()[-1] if str(error).strip() else ''}"
+            _state["error"] = _summarise(error)
             warnings.warn(
                 "geoavatar: the native CPU rasterizer (backend 'cpu') could not be built, so rendering on CPU "
                 f"uses the slower PyTorch backend. Reason: {_state['error']}. Install g++ (e.g. apt-get install "
@@ -79,6 +81,13 @@ def load_extension(verbose: bool = False) -> Optional[ModuleType]:
                 stacklevel=3,
             )
         return _state["module"]
+
+
+def _summarise(error: Exception) -> str:
+    """One line: the first compiler 'error:' line when there is one, else the exception's last line."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    first_error = next((line for line in lines if "error:" in line), None)
+    return f"{type(error).__name__}: {first_error or (lines[-1] if lines else '')}"
 
 
 def _build(verbose: bool) -> ModuleType:
@@ -139,6 +148,49 @@ class _RasterizeToPixels(torch.autograd.Function):
         return g_means2d, g_conics, g_opacities, g_colors, g_background, None, None, None, None, None
 
 
+class _ProjectGaussians(torch.autograd.Function):
+    """Native projection of one camera; backward to means, quats and scales (not viewmat or K)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height):
+        ext = load_extension()
+        args = [t.detach().contiguous() for t in (means, quats, scales, opacities, viewmat, K)]
+        means2d, conics, depths, radii, visible = ext.project(*args, width, height)
+        ctx.save_for_backward(args[0], args[1], args[2], args[4], args[5], visible)
+        ctx.size = (width, height)
+        ctx.mark_non_differentiable(depths, radii, visible)
+        return means2d, conics, depths, radii, visible
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, _g_depths, _g_radii, _g_visible):
+        means, quats, scales, viewmat, K, visible = ctx.saved_tensors
+        dtype = means.dtype
+        g_means2d = torch.zeros_like(means[:, :2]) if g_means2d is None else g_means2d.to(dtype).contiguous()
+        g_conics = torch.zeros_like(means) if g_conics is None else g_conics.to(dtype).contiguous()
+        g_means, g_quats, g_scales = load_extension().project_backward(
+            means, quats, scales, viewmat, K, visible, g_means2d, g_conics, *ctx.size
+        )
+        return g_means, g_quats, g_scales, None, None, None, None, None
+
+
+def project_gaussians_cpu(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4] wxyz
+    scales: Tensor,  # [N, 3] linear
+    opacities: Tensor,  # [N]
+    viewmat: Tensor,  # [4, 4] world-to-camera, OpenCV axes
+    K: Tensor,  # [3, 3]
+    width: int,
+    height: int,
+) -> Projection:
+    """torch_backend.project_gaussians in C++ (same outputs); the torch one when viewmat/K need grads."""
+    if viewmat.requires_grad or K.requires_grad:
+        return project_gaussians(means, quats, scales, opacities, viewmat, K, width, height)
+    means2d, conics, depths, radii, visible = _ProjectGaussians.apply(means, quats, scales, opacities, viewmat, K,
+                                                                      width, height)
+    return Projection(means2d, conics, depths, radii, visible)
+
+
 def rasterize_to_pixels_cpu(
     means2d: Tensor,  # [N, 2] pixels
     conics: Tensor,  # [N, 3] (a, b, c) of the inverse 2D covariance
@@ -180,8 +232,10 @@ def rasterize_cpu(
     """Same contract as torch_backend.rasterize_torch: rgb [C,H,W,3], alpha [C,H,W,1], means2d [C,N,2]
     (a graph node whose .grad is d loss / d means2d; [N, 2] when batched=False), radii [C,N,2] int32,
     visible [C,N] bool, depths [C,N]. tile_size changes speed only, never results."""
+    if load_extension() is None:
+        raise RuntimeError(f"rasterize: backend 'cpu' is unavailable: {cpu_backend_error()}")
     projections = [
-        project_gaussians(means, quats, scales, opacities, viewmats[c], Ks[c], width, height)
+        project_gaussians_cpu(means, quats, scales, opacities, viewmats[c], Ks[c], width, height)
         for c in range(viewmats.shape[0])
     ]
     means2d = torch.stack([p.means2d for p in projections])  # [C, N, 2]

@@ -1,8 +1,9 @@
-"""rasterize(): differentiable 3D Gaussian splatting behind one API, backends "torch" and "gsplat".
+"""rasterize(): differentiable 3D Gaussian splatting behind one API, backends "torch", "cpu" and "gsplat".
 
-Both backends follow gsplat 1.5.3's conventions (see torch_backend's docstring); the torch backend
-runs anywhere (CPU or CUDA tensors), gsplat only on CUDA. Inputs are validated here, once, so both
-backends get the same clear errors.
+All backends follow gsplat 1.5.3's conventions (see torch_backend's docstring); the torch backend
+runs anywhere (CPU or CUDA tensors), "cpu" is the native C++/OpenMP kernel for CPU tensors (built on
+first use, cpu_backend.py), gsplat runs only on CUDA. Inputs are validated here, once, so every
+backend gets the same clear errors.
 
 A batch of cameras is supported: pass viewmat [C, 4, 4] and K [C, 3, 3] (and background [3] or
 [C, 3]); every output then gains a leading C dimension.
@@ -16,11 +17,12 @@ from typing import Literal, Optional
 import torch
 from torch import Tensor
 
+from geoavatar.render.cpu_backend import cpu_backend_available, rasterize_cpu
 from geoavatar.render.gsplat_backend import gsplat_available, rasterize_gsplat
 from geoavatar.render.torch_backend import rasterize_torch
 
-Backend = Literal["auto", "torch", "gsplat"]
-BACKENDS = ("auto", "torch", "gsplat")
+Backend = Literal["auto", "torch", "cpu", "gsplat"]
+BACKENDS = ("auto", "torch", "cpu", "gsplat")
 
 
 @dataclass
@@ -33,7 +35,7 @@ class RasterizeResult:
     radii: Tensor  # [N, 2] int32 half-size of each Gaussian's box in pixels (x, y); 0 = culled
     visible: Tensor  # [N] bool, projected inside the image and in front of the near plane
     depths: Tensor  # [N] camera-space depth (z) of each mean
-    backend: str  # "torch" or "gsplat": the backend that ran
+    backend: str  # "torch", "cpu" or "gsplat": the backend that ran
 
 
 def _check_tensor(name: str, value, shapes: tuple[tuple, ...], dtype=None, device=None) -> Tensor:
@@ -124,8 +126,10 @@ def rasterize(
 ) -> RasterizeResult:
     """Render Gaussians to an image, differentiably in every floating-point input.
 
-    backend "auto" uses gsplat for float32 CUDA tensors when gsplat imports, the torch backend
-    otherwise; "torch" always uses the pure-PyTorch renderer; "gsplat" insists on gsplat (CUDA only).
+    backend "auto" uses gsplat for float32 CUDA tensors when gsplat imports, the native "cpu" kernel
+    for CPU tensors when it builds (first use compiles it, ~40 s; without a compiler it warns once),
+    the torch backend otherwise; "torch" always uses the pure-PyTorch renderer; "cpu" insists on the
+    native kernel (CPU tensors); "gsplat" insists on gsplat (CUDA only).
     """
     if backend not in BACKENDS:
         raise ValueError(f"rasterize: argument 'backend' must be one of {BACKENDS}, got {backend!r}")
@@ -134,8 +138,13 @@ def rasterize(
     )
     if backend == "auto":
         on_cuda = means.device.type == "cuda" and means.dtype == torch.float32
-        backend = "gsplat" if on_cuda and gsplat_available() else "torch"
-    render = rasterize_gsplat if backend == "gsplat" else rasterize_torch
+        if on_cuda and gsplat_available():
+            backend = "gsplat"
+        elif means.device.type == "cpu" and cpu_backend_available():
+            backend = "cpu"
+        else:
+            backend = "torch"
+    render = {"gsplat": rasterize_gsplat, "cpu": rasterize_cpu, "torch": rasterize_torch}[backend]
     rgb, alpha, means2d, radii, visible, depths = render(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, batched=batched
     )

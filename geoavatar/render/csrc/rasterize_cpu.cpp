@@ -381,11 +381,237 @@ std::vector<torch::Tensor> backward(const torch::Tensor& means2d, const torch::T
   return {g_means2d, g_conics, g_opacities, g_colors};
 }
 
+// ----------------------------------------------------------------------------- projection
+// EWA projection of one camera, the same rules and operation order as torch_backend.project_gaussians
+// (near/far plane, Jacobian clamp at 1.3 x the half field of view, 0.3 px dilation, det > 0,
+// opacity >= 1/255, opacity-aware radii, box overlapping the image). Computed in double.
+
+constexpr double kNear = 0.01, kFar = 1e10, kEps2d = 0.3, kClampMargin = 0.3, kMaxExtent = 3.33;
+
+struct Camera {
+  double r[9], t[3], fx, fy, cx, cy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg;
+  int64_t width, height;
+};
+
+template <typename scalar_t>
+Camera make_camera(const scalar_t* view, const scalar_t* k, int64_t width, int64_t height) {
+  Camera cam;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) cam.r[3 * i + j] = view[4 * i + j];
+    cam.t[i] = view[4 * i + 3];
+  }
+  cam.fx = k[0], cam.fy = k[4], cam.cx = k[2], cam.cy = k[5];
+  cam.width = width, cam.height = height;
+  cam.lim_x_pos = (width - cam.cx) / cam.fx + kClampMargin * 0.5 * width / cam.fx;
+  cam.lim_x_neg = cam.cx / cam.fx + kClampMargin * 0.5 * width / cam.fx;
+  cam.lim_y_pos = (height - cam.cy) / cam.fy + kClampMargin * 0.5 * height / cam.fy;
+  cam.lim_y_neg = cam.cy / cam.fy + kClampMargin * 0.5 * height / cam.fy;
+  return cam;
+}
+
+// Everything the backward pass needs about one Gaussian, recomputed from the inputs.
+struct ProjectedGaussian {
+  double n[4];         // normalised quaternion wxyz
+  double qnorm;        // |q|
+  double rq[9];        // rotation of the quaternion
+  double mc[9];        // camera-space R_view R_q S (row-major)
+  double x, y, z, iz;  // camera-space mean, 1 / z
+  double tx, ty;       // clamped Jacobian point times z
+  bool clamped_x, clamped_y;
+  double j0[3], j1[3], u[3], v[3];
+  double cov_a, cov_b, cov_c, det;
+  bool in_range;
+};
+
+template <typename scalar_t>
+void project_one(const Camera& cam, const scalar_t* mean, const scalar_t* quat, const scalar_t* scale,
+                 ProjectedGaussian& g) {
+  double m[3] = {mean[0], mean[1], mean[2]};
+  double xc[3];
+  for (int i = 0; i < 3; ++i) xc[i] = cam.r[3 * i] * m[0] + cam.r[3 * i + 1] * m[1] + cam.r[3 * i + 2] * m[2] + cam.t[i];
+  g.x = xc[0], g.y = xc[1], g.z = xc[2];
+  const double q0 = quat[0], q1 = quat[1], q2 = quat[2], q3 = quat[3];
+  g.qnorm = std::sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3);
+  const double w = q0 / g.qnorm, x = q1 / g.qnorm, y = q2 / g.qnorm, z = q3 / g.qnorm;
+  g.n[0] = w, g.n[1] = x, g.n[2] = y, g.n[3] = z;
+  const double rq[9] = {1 - 2 * (y * y + z * z), 2 * (x * y - w * z),     2 * (x * z + w * y),
+                        2 * (x * y + w * z),     1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                        2 * (x * z - w * y),     2 * (y * z + w * x),     1 - 2 * (x * x + y * y)};
+  double ms[9];
+  for (int i = 0; i < 9; ++i) g.rq[i] = rq[i], ms[i] = rq[i] * static_cast<double>(scale[i % 3]);
+  for (int i = 0; i < 3; ++i)
+    for (int k = 0; k < 3; ++k)
+      g.mc[3 * i + k] = cam.r[3 * i] * ms[k] + cam.r[3 * i + 1] * ms[3 + k] + cam.r[3 * i + 2] * ms[6 + k];
+  g.in_range = g.z >= kNear && g.z <= kFar;
+  const double zs = g.in_range ? g.z : 1.0;
+  g.iz = 1.0 / zs;
+  const double rx = g.x * g.iz, ry = g.y * g.iz;
+  g.clamped_x = rx < -cam.lim_x_neg || rx > cam.lim_x_pos;
+  g.clamped_y = ry < -cam.lim_y_neg || ry > cam.lim_y_pos;
+  g.tx = zs * std::min(std::max(rx, -cam.lim_x_neg), cam.lim_x_pos);
+  g.ty = zs * std::min(std::max(ry, -cam.lim_y_neg), cam.lim_y_pos);
+  g.j0[0] = cam.fx * g.iz, g.j0[1] = 0, g.j0[2] = -cam.fx * g.tx * g.iz * g.iz;
+  g.j1[0] = 0, g.j1[1] = cam.fy * g.iz, g.j1[2] = -cam.fy * g.ty * g.iz * g.iz;
+  for (int k = 0; k < 3; ++k) {
+    g.u[k] = g.j0[0] * g.mc[k] + g.j0[1] * g.mc[3 + k] + g.j0[2] * g.mc[6 + k];
+    g.v[k] = g.j1[0] * g.mc[k] + g.j1[1] * g.mc[3 + k] + g.j1[2] * g.mc[6 + k];
+  }
+  g.cov_a = g.u[0] * g.u[0] + g.u[1] * g.u[1] + g.u[2] * g.u[2] + kEps2d;
+  g.cov_b = g.u[0] * g.v[0] + g.u[1] * g.v[1] + g.u[2] * g.v[2];
+  g.cov_c = g.v[0] * g.v[0] + g.v[1] * g.v[1] + g.v[2] * g.v[2] + kEps2d;
+  g.det = g.cov_a * g.cov_c - g.cov_b * g.cov_b;
+}
+
+// OpenMP pragmas cannot sit inside AT_DISPATCH's macro argument: loops over Gaussians go through this.
+template <typename Body>
+void parallel_over(int64_t n, const Body& body) {
+#pragma omp parallel for schedule(static) num_threads(threads_for_torch())
+  for (int64_t i = 0; i < n; ++i) body(i);
+}
+
+// Returns means2d [N, 2], conics [N, 3], depths [N], radii [N, 2] int32, visible [N] bool.
+std::vector<torch::Tensor> project(const torch::Tensor& means, const torch::Tensor& quats, const torch::Tensor& scales,
+                                   const torch::Tensor& opacities, const torch::Tensor& viewmat,
+                                   const torch::Tensor& K, int64_t width, int64_t height) {
+  const auto dtype = means.scalar_type();
+  check_input(means, "means", 2, dtype);
+  check_input(quats, "quats", 2, dtype);
+  check_input(scales, "scales", 2, dtype);
+  check_input(opacities, "opacities", 1, dtype);
+  check_input(viewmat, "viewmat", 2, dtype);
+  check_input(K, "K", 2, dtype);
+  const int64_t n = means.size(0);
+  auto opts = means.options();
+  torch::Tensor means2d = torch::zeros({n, 2}, opts), conics = torch::zeros({n, 3}, opts);
+  torch::Tensor depths = torch::empty({n}, opts), radii = torch::zeros({n, 2}, opts.dtype(torch::kInt32));
+  torch::Tensor visible = torch::zeros({n}, opts.dtype(torch::kBool));
+  AT_DISPATCH_FLOATING_TYPES(dtype, "rasterize_cpu_project", [&] {
+    const Camera cam = make_camera(viewmat.data_ptr<scalar_t>(), K.data_ptr<scalar_t>(), width, height);
+    const scalar_t *mp = means.data_ptr<scalar_t>(), *qp = quats.data_ptr<scalar_t>();
+    const scalar_t *sp = scales.data_ptr<scalar_t>(), *op = opacities.data_ptr<scalar_t>();
+    scalar_t *m2d = means2d.data_ptr<scalar_t>(), *con = conics.data_ptr<scalar_t>(), *dep = depths.data_ptr<scalar_t>();
+    int32_t* rad = radii.data_ptr<int32_t>();
+    bool* vis = visible.data_ptr<bool>();
+    parallel_over(n, [&](int64_t i) {
+      ProjectedGaussian g;
+      project_one(cam, mp + 3 * i, qp + 4 * i, sp + 3 * i, g);
+      dep[i] = static_cast<scalar_t>(g.z);
+      const double opacity = op[i];
+      bool ok = g.in_range && g.det > 0 && opacity >= kAlphaMin;
+      if (!ok) return;
+      const double mx = cam.fx * g.x * g.iz + cam.cx, my = cam.fy * g.y * g.iz + cam.cy;
+      const double extent = std::min(std::sqrt(2.0 * std::log(opacity / kAlphaMin)), kMaxExtent);
+      const double rx = std::ceil(extent * std::sqrt(std::max(g.cov_a, 0.0)));
+      const double ry = std::ceil(extent * std::sqrt(std::max(g.cov_c, 0.0)));
+      ok = (rx > 0 || ry > 0) && mx + rx > 0 && mx - rx < width && my + ry > 0 && my - ry < height;
+      if (!ok) return;
+      vis[i] = true;
+      rad[2 * i] = static_cast<int32_t>(rx), rad[2 * i + 1] = static_cast<int32_t>(ry);
+      m2d[2 * i] = static_cast<scalar_t>(mx), m2d[2 * i + 1] = static_cast<scalar_t>(my);
+      con[3 * i] = static_cast<scalar_t>(g.cov_c / g.det);
+      con[3 * i + 1] = static_cast<scalar_t>(-g.cov_b / g.det);
+      con[3 * i + 2] = static_cast<scalar_t>(g.cov_a / g.det);
+    });
+  });
+  return {means2d, conics, depths, radii, visible};
+}
+
+// Chain rule of `project` for the visible Gaussians (culled ones get zero, as in the torch backend):
+// returns the gradients of means [N, 3], quats [N, 4], scales [N, 3].
+std::vector<torch::Tensor> project_backward(const torch::Tensor& means, const torch::Tensor& quats,
+                                            const torch::Tensor& scales, const torch::Tensor& viewmat,
+                                            const torch::Tensor& K, const torch::Tensor& visible,
+                                            const torch::Tensor& v_means2d, const torch::Tensor& v_conics,
+                                            int64_t width, int64_t height) {
+  const auto dtype = means.scalar_type();
+  check_input(means, "means", 2, dtype);
+  check_input(quats, "quats", 2, dtype);
+  check_input(scales, "scales", 2, dtype);
+  check_input(viewmat, "viewmat", 2, dtype);
+  check_input(K, "K", 2, dtype);
+  check_input(visible, "visible", 1, torch::kBool);
+  check_input(v_means2d, "v_means2d", 2, dtype);
+  check_input(v_conics, "v_conics", 2, dtype);
+  const int64_t n = means.size(0);
+  auto opts = means.options();
+  torch::Tensor g_means = torch::zeros({n, 3}, opts), g_quats = torch::zeros({n, 4}, opts);
+  torch::Tensor g_scales = torch::zeros({n, 3}, opts);
+  AT_DISPATCH_FLOATING_TYPES(dtype, "rasterize_cpu_project_backward", [&] {
+    const Camera cam = make_camera(viewmat.data_ptr<scalar_t>(), K.data_ptr<scalar_t>(), width, height);
+    const scalar_t *mp = means.data_ptr<scalar_t>(), *qp = quats.data_ptr<scalar_t>(), *sp = scales.data_ptr<scalar_t>();
+    const scalar_t *vm = v_means2d.data_ptr<scalar_t>(), *vc = v_conics.data_ptr<scalar_t>();
+    const bool* vis = visible.data_ptr<bool>();
+    scalar_t *gm = g_means.data_ptr<scalar_t>(), *gq = g_quats.data_ptr<scalar_t>(), *gs = g_scales.data_ptr<scalar_t>();
+    parallel_over(n, [&](int64_t i) {
+      if (!vis[i]) return;
+      ProjectedGaussian g;
+      project_one(cam, mp + 3 * i, qp + 4 * i, sp + 3 * i, g);
+      const double A = g.cov_a, B = g.cov_b, C = g.cov_c, D = g.det, D2 = D * D;
+      const double v00 = vc[3 * i], v01 = vc[3 * i + 1], v11 = vc[3 * i + 2];
+      // conic = (C / D, -B / D, A / D) with D = A C - B^2
+      const double v_a = v00 * (-C * C / D2) + v01 * (B * C / D2) + v11 * (1.0 / D - A * C / D2);
+      const double v_b = v00 * (2 * B * C / D2) + v01 * (-1.0 / D - 2 * B * B / D2) + v11 * (2 * A * B / D2);
+      const double v_c = v00 * (1.0 / D - C * A / D2) + v01 * (B * A / D2) + v11 * (-A * A / D2);
+      double v_u[3], v_v[3], v_j0[3] = {0, 0, 0}, v_j1[3] = {0, 0, 0}, v_mc[9];
+      for (int k = 0; k < 3; ++k) {
+        v_u[k] = 2 * v_a * g.u[k] + v_b * g.v[k];
+        v_v[k] = v_b * g.u[k] + 2 * v_c * g.v[k];
+      }
+      for (int r = 0; r < 3; ++r) {
+        for (int k = 0; k < 3; ++k) {
+          v_j0[r] += v_u[k] * g.mc[3 * r + k];
+          v_j1[r] += v_v[k] * g.mc[3 * r + k];
+          v_mc[3 * r + k] = g.j0[r] * v_u[k] + g.j1[r] * v_v[k];
+        }
+      }
+      const double iz = g.iz, iz2 = iz * iz, iz3 = iz2 * iz;
+      double v_x = 0, v_y = 0, v_z = 0;
+      v_z += v_j0[0] * (-cam.fx * iz2) + v_j0[2] * (2 * cam.fx * g.tx * iz3);
+      v_z += v_j1[1] * (-cam.fy * iz2) + v_j1[2] * (2 * cam.fy * g.ty * iz3);
+      const double v_tx = v_j0[2] * (-cam.fx * iz2), v_ty = v_j1[2] * (-cam.fy * iz2);
+      if (g.clamped_x) v_z += v_tx * g.tx * iz; else v_x += v_tx;  // tx = z * limit, or x
+      if (g.clamped_y) v_z += v_ty * g.ty * iz; else v_y += v_ty;
+      const double vmx = vm[2 * i], vmy = vm[2 * i + 1];
+      v_x += vmx * cam.fx * iz;
+      v_y += vmy * cam.fy * iz;
+      v_z += -vmx * cam.fx * g.x * iz2 - vmy * cam.fy * g.y * iz2;
+      // means: x_c = R_view m + t
+      for (int j = 0; j < 3; ++j)
+        gm[3 * i + j] = static_cast<scalar_t>(cam.r[j] * v_x + cam.r[3 + j] * v_y + cam.r[6 + j] * v_z);
+      // mc = R_view (R_q S): v_ms = R_viewᵀ v_mc; ms[r][k] = rq[r][k] s[k]
+      double v_rq[9], v_s[3] = {0, 0, 0};
+      for (int r = 0; r < 3; ++r) {
+        for (int k = 0; k < 3; ++k) {
+          const double v_ms = cam.r[r] * v_mc[k] + cam.r[3 + r] * v_mc[3 + k] + cam.r[6 + r] * v_mc[6 + k];
+          v_s[k] += v_ms * g.rq[3 * r + k];
+          v_rq[3 * r + k] = v_ms * static_cast<double>(sp[3 * i + k]);
+        }
+      }
+      for (int k = 0; k < 3; ++k) gs[3 * i + k] = static_cast<scalar_t>(v_s[k]);
+      const double w = g.n[0], x = g.n[1], y = g.n[2], z = g.n[3];
+      const double v_w = 2 * (-z * v_rq[1] + y * v_rq[2] + z * v_rq[3] - x * v_rq[5] - y * v_rq[6] + x * v_rq[7]);
+      const double v_qx = 2 * (y * v_rq[1] + z * v_rq[2] + y * v_rq[3] - 2 * x * v_rq[4] - w * v_rq[5] +
+                               z * v_rq[6] + w * v_rq[7] - 2 * x * v_rq[8]);
+      const double v_qy = 2 * (-2 * y * v_rq[0] + x * v_rq[1] + w * v_rq[2] + x * v_rq[3] + z * v_rq[5] -
+                               w * v_rq[6] + z * v_rq[7] - 2 * y * v_rq[8]);
+      const double v_qz = 2 * (-2 * z * v_rq[0] - w * v_rq[1] + x * v_rq[2] + w * v_rq[3] - 2 * z * v_rq[4] +
+                               y * v_rq[5] + x * v_rq[6] + y * v_rq[7]);
+      // through the normalisation q / |q|
+      const double dot = w * v_w + x * v_qx + y * v_qy + z * v_qz;
+      const double vn[4] = {v_w, v_qx, v_qy, v_qz};
+      for (int j = 0; j < 4; ++j) gq[4 * i + j] = static_cast<scalar_t>((vn[j] - g.n[j] * dot) / g.qnorm);
+    });
+  });
+  return {g_means, g_quats, g_scales};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.doc() = "geoavatar native CPU rasterize-to-pixels (tile binning, compositing, backward)";
   module.def("forward", &forward, "rgb, alpha, tile offsets, tile ids, last, t_final");
   module.def("backward", &backward, "grads of means2d, conics, opacities, colors");
+  module.def("project", &project, "means2d, conics, depths, radii, visible of one camera");
+  module.def("project_backward", &project_backward, "grads of means, quats, scales");
   module.def("max_threads", []() { return omp_get_max_threads(); });
 }
