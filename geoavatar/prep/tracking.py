@@ -75,6 +75,7 @@ class TrackingConfig:
     rigid_steps: int = 100
     full_steps: int = 300
     lr: float = 0.02
+    rigid_lr: float = 0.05  # the rigid stage starts from a frontal pose: large turns need large steps
     huber: float = 0.005  # pseudo-Huber delta, in face sizes
     fov_deg: float = 25.0  # initial / prior field of view across the crop's longer side (before the crop: see pipeline)
     focal_prior: float = 1e-4  # weight of (log f - log f0)^2
@@ -89,11 +90,11 @@ class TrackingConfig:
     w_jaw_side: float = 1e-2
     w_jaw_range: float = 1.0
     jaw_max: float = 0.5  # rad
-    w_smooth_pose: float = 1e-1  # first differences of rotation (rad) and translation (in head sizes)
+    w_smooth_pose: float = 1e-3  # first differences of rotation (rad) and translation (in head sizes)
     w_smooth_expr: float = 1e-4
     w_smooth_jaw: float = 1e-2
     w_smooth_eyes: float = 1e-3
-    w_accel: float = 1e-1  # second differences of rotation / translation
+    w_accel: float = 1e-2  # second differences of rotation / translation
     head_size: float = 0.2  # m: translation differences are measured in this unit
 
 
@@ -353,10 +354,10 @@ def track(
         })
         return terms
 
-    def run(stage: str, steps: int, parameters: list[Tensor]) -> None:
+    def run(stage: str, steps: int, parameters: list[Tensor], lr: float) -> None:
         if steps <= 0:
             return
-        optimizer = torch.optim.Adam(parameters, lr=config.lr)
+        optimizer = torch.optim.Adam(parameters, lr=lr)
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: 0.1 ** (s / steps))
         for step in range(steps):
             optimizer.zero_grad(set_to_none=True)
@@ -370,11 +371,11 @@ def track(
         log.append(f"{stage}: {steps} steps, " + ", ".join(f"{k} {float(v.detach()):.3e}" for k, v in terms.items()))
 
     # Translation steps are ~1 cm per unit lr at lr 0.02: scale translation by head size via its lr.
-    run("rigid", config.rigid_steps, [fit.rotation, fit.translation])
+    run("rigid", config.rigid_steps, [fit.rotation, fit.translation], config.rigid_lr)
     full = [fit.shape, fit.expr, fit.rotation, fit.neck_pose, fit.jaw_pose, fit.eyes_pose, fit.translation]
     if config.fit_focal:
         full.append(fit.log_focal)
-    run("full", config.full_steps, full)
+    run("full", config.full_steps, full, config.lr)
 
     with torch.no_grad():
         params = fit.params()
