@@ -13,7 +13,7 @@ runs offline:
   forehead-chin distance and c = the mean of the face-oval points, every face-oval point p is moved
   to c + 1.3 * lateral(p - c) + s * up(p - c), s = 1.9 above c (room for hair and the skull) and
   1.05 below (the jaw line). A neck band joins it: a quadrilateral from the jaw-angle points
-  (ids 172 / 397, pulled 15 % towards the mid-line) down to 0.5 H below the chin. The union is
+  (ids 172 / 397, pulled 15 % towards the mid-line) down to 0.3 H below the chin. The union is
   filled and blurred (sigma = 2 % of H) so its edge is soft; where it is generous (hair, sides) the
   person mask decides the silhouette.
 
@@ -33,7 +33,7 @@ from geoavatar.prep.landmarks import _mediapipe, _quiet_native_logs
 HAIR_SCALE = 1.9
 JAW_SCALE = 1.05
 LATERAL_SCALE = 1.3
-NECK_LENGTH = 0.5  # below the chin, in face heights
+NECK_LENGTH = 0.3  # below the chin, in face heights
 NECK_INSET = 0.15  # jaw-angle points pulled towards the mid-line
 EDGE_SIGMA = 0.02  # blur of the region edge, in face heights
 MASK_BACKENDS = ("selfie",)

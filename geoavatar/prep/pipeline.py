@@ -96,10 +96,10 @@ def _read_png(path: Path) -> np.ndarray:
         return np.asarray(image).copy()
 
 
-def _bar(config: PrepareConfig, total: int | None, desc: str):
+def _bar(config: PrepareConfig, total: int | None, desc: str, unit: str = "frame"):
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=f"prepare: {desc}", unit="frame", disable=not config.progress, leave=True)
+    return tqdm(total=total, desc=f"prepare: {desc}", unit=unit, disable=not config.progress, leave=True)
 
 
 class _Stages:
@@ -302,7 +302,7 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
     # Initial focal: 25 degrees across the source frame's longer side, in crop pixels.
     focal = scale * 0.5 * max(width, height) / math.tan(math.radians(tracking_config.fov_deg) / 2)
     total = sum(config.tracking_steps)
-    bar = _bar(config, total, "tracking (steps)")
+    bar = _bar(config, total, "tracking", unit="step")
     try:
         with torch.enable_grad():
             result = track(model, marks["filtered"], marks["confidence"], np.array(principal), config.size,
