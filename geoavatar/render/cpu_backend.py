@@ -25,6 +25,7 @@ import platform
 import shutil
 import sys
 import threading
+import time
 import warnings
 from pathlib import Path
 from types import ModuleType
@@ -90,24 +91,57 @@ def _summarise(error: Exception) -> str:
     return f"{type(error).__name__}: {first_error or (lines[-1] if lines else '')}"
 
 
+def _ninja_dirs() -> list[str]:
+    """Folders that may hold the `ninja` of PyPI's ninja package when the venv is not activated."""
+    dirs = [str(Path(sys.executable).parent)]
+    try:
+        import ninja  # the PyPI package: BIN_DIR holds its executable
+
+        dirs.insert(0, str(ninja.BIN_DIR))
+    except (ImportError, AttributeError):
+        pass
+    return dirs
+
+
+def _clear_stale_lock(build_dir: Path, max_age_s: float = 900.0) -> None:
+    """cpp_extension waits forever on the lock file of a build that was killed: drop one that is old."""
+    lock = build_dir / "lock"
+    try:
+        if time.time() - lock.stat().st_mtime > max_age_s:
+            lock.unlink()
+    except FileNotFoundError:
+        pass
+
+
 def _build(verbose: bool) -> ModuleType:
     from torch.utils import cpp_extension
 
     if _compiler() is None:
         raise RuntimeError(f"no C++ compiler found (looked for {os.environ.get('CXX', 'c++')!r} on PATH)")
-    if not cpp_extension.is_ninja_available():
-        raise RuntimeError("ninja is not available (pip install ninja)")
-    key = _build_key()
-    build_dir = _cache_root() / f"rasterize_cpu-{key}"
-    build_dir.mkdir(parents=True, exist_ok=True)
-    return cpp_extension.load(
-        name=f"geoavatar_rasterize_cpu_{key}",  # unique per build: never clashes with another in sys.modules
-        sources=[str(SOURCE)],
-        extra_cflags=CFLAGS,
-        extra_ldflags=LDFLAGS,
-        build_directory=str(build_dir),
-        verbose=verbose,
-    )
+    path_before = os.environ.get("PATH", "")
+    if shutil.which("ninja") is None:  # a venv used without activation: its bin folder is not on PATH
+        os.environ["PATH"] = os.pathsep.join([*_ninja_dirs(), path_before])
+    try:
+        if not cpp_extension.is_ninja_available():
+            raise RuntimeError("ninja is not available (pip install ninja)")
+        key = _build_key()
+        build_dir = _cache_root() / f"rasterize_cpu-{key}"
+        build_dir.mkdir(parents=True, exist_ok=True)
+        _clear_stale_lock(build_dir)
+        name = f"geoavatar_rasterize_cpu_{key}"  # unique per build: never clashes with another in sys.modules
+        if not (build_dir / f"{name}.so").exists():
+            print("geoavatar: building the native CPU rasterizer (first use only, about a minute) in "
+                  f"{build_dir} ...", file=sys.stderr, flush=True)
+        return cpp_extension.load(
+            name=name,
+            sources=[str(SOURCE)],
+            extra_cflags=CFLAGS,
+            extra_ldflags=LDFLAGS,
+            build_directory=str(build_dir),
+            verbose=verbose,
+        )
+    finally:
+        os.environ["PATH"] = path_before
 
 
 def cpu_backend_available() -> bool:
