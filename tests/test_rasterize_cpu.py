@@ -205,6 +205,9 @@ def test_cpu_backend_rejects_other_devices(native):
         cpu_backend.rasterize_to_pixels_cpu(scene["means"][:, :2], scene["means"], scene["opacities"], scene["colors"],
                                             scene["colors"][0], torch.zeros(5, 2, dtype=torch.int32),
                                             scene["opacities"], 8, 8)
+    with pytest.raises(ValueError, match="backend 'cpu' needs CPU tensors"):
+        rasterize_cpu(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
+                      scene["viewmat"][None], scene["K"][None], 8, 8, scene["colors"][:1])
 
 
 def test_missing_compiler_warns_once_and_auto_falls_back(monkeypatch):

@@ -266,6 +266,8 @@ def rasterize_cpu(
     """Same contract as torch_backend.rasterize_torch: rgb [C,H,W,3], alpha [C,H,W,1], means2d [C,N,2]
     (a graph node whose .grad is d loss / d means2d; [N, 2] when batched=False), radii [C,N,2] int32,
     visible [C,N] bool, depths [C,N]. tile_size changes speed only, never results."""
+    if means.device.type != "cpu":
+        raise ValueError(f"rasterize: backend 'cpu' needs CPU tensors, got {means.device}; use backend 'torch' or 'auto'")
     if load_extension() is None:
         raise RuntimeError(f"rasterize: backend 'cpu' is unavailable: {cpu_backend_error()}")
     projections = [
