@@ -10,10 +10,10 @@ kernel itself (measured: 44 ms of 119 ms forward+backward at 256²/50k on one th
 K need gradients, the differentiable torch projection is used instead. means2d.grad (densification)
 is the gradient the kernel returns for the screen-space means.
 
-The extension is built on first use with torch.utils.cpp_extension (g++ and ninja; about 35 s on
-our machines) into $GEOAVATAR_CACHE/ext/<key> (else ~/.cache/geoavatar/ext/<key>); the key hashes
-the C++ source, the compiler flags, torch, Python and the machine, so a cache is never reused by a
-different build. Without a compiler, or when the build fails, `load_extension()` warns once and
+The extension is built on first use with torch.utils.cpp_extension (g++ and ninja; about 40 s on
+our machines) into $GEOAVATAR_EXT_CACHE/<key>, else $GEOAVATAR_CACHE/ext/<key>, else
+~/.cache/geoavatar/ext/<key>; the key hashes the C++ source, the compiler flags, torch, Python and
+the machine, so a cache is never reused by a different build. Without a compiler, or when the build fails, `load_extension()` warns once and
 returns None; rasterize(backend="auto") then uses the torch backend.
 """
 
@@ -47,6 +47,11 @@ _state: dict = {"module": None, "tried": False, "error": None}
 
 
 def _cache_root() -> Path:
+    """$GEOAVATAR_EXT_CACHE, else $GEOAVATAR_CACHE/ext, else ~/.cache/geoavatar/ext. Builds are keyed by
+    their inputs, so one folder can serve several checkouts and test sessions."""
+    ext = os.environ.get("GEOAVATAR_EXT_CACHE")
+    if ext:
+        return Path(ext)
     env = os.environ.get("GEOAVATAR_CACHE")
     return (Path(env) if env else Path.home() / ".cache" / "geoavatar") / "ext"
 
