@@ -267,7 +267,7 @@ def test_bench_reports_every_stage(run, run_dir, tmp_path, capsys):
     assert (report["width"], report["height"]) == (32, 32) and report["gaussians"] == run.avatar.num_gaussians
     assert list(report["stages"]) == list(bench_app.STAGES)
     assert all(row["fps"] > 0 and row["ms"] > 0 for row in report["stages"].values())
-    assert report["backend"] == "torch" and report["device"] == "cpu"
+    assert report["backend"] in ("cpu", "torch") and report["device"] == "cpu"  # native kernel when it builds
 
 
 COMMANDS = {
