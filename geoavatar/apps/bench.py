@@ -121,7 +121,7 @@ def bench(
     warmup: int = 3,
     out: Optional[Path] = None,
     device: str = "auto",
-    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
 ) -> int:
     """Measure frames per second of the full animation path and of rasterization alone.
@@ -136,7 +136,7 @@ def bench(
         warmup: Untimed frames before each stage (allocations, kernel caches, gsplat's JIT build).
         out: Also write the report as JSON to this file (atomically).
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
-        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
     """
     with command_errors("bench"):

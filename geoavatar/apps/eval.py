@@ -32,7 +32,7 @@ def eval_runs(
     save_images: bool = False,
     lpips_unit_inputs: bool = False,
     mouth: bool = True,
-    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
     progress: bool = True,
 ) -> int:
@@ -59,7 +59,7 @@ def eval_runs(
         lpips_unit_inputs: Feed [0, 1] images to LPIPS unscaled, as the 3DGS scripts do (only then are
             numbers comparable with theirs); default: [-1, 1], as LPIPS is defined.
         mouth: Measure the mouth region too (--no-mouth skips it).
-        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs on FLAME-tracked data only).
         progress: Show progress bars.
     """

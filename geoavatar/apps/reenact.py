@@ -212,7 +212,7 @@ def reenact(
     crf: int = 18,
     data: Optional[Path] = None,
     device: str = "auto",
-    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
     progress: bool = True,
 ) -> int:
@@ -241,7 +241,7 @@ def reenact(
         crf: H.264 quality (0 lossless ... 51 worst; 18 is visually lossless).
         data: The avatar's dataset folder, when it moved since training (its camera is read from it).
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
-        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (FLAME-tracked data only).
         progress: Show a progress bar.
     """

@@ -68,7 +68,7 @@ def render(
     colormap: str = "inferno",
     data: Optional[Path] = None,
     device: str = "auto",
-    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
     progress: bool = True,
 ) -> int:
@@ -85,7 +85,7 @@ def render(
         colormap: Matplotlib colormap of the error map (inferno, turbo, viridis, ...).
         data: The run's dataset folder, when it moved since training (default: the recorded one).
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
-        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         progress: Show a progress bar.
     """

@@ -30,7 +30,7 @@ def train(
     log_every: Optional[int] = None,
     test_frames: Optional[int] = None,
     flame_dir: Optional[Path] = None,
-    backend: Literal["auto", "torch", "gsplat"] = "auto",
+    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     progress: bool = True,
 ) -> int:
     """Train a GeoAvatar avatar from a tracked video into the folder OUT.
@@ -57,7 +57,7 @@ def train(
         test_frames: Hold out the last N frames as the test set (default: the dataset's split files,
             else the INSTA rule: last 350, or the last 25 % of a short video).
         flame_dir: Folder with your FLAME model files (datasets tracked with FLAME only).
-        backend: Rasterizer: auto (gsplat on CUDA, torch elsewhere), torch or gsplat.
+        backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         progress: Show a progress bar.
     """
     if steps is not None and steps <= 0:

@@ -66,7 +66,7 @@ class RunOptions:
     out: Path
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda | cuda:N
-    backend: str = "auto"  # rasterize backend: auto (gsplat on CUDA, torch elsewhere) | torch | gsplat
+    backend: str = "auto"  # rasterize backend: auto (gsplat on CUDA, native cpu on CPU, else torch) | cpu | torch | gsplat
     resolution: int | None = None
     test_frames: int | None = None
     val_every: int | None = None  # None: every 5 % of the run
