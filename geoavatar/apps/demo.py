@@ -39,17 +39,28 @@ class DemoSettings:
 
 @dataclass
 class StageTimer:
+    """Times each stage and keeps the times in a JSON file, so a re-run that skips finished stages
+    still reports what they cost when they ran."""
+
+    path: Path
     seconds: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.path.is_file():
+            try:
+                self.seconds = {str(k): float(v) for k, v in json.loads(self.path.read_text()).items()}
+            except (ValueError, AttributeError):
+                self.seconds = {}  # unreadable timings are only a report detail: start afresh
 
     def run(self, name: str, done: Callable[[], bool], action: Callable[[], object]) -> None:
         if done():
             print(f"[demo] {name}: already done, skipped")
-            self.seconds.setdefault(name, 0.0)
             return
         print(f"[demo] {name} ...", flush=True)
         start = time.perf_counter()
         action()
         self.seconds[name] = time.perf_counter() - start
+        atomic_write_text(self.path, json.dumps(self.seconds, indent=1))
         print(f"[demo] {name}: {self.seconds[name]:.0f} s", flush=True)
 
 
@@ -102,8 +113,7 @@ def demo(
     data, driver, run = out / "data" / "subject0", out / "data" / "driver", out / "run"
     videos = {"render": out / "render_test.mp4", "orbit": out / "orbit.mp4", "reenact": out / "reenact.mp4"}
     metrics_json = run / "eval" / "test" / "metrics.json"
-    timer = StageTimer()
-    wall_start = time.perf_counter()
+    timer = StageTimer(out / "timings.json")
 
     timer.run("generate subject", lambda: is_layout(data),
               lambda: synth(out=data, subject=0, frames=frames, size=size, seed=seed, preview=True))
@@ -128,9 +138,9 @@ def demo(
     for name, video in videos.items():
         save_still(video, stills[name])
     report = write_report(out, data, run, metrics_json, videos, stills, timer.seconds,
-                          time.perf_counter() - wall_start, steps=steps, resolution=resolution, frames=frames)
+                          steps=steps, resolution=resolution, frames=frames)
     print()
-    print(f"Demo finished in {sum(timer.seconds.values()) / 60:.1f} min of stage time.")
+    print(f"Demo finished: {sum(timer.seconds.values()) / 60:.1f} min of stage time in all.")
     print(f"Open {report} (metrics, timings, pictures); videos: {', '.join(str(v) for v in videos.values())}")
     return 0
 
@@ -152,9 +162,11 @@ def save_still(video: Path, png: Path, position: float = 0.5) -> Path:
 
 
 def write_report(out: Path, data: Path, run: Path, metrics_json: Path, videos: dict[str, Path],
-                 stills: dict[str, Path], seconds: dict[str, float], wall: float, **settings) -> Path:
+                 stills: dict[str, Path], seconds: dict[str, float], **settings) -> Path:
     metrics = json.loads(metrics_json.read_text())
-    table = (run / "eval" / "test" / "metrics.md").read_text().strip()
+    # the eval report without its own title, so it nests under this report's heading
+    table = "\n".join(line for line in (run / "eval" / "test" / "metrics.md").read_text().strip().splitlines()
+                      if not line.startswith("# "))
     aps = run / "aps.json"
     aps_text = ""
     if aps.is_file():
@@ -172,7 +184,7 @@ def write_report(out: Path, data: Path, run: Path, metrics_json: Path, videos: d
         "",
         table,
         "",
-        f"Frames evaluated: {metrics.get('num_frames', metrics.get('count', '?'))}. Per-frame values: "
+        f"Frames evaluated: {len(metrics['frames'])}. Per-frame values: "
         f"`{rel(metrics_json)}`.",
         "",
         "## Pictures",
@@ -196,7 +208,7 @@ def write_report(out: Path, data: Path, run: Path, metrics_json: Path, videos: d
         "| stage | time |",
         "|---|---|",
         timing_rows,
-        f"| **total (wall)** | **{wall / 60:.1f} min** |",
+        f"| **total** | **{sum(seconds.values()) / 60:.1f} min** |",
         "",
         "## Reproduce",
         "",
