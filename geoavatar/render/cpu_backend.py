@@ -34,7 +34,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from geoavatar.render.torch_backend import Projection, project_gaussians
+from geoavatar.render.torch_backend import Projection, project_gaussians, render_cameras
 
 SOURCE = Path(__file__).with_name("csrc") / "rasterize_cpu.cpp"
 # -O3 and OpenMP only: no -march=native, so a cache built on one machine runs on any x86-64 one.
@@ -279,23 +279,9 @@ def rasterize_cpu(
         project_gaussians_cpu(means, quats, scales, opacities, viewmats[c], Ks[c], width, height)
         for c in range(viewmats.shape[0])
     ]
-    means2d = torch.stack([p.means2d for p in projections])  # [C, N, 2]
-    per_camera = means2d.unbind(0)  # the [N, 2] nodes the compositing consumes
-    if not batched:
-        means2d = per_camera[0]
-    if means2d.requires_grad:
-        means2d.retain_grad()
-    rgbs, alphas = [], []
-    for c, proj in enumerate(projections):
-        rgb, alpha = rasterize_to_pixels_cpu(per_camera[c], proj.conics, opacities, colors, backgrounds[c],
-                                             proj.radii, proj.depths, width, height, tile_size)
-        rgbs.append(rgb)
-        alphas.append(alpha)
-    return (
-        torch.stack(rgbs),
-        torch.stack(alphas),
-        means2d,
-        torch.stack([p.radii for p in projections]),
-        torch.stack([p.visible for p in projections]),
-        torch.stack([p.depths for p in projections]),
-    )
+
+    def composite_camera(c: int, means2d: Tensor, proj: Projection) -> tuple[Tensor, Tensor]:
+        return rasterize_to_pixels_cpu(means2d, proj.conics, opacities, colors, backgrounds[c],
+                                       proj.radii, proj.depths, width, height, tile_size)
+
+    return render_cameras(projections, composite_camera, batched)

@@ -488,28 +488,37 @@ def rasterize_torch(
         project_gaussians(means, quats, scales, opacities, viewmats[c], Ks[c], width, height)
         for c in range(viewmats.shape[0])
     ]
+
+    def composite_camera(c: int, means2d: Tensor, proj: Projection) -> tuple[Tensor, Tensor]:
+        if method == "naive":
+            return composite_naive(means2d, proj.conics, opacities, colors, backgrounds[c], proj.radii, proj.depths,
+                                   proj.visible, width, height)
+        plan = plan_rows(means2d, proj.radii, proj.depths, proj.visible, width, height, tile_size,
+                         chunk_pairs, keep_pairs_limit)
+        return composite(means2d, proj.conics, opacities, colors, backgrounds[c], plan, width, height)
+
+    return render_cameras(projections, composite_camera, batched)
+
+
+def render_cameras(
+    projections: list[Projection],  # one per camera
+    composite_camera,  # (camera index, means2d [N,2], Projection) -> (rgb [H,W,3], alpha [H,W,1])
+    batched: bool,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Composite every camera and stack the outputs; shared by the torch and native cpu backends.
+
+    means2d is one graph node per camera ([C,N,2], or the [N,2] node itself when batched=False) with
+    retain_grad, so its .grad holds d loss / d means2d for densification."""
     means2d = torch.stack([p.means2d for p in projections])  # [C, N, 2]
     per_camera = means2d.unbind(0)  # the [N, 2] nodes the compositing consumes
     if not batched:
         means2d = per_camera[0]
     if means2d.requires_grad:
         means2d.retain_grad()
-    rgbs, alphas = [], []
-    for c, proj in enumerate(projections):
-        if method == "naive":
-            rgb, alpha = composite_naive(
-                per_camera[c], proj.conics, opacities, colors, backgrounds[c], proj.radii, proj.depths,
-                proj.visible, width, height,
-            )
-        else:
-            plan = plan_rows(per_camera[c], proj.radii, proj.depths, proj.visible, width, height, tile_size,
-                             chunk_pairs, keep_pairs_limit)
-            rgb, alpha = composite(per_camera[c], proj.conics, opacities, colors, backgrounds[c], plan, width, height)
-        rgbs.append(rgb)
-        alphas.append(alpha)
+    images = [composite_camera(c, per_camera[c], proj) for c, proj in enumerate(projections)]
     return (
-        torch.stack(rgbs),
-        torch.stack(alphas),
+        torch.stack([rgb for rgb, _ in images]),
+        torch.stack([alpha for _, alpha in images]),
         means2d,
         torch.stack([p.radii for p in projections]),
         torch.stack([p.visible for p in projections]),
