@@ -37,10 +37,17 @@ from torch import Tensor
 from geoavatar.render.torch_backend import Projection, project_gaussians, render_cameras
 
 SOURCE = Path(__file__).with_name("csrc") / "rasterize_cpu.cpp"
-# -O3 and OpenMP only: no -march=native, so a cache built on one machine runs on any x86-64 one.
-CFLAGS = ["-O3", "-fopenmp", "-std=c++17"]
+# No -march=native, so a cache built on one machine runs on any x86-64 one (the float32 compositing
+# picks AVX-512 / AVX2 code at run time instead). No FMA contraction: every SIMD path and the scalar
+# backward then compute the same alpha bit for bit. -fno-trapping-math changes no result (only the
+# floating-point exception flags): without it GCC keeps branches in the lane loop and cannot vectorise it.
+CFLAGS = ["-O3", "-fopenmp", "-std=c++17", "-ffp-contract=off", "-fno-trapping-math"]
 LDFLAGS = ["-fopenmp"]
 DEFAULT_TILE_SIZE = 16
+# Selects the float32 compositing path: "auto" (the fastest this CPU runs), "avx512", "avx2" (a row of
+# 16 pixels per step, float32 state) or "scalar" (the per-pixel loop with libm's exp and double state,
+# the kernel before the SIMD paths; CPUs without AVX2 and float64 inputs always use it).
+SIMD_ENV = "GEOAVATAR_CPU_SIMD"
 
 _lock = threading.Lock()
 _state: dict = {"module": None, "tried": False, "error": None}
@@ -154,6 +161,21 @@ def cpu_backend_available() -> bool:
     return load_extension() is not None
 
 
+def simd_path() -> str:
+    """The float32 compositing path in use: $GEOAVATAR_CPU_SIMD when set (and not "auto"), else the
+    fastest one this CPU runs ("avx512", "avx2" or "scalar")."""
+    ext = load_extension()
+    if ext is None:
+        raise RuntimeError(f"rasterize: backend 'cpu' is unavailable: {cpu_backend_error()}")
+    paths = ext.simd_paths()
+    requested = os.environ.get(SIMD_ENV, "auto").strip().lower() or "auto"
+    if requested == "auto":
+        return paths[0]
+    if requested not in paths:
+        raise ValueError(f"{SIMD_ENV}={requested!r}: this CPU runs {', '.join(paths)} (or auto)")
+    return requested
+
+
 def cpu_backend_error() -> Optional[str]:
     """Why the native kernel is unavailable (None when it loaded or was not tried yet)."""
     return _state["error"]
@@ -167,21 +189,22 @@ class _RasterizeToPixels(torch.autograd.Function):
         ext = load_extension()
         args = [t.detach().contiguous() for t in (means2d, conics, opacities, colors, background)]
         radii, depths = radii.contiguous(), depths.detach().contiguous()
-        rgb, alpha, offsets, ids, last, t_final = ext.forward(*args, radii, depths, width, height, tile_size)
+        simd = simd_path()
+        rgb, alpha, offsets, ids, last, t_final = ext.forward(*args, radii, depths, width, height, tile_size, simd)
         ctx.save_for_backward(*args, radii, offsets, ids, last, t_final)
-        ctx.geometry = (width, height, tile_size)
+        ctx.geometry = (width, height, tile_size, simd)
         return rgb, alpha
 
     @staticmethod
     def backward(ctx, grad_rgb, grad_alpha):
         means2d, conics, opacities, colors, background, radii, offsets, ids, last, t_final = ctx.saved_tensors
-        width, height, tile_size = ctx.geometry
+        width, height, tile_size, simd = ctx.geometry
         dtype = means2d.dtype
         grad_rgb = grad_rgb.to(dtype).contiguous()  # [H, W, 3]
         grad_alpha = grad_alpha.to(dtype).contiguous()  # [H, W, 1]
         g_means2d, g_conics, g_opacities, g_colors = load_extension().backward(
             means2d, conics, opacities, colors, background, radii, offsets, ids, last, t_final, grad_rgb,
-            grad_alpha, width, height, tile_size,
+            grad_alpha, width, height, tile_size, simd,
         )
         g_background = (t_final.to(dtype)[..., None] * grad_rgb).sum((0, 1))  # [3]
         return g_means2d, g_conics, g_opacities, g_colors, g_background, None, None, None, None, None
