@@ -103,7 +103,17 @@ def test_saturated_pixels_stop_at_transmittance_threshold(native):
     assert ref_alpha.max() > 0.9998
 
 
-def test_float32_matches_torch_backend(native):
+def _use_simd_path(monkeypatch, native, path):
+    """Selects a float32 compositing path through the environment; skips when this CPU lacks it."""
+    if path not in native.simd_paths():
+        pytest.skip(f"this CPU runs only {native.simd_paths()}")
+    monkeypatch.setenv(cpu_backend.SIMD_ENV, path)
+    assert cpu_backend.simd_path() == path
+
+
+@pytest.mark.parametrize("path", ["avx512", "avx2", "scalar"])
+def test_float32_matches_torch_backend(native, monkeypatch, path):
+    _use_simd_path(monkeypatch, native, path)
     scene64 = make_scene(6, n=300, width=64, height=48)
     scene = {k: (v.float() if torch.is_tensor(v) else v) for k, v in scene64.items()}
     background = torch.tensor([0.4, 0.2, 0.1])
@@ -121,6 +131,39 @@ def test_float32_matches_torch_backend(native):
     _assert_grad_close("means2d", m2d.grad, t_m2d.grad)
     ref_rgb, ref_alpha, _, _ = dense_reference(**scene64, background=background.double())
     assert (rgb.double() - ref_rgb).abs().max() < 2e-4
+
+
+def _float32_render_and_grads(scene, background):
+    s = _with_grad(scene)
+    rgb, alpha, m2d, _, _ = _render(rasterize_cpu, s, background)
+    (rgb.square().sum() + alpha.sum()).backward()
+    return [rgb, alpha, m2d.grad] + [s[name].grad for name in PARAMS]
+
+
+def test_avx2_and_avx512_paths_agree_bit_for_bit(native, monkeypatch):
+    if not {"avx512", "avx2"} <= set(native.simd_paths()):
+        pytest.skip(f"needs both AVX-512 and AVX2, this CPU runs {native.simd_paths()}")
+    scene = make_scene(12, n=400, width=53, height=37, dtype=torch.float32)  # partial tiles and rows
+    background = torch.tensor([0.3, 0.1, 0.8])
+    outputs = {}
+    for path in ("avx512", "avx2", "scalar"):
+        monkeypatch.setenv(cpu_backend.SIMD_ENV, path)
+        outputs[path] = _float32_render_and_grads(scene, background)
+    for wide, narrow in zip(outputs["avx512"], outputs["avx2"]):
+        assert torch.equal(wide, narrow)  # same operations, no FMA contraction: the same bits
+    # the scalar path differs in exp (libm) and state precision (double), not in what it computes
+    assert not all(torch.equal(a, b) for a, b in zip(outputs["avx512"], outputs["scalar"]))
+    for lanes, scalar in zip(outputs["avx512"], outputs["scalar"]):
+        torch.testing.assert_close(lanes, scalar, atol=2e-6, rtol=1e-4)
+
+
+def test_simd_path_setting(native, monkeypatch):
+    monkeypatch.setenv(cpu_backend.SIMD_ENV, "auto")
+    assert cpu_backend.simd_path() == native.simd_paths()[0]
+    assert native.simd_paths()[-1] == "scalar"
+    monkeypatch.setenv(cpu_backend.SIMD_ENV, "sse9")
+    with pytest.raises(ValueError, match="GEOAVATAR_CPU_SIMD='sse9'"):
+        cpu_backend.simd_path()
 
 
 def test_zero_and_all_culled_gaussians(native):
