@@ -5,7 +5,9 @@ seconds and the peak RSS of the process, for the torch backend's fast renderer (
 hand-written backward), its naive variant ("naive": per-pixel pairs + plain autograd) and the native
 CPU backend ("cpu": C++/OpenMP kernels, cpu_backend.py) side by side, the forward+backward speed-up of
 "cpu" over "tiles", plus the forward-only frames per second at 512²/50k. --threads takes several
-counts (e.g. 1 2) to report the scaling. Each configuration runs in a fresh subprocess so that
+counts (e.g. 1 2) to report the scaling. --simd takes several float32 compositing paths of "cpu"
+(GEOAVATAR_CPU_SIMD: auto, avx512, avx2, scalar), e.g. `--simd auto scalar` for the SIMD kernel
+against the previous per-pixel one; the path each run took is printed. Each configuration runs in a fresh subprocess so that
 its peak RSS is its own. Timings are the best of --repeats runs after one warm-up: wall-clock
 seconds, and the CPU seconds of the process (all threads), which a machine shared with other jobs
 disturbs less. The load average is printed before and after.
@@ -13,6 +15,7 @@ disturbs less. The load average is printed before and after.
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/render_bench.py
     .venv/bin/python benchmarks/render_bench.py --sizes 256 --counts 50000 --methods tiles
     .venv/bin/python benchmarks/render_bench.py --sizes 256 512 --counts 50000 100000 --methods tiles cpu --threads 1 2
+    .venv/bin/python benchmarks/render_bench.py --sizes 512 --counts 50000 --methods cpu --threads 1 2 --simd auto scalar
 """
 
 from __future__ import annotations
@@ -78,7 +81,7 @@ def run_one(method: str, size: int, count: int, repeats: int, tile_size: int) ->
     setup_process()
     import torch
 
-    from geoavatar.render.cpu_backend import rasterize_cpu
+    from geoavatar.render.cpu_backend import rasterize_cpu, simd_path
     from geoavatar.render.torch_backend import rasterize_torch
 
     means, quats, scales, opacities, colors, viewmat, K = head_scene(count, size)
@@ -117,7 +120,7 @@ def run_one(method: str, size: int, count: int, repeats: int, tile_size: int) ->
     with torch.no_grad():
         rgb, alpha, _, radii, visible, _ = render(params)
     return dict(
-        method=method, size=size, count=count, fwd_s=best["fwd"], fwd_bwd_s=best["fwd_bwd"],
+        method=method, simd=simd_path() if method == "cpu" else "", size=size, count=count, fwd_s=best["fwd"], fwd_bwd_s=best["fwd_bwd"],
         fwd_cpu_s=best["fwd_cpu"], fwd_bwd_cpu_s=best["fwd_bwd_cpu"],
         peak_rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2,
         visible=int(visible.sum()), coverage=float((alpha > 0.5).float().mean()),
@@ -134,6 +137,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, nargs="+", default=[2])
     parser.add_argument("--tile-size", type=int, default=4)
+    parser.add_argument("--simd", nargs="+", default=["auto"],
+                        help="float32 compositing paths of method cpu (auto, avx512, avx2, scalar)")
     parser.add_argument("--one", nargs=3, metavar=("METHOD", "SIZE", "COUNT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
@@ -142,14 +147,20 @@ def main() -> None:
         return
 
     if "cpu" in args.methods:  # build the native kernel once, before any timing (cached for the children)
-        from geoavatar.render.cpu_backend import cpu_backend_available, cpu_backend_error
+        from geoavatar.render.cpu_backend import cpu_backend_available, cpu_backend_error, load_extension
 
         if not cpu_backend_available():
             print(f"render_bench: method 'cpu' skipped: {cpu_backend_error()}")
             args.methods = [m for m in args.methods if m != "cpu"]
+        else:
+            paths = load_extension().simd_paths()
+            print(f"render_bench: SIMD paths of method cpu on this CPU: {' '.join(paths)} (auto = {paths[0]})")
+            unknown = [p for p in args.simd if p != "auto" and p not in paths]
+            if unknown:
+                parser.error(f"--simd {' '.join(unknown)}: this CPU runs {' '.join(paths)} (or auto)")
     print(f"render_bench: methods {' '.join(args.methods)}, threads {' '.join(map(str, args.threads))}, best of "
           f"{args.repeats}, torch tile size {args.tile_size}, load average {os.getloadavg()[0]:.1f}")
-    print(f"{'method':<7} {'thr':>3} {'image':>7} {'gaussians':>9} {'visible':>8} {'fwd s':>8} {'fwd+bwd s':>10} "
+    print(f"{'method':<11} {'thr':>3} {'image':>7} {'gaussians':>9} {'visible':>8} {'fwd s':>8} {'fwd+bwd s':>10} "
           f"{'fwd cpu s':>10} {'f+b cpu s':>10} {'peak RSS GB':>12}")
     results = []
     for size in args.sizes:
@@ -158,33 +169,41 @@ def main() -> None:
                 env = dict(os.environ)
                 env.update(OMP_NUM_THREADS=str(threads), GEOAVATAR_THREADS=str(threads), MALLOC_MMAP_MAX_="0",
                            MALLOC_TRIM_THRESHOLD_="68719476736")
-                for method in args.methods:
+                runs = [(m, simd) for m in args.methods for simd in (args.simd if m == "cpu" else [""])]
+                for method, simd in runs:
                     cmd = [sys.executable, __file__, "--one", method, str(size), str(count), "--repeats",
                            str(args.repeats), "--tile-size", str(args.tile_size)]
-                    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+                    proc = subprocess.run(cmd, env=dict(env, GEOAVATAR_CPU_SIMD=simd or "auto"), capture_output=True,
+                                          text=True)
                     if proc.returncode != 0:
-                        print(f"{method:<7} {threads:>3} {size:>4}^2 {count:>9}  failed: "
+                        print(f"{method:<11} {threads:>3} {size:>4}^2 {count:>9}  failed: "
                               f"{proc.stderr.strip().splitlines()[-1:]}")
                         continue
                     r = json.loads(proc.stdout.strip().splitlines()[-1])
+                    r["label"] = f"{method}/{r['simd']}" if r["simd"] else method
                     results.append(r)
-                    print(f"{method:<7} {threads:>3} {size:>4}^2 {count:>9} {r['visible']:>8} {r['fwd_s']:>8.3f} "
+                    print(f"{r['label']:<11} {threads:>3} {size:>4}^2 {count:>9} {r['visible']:>8} {r['fwd_s']:>8.3f} "
                           f"{r['fwd_bwd_s']:>10.3f} {r['fwd_cpu_s']:>10.3f} {r['fwd_bwd_cpu_s']:>10.3f} "
                           f"{r['peak_rss_gb']:>12.2f}", flush=True)
-    by_key = {(r["method"], r["threads"], r["size"], r["count"]): r for r in results}
-    for (method, threads, size, count), r in by_key.items():
+    by_key = {(r["label"], r["threads"], r["size"], r["count"]): r for r in results}
+    for (label, threads, size, count), r in by_key.items():
         base = by_key.get(("tiles", threads, size, count))
-        if method == "cpu" and base is not None:
-            print(f"cpu vs tiles, {threads} thread(s), {size}^2 / {count}: forward+backward {base['fwd_bwd_s'] / r['fwd_bwd_s']:.1f}x "
-                  f"(wall), {base['fwd_bwd_cpu_s'] / r['fwd_bwd_cpu_s']:.1f}x (CPU seconds); forward "
-                  f"{base['fwd_s'] / r['fwd_s']:.1f}x")
-        one = by_key.get((method, 1, size, count))
+        if r["method"] == "cpu" and base is not None:
+            print(f"{label} vs tiles, {threads} thread(s), {size}^2 / {count}: forward+backward "
+                  f"{base['fwd_bwd_s'] / r['fwd_bwd_s']:.1f}x (wall), {base['fwd_bwd_cpu_s'] / r['fwd_bwd_cpu_s']:.1f}x "
+                  f"(CPU seconds); forward {base['fwd_s'] / r['fwd_s']:.1f}x")
+        scalar = by_key.get(("cpu/scalar", threads, size, count))
+        if r["method"] == "cpu" and r["simd"] != "scalar" and scalar is not None:
+            print(f"{label} vs cpu/scalar (the previous kernel), {threads} thread(s), {size}^2 / {count}: forward "
+                  f"{scalar['fwd_s'] / r['fwd_s']:.2f}x (wall), {scalar['fwd_cpu_s'] / r['fwd_cpu_s']:.2f}x (CPU "
+                  f"seconds); forward+backward {scalar['fwd_bwd_s'] / r['fwd_bwd_s']:.2f}x")
+        one = by_key.get((label, 1, size, count))
         if threads > 1 and one is not None:
-            print(f"{method} scaling 1 -> {threads} threads, {size}^2 / {count}: forward+backward "
+            print(f"{label} scaling 1 -> {threads} threads, {size}^2 / {count}: forward+backward "
                   f"{one['fwd_bwd_s'] / r['fwd_bwd_s']:.2f}x, forward {one['fwd_s'] / r['fwd_s']:.2f}x")
     for r in results:
         if r["size"] == 512 and r["count"] == 50_000:
-            print(f"forward-only frames per second at 512^2 / 50k ({r['method']}, {r['threads']} threads): "
+            print(f"forward-only frames per second at 512^2 / 50k ({r['label']}, {r['threads']} threads): "
                   f"{1.0 / r['fwd_s']:.2f}")
     print(f"load average at the end: {os.getloadavg()[0]:.1f}")
 
