@@ -291,6 +291,12 @@ def test_landmarks(head, built):
         assert abs(at[i][0]) < 1e-3, i
     assert at[0][1] > at[13][1] > at[14][1] > at[17][1] > at[152][1]
     assert at[10][1] > at[168][1] > at[1][1]
+    # Human proportions: eye line to chin is 1.4-2.1x eye line to mouth line, and the chin (152) is on
+    # the face, not on the neck below it (the reference map is fitted on the eyelids and lips).
+    eye_y, mouth_y = 0.5 * (at[33][1] + at[263][1]), 0.5 * (at[61][1] + at[291][1])
+    assert 1.4 < (eye_y - at[152][1]) / (eye_y - mouth_y) < 2.1
+    chin_face = built.faces[built.landmark_faces[ids.index(152)]]
+    assert np.isin(chin_face, built.regions["face"]).all() and not np.isin(chin_face, built.regions["neck"]).any()
     # Irises lie on the eyeballs.
     left_iris = [ids.index(i) for i in mp.LEFT_IRIS]
     assert np.isin(built.faces[built.landmark_faces[left_iris]], built.regions["left_eyeball"]).all()

@@ -78,6 +78,12 @@ def test_prepare_writes_every_output(prepared):
         assert alpha[-1].max() < 128 or alpha[0].max() < 128  # clothes at the bottom or background at the top cut
         with np.load(dataset / frame["flame_param_path"]) as npz:
             assert npz["expr"].shape == (1, 100) and npz["shape"].shape == (300,)
+    with np.load(dataset / "canonical_flame_param.npz") as npz:  # the person's smooth static offset
+        from geoavatar.head import load_head_data
+
+        offset = npz["static_offset"]
+        assert offset.shape == (1, load_head_data("openhead").num_vertices, 3) and np.isfinite(offset).all()
+        assert 0.0 < np.abs(offset).max() < 0.03
     test = json.loads((dataset / "transforms_test.json").read_text())["timestep_indices"]
     assert test == [4, 5]  # the last 20 %, rounded up
     report = json.loads((out / "report.json").read_text())
@@ -119,7 +125,8 @@ def test_rerun_skips_complete_stages(prepared):
 
 def test_landmark_head_matches_full_model():
     from geoavatar.head import HeadModel, load_head_data
-    from geoavatar.prep.tracking import landmark_forward, landmark_head
+    from geoavatar.head.smooth_offset import smooth_offset
+    from geoavatar.prep.tracking import landmark_forward, landmark_head, offset_rows
 
     data = load_head_data("openhead")
     full, reduced = HeadModel(data), landmark_head(data)
@@ -131,6 +138,15 @@ def test_landmark_head_matches_full_model():
     assert torch.allclose(reduced.forward_params(params).landmarks, expected, atol=1e-6)
     assert torch.allclose(landmark_forward(reduced, params), expected, atol=1e-6)
     assert reduced.num_vertices < full.num_vertices // 10
+
+    # With a static offset: the reduced model's rows of the smooth field give the full model's landmarks.
+    handles = reduced.data.metadata["vertex_ids"]
+    offsets = smooth_offset(data, handles[handles < data.num_vertices])
+    theta = 0.004 * np.random.default_rng(1).standard_normal((offsets.num_free, 3))
+    params["static_offset"] = torch.as_tensor(offsets.extend(theta), dtype=torch.float32)
+    expected = full.forward_params(params).landmarks
+    reduced_params = dict(params, static_offset=torch.as_tensor(offset_rows(offsets, reduced) @ theta, dtype=torch.float32))
+    assert torch.allclose(landmark_forward(reduced, reduced_params), expected, atol=1e-6)
 
 
 def test_crop_boxes_are_smooth_and_inside():
@@ -144,6 +160,35 @@ def test_crop_boxes_are_smooth_and_inside():
     assert np.allclose(boxes[:, 2], 240.0)
     assert np.abs(np.diff(boxes[:, :2], axis=0)).max() < 1.0  # jitter of 5 px smoothed away
     assert (boxes[:, 0] - 120 >= 0).all() and (boxes[:, 1] + 120 <= 360).all()
+
+
+def _set_display_rotation(path: Path, quarter_turns_clockwise: int) -> None:
+    """Write the display matrix a phone writes into the mp4's track header (tkhd, version 0)."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    box = data.index(b"tkhd")
+    assert data[box + 4] == 0, "tkhd version 0 expected"
+    cos, sin = [(1, 0), (0, 1), (-1, 0), (0, -1)][quarter_turns_clockwise % 4]
+    matrix = [cos << 16, sin << 16, 0, -sin << 16, cos << 16, 0, 0, 0, 1 << 30]  # 16.16 and 2.30 fixed point
+    data[box + 44:box + 80] = struct.pack(">9i", *matrix)
+    path.write_bytes(bytes(data))
+
+
+def test_rotation_metadata_is_honoured(tmp_path):
+    from geoavatar.prep.video import decode_frames, probe_video
+
+    upright = np.zeros((64, 48, 3), np.uint8)  # portrait, with a bright block at the top left
+    upright[:, :, 2] = np.linspace(0, 200, 48, dtype=np.uint8)[None]
+    upright[4:20, 4:16] = 255
+    stored = np.ascontiguousarray(np.rot90(upright, k=1))  # the sensor's landscape frame [48, 64, 3]
+    video = _write_video(tmp_path / "phone.mp4", [stored] * 3)
+    _set_display_rotation(video, 1)  # shown turned a quarter clockwise
+    info = probe_video(video)
+    assert (info.width, info.height) == (48, 64) and info.rotation == 270
+    frames = [rgb for _, rgb in decode_frames(video)]
+    assert len(frames) == 3 and frames[0].shape == (64, 48, 3)
+    assert np.abs(frames[0].astype(float) - upright).mean() < 6.0  # upright again, up to the codec's loss
 
 
 def test_unreadable_file_is_a_clear_error(tmp_path):

@@ -21,6 +21,7 @@ def prepare(
     test_fraction: float = 0.2,
     flame_dir: Optional[Path] = None,
     flame_landmarks: Optional[Path] = None,
+    static_offset: bool = True,
     overlay: bool = True,
     progress: bool = True,
 ) -> int:
@@ -42,12 +43,15 @@ def prepare(
         test_fraction: The last fraction of frames forms the test split.
         flame_dir: Folder with FLAME (flame2023.pkl or generic_model.pkl, FLAME_masks.pkl) for --head flame.
         flame_landmarks: FLAME's MediaPipe landmark embedding (default FLAME_DIR/mediapipe_landmark_embedding.npz).
+        static_offset: Fit one smooth static offset of the mesh for the person (VHAP's static_offset),
+            written to the dataset; without it only the head model's identity modes adapt.
         overlay: Write OUT/overlay.mp4.
         progress: Show progress bars.
     """
     config = PrepareConfig(
         video=video, out=out, head=head, size=size, fps=fps, max_frames=max_frames, missing=missing,
-        test_fraction=test_fraction, flame_dir=flame_dir, flame_landmarks=flame_landmarks, overlay=overlay,
+        test_fraction=test_fraction, flame_dir=flame_dir, flame_landmarks=flame_landmarks,
+        static_offset=static_offset, overlay=overlay,
         progress=progress,
     )
     try:

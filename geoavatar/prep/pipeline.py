@@ -37,6 +37,7 @@ import numpy as np
 from geoavatar.prep.errors import PrepareError
 
 STAGES = ("frames", "landmarks", "masks", "tracking", "write")
+TRACKER_VERSION = 2  # part of the tracking stage's key: a changed fitter redoes tracking on a re-run
 WORK = ".prepare"
 
 
@@ -56,6 +57,7 @@ class PrepareConfig:
     flame_dir: Path | None = None
     flame_landmarks: Path | None = None  # MediaPipe embedding for FLAME (default: FLAME_DIR/mediapipe_landmark_embedding.npz)
     tracking_steps: tuple[int, int] = (100, 300)  # rigid, full
+    static_offset: bool = True  # fit a smooth static offset of the mesh (geoavatar.head.smooth_offset)
     overlay: bool = True
     mask_backend: str = "selfie"
     progress: bool = True
@@ -136,7 +138,8 @@ def _stage_keys(config: PrepareConfig) -> dict[str, str]:
                    config.crop_scale, config.crop_sigma],
         "landmarks": [config.missing, config.min_frames],
         "masks": [config.mask_backend],
-        "tracking": [config.head, str(config.flame_dir), str(config.flame_landmarks), list(config.tracking_steps)],
+        "tracking": [config.head, str(config.flame_dir), str(config.flame_landmarks), list(config.tracking_steps),
+                     config.static_offset, TRACKER_VERSION],
         "write": [config.test_fraction, config.overlay],
     }
     keys, chain = {}, ""
@@ -250,11 +253,10 @@ def stage_masks(config: PrepareConfig, work: Path) -> dict:
 def load_tracking_head(config: PrepareConfig):
     """(full HeadModelData for rendering, landmark-only HeadModel for fitting) of --head."""
     from geoavatar.head import load_head_data
-    from geoavatar.prep.tracking import landmark_head, load_landmark_embedding, reembed_reference_groups
+    from geoavatar.prep.tracking import landmark_head, load_landmark_embedding
 
     if config.head == "openhead":
         data = load_head_data("openhead")
-        fit_data = reembed_reference_groups(data)
     elif config.head == "flame":
         from geoavatar.head.flame import FlameFileNotFoundError, resolve_flame_dir
 
@@ -276,29 +278,34 @@ def load_tracking_head(config: PrepareConfig):
         if faces.max() >= len(data.faces):
             raise PrepareError(f"'{path}': face ids up to {faces.max()} but FLAME has {len(data.faces)} faces")
         data = data.copy_with(landmark_ids=ids, landmark_faces=faces, landmark_bary=bary)
-        fit_data = data
     else:
         raise PrepareError(f"--head must be openhead or flame, got '{config.head}'")
-    return data, landmark_head(fit_data)
+    return data, landmark_head(data)
 
 
 def stage_tracking(config: PrepareConfig, work: Path) -> dict:
     import torch
 
+    from geoavatar.head.smooth_offset import smooth_offset
     from geoavatar.prep.tracking import TrackingConfig, track
     from geoavatar.prep.video import crop_intrinsics
 
     frames = np.load(work / "frames.npz")
     marks = np.load(work / "landmarks.npz")
     keep = marks["keep"]
-    _, model = load_tracking_head(config)
+    data, model = load_tracking_head(config)
+    offset_map = None
+    if config.static_offset:
+        handles = model.data.metadata["vertex_ids"]
+        offset_map = smooth_offset(data, handles[handles < data.num_vertices])  # the rest are joint carriers
     width, height = (int(v) for v in frames["frame_size"])
     principal = []
     scale = 1.0
     for k in keep:
         scale, ox, oy = crop_intrinsics(frames["boxes"][k], config.size)
         principal.append([scale * (width / 2 - ox), scale * (height / 2 - oy)])
-    tracking_config = TrackingConfig(rigid_steps=config.tracking_steps[0], full_steps=config.tracking_steps[1])
+    tracking_config = TrackingConfig(rigid_steps=config.tracking_steps[0], full_steps=config.tracking_steps[1],
+                                     fit_static_offset=config.static_offset)
     # Initial focal: 25 degrees across the source frame's longer side, in crop pixels.
     focal = scale * 0.5 * max(width, height) / math.tan(math.radians(tracking_config.fov_deg) / 2)
     total = sum(config.tracking_steps)
@@ -306,7 +313,8 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
     try:
         with torch.enable_grad():
             result = track(model, marks["filtered"], marks["confidence"], np.array(principal), config.size,
-                           tracking_config, focal_init=focal, progress=lambda n, _stage: bar.update(n))
+                           tracking_config, focal_init=focal, progress=lambda n, _stage: bar.update(n),
+                           offset_map=offset_map)
     finally:
         bar.close()
     _atomic_npz(work / "tracking.npz", **{f"param_{k}": v for k, v in result.params.items()}, focal=result.focal,
@@ -330,6 +338,7 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
     dataset = Path(config.out) / "dataset"
     params = {k[len("param_"):]: fit[k] for k in fit.files if k.startswith("param_")}
     with LayoutWriter(dataset, head_model=config.head, image_size=(config.size, config.size), shape=params["shape"],
+                      static_offset=params.get("static_offset"),
                       background=(1.0, 1.0, 1.0), source=str(Path(config.video).name),
                       split=SplitConfig(test_frames=test), overwrite=True) as writer, _bar(config, count, "write") as bar:
         for t, k in enumerate(keep):
@@ -371,7 +380,7 @@ def overlay_frames(config: PrepareConfig, work: Path, rows=None):
     params = {k[len("param_"):]: torch.as_tensor(fit[k]) for k in fit.files if k.startswith("param_")}
     viewmat = torch.as_tensor(fit["viewmat"], dtype=torch.float32)
     for row in rows if rows is not None else range(len(keep)):
-        frame_params = {k: (v if k == "shape" else v[row:row + 1]) for k, v in params.items()}
+        frame_params = {k: (v if k in ("shape", "static_offset") else v[row:row + 1]) for k, v in params.items()}
         with torch.no_grad():
             vertices = head.forward_params(frame_params).vertices[0]
         image = _read_png(work / "frames" / f"{keep[row]:05d}.png")

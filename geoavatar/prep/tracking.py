@@ -4,7 +4,9 @@
     result = track(model, landmarks [T, 478, 2], confidence [T], K0 [T, 3, 3], TrackingConfig())
 
 Unknowns: one identity `shape` (the model's leading modes), per frame `rotation`, `translation`,
-`neck_pose`, `jaw_pose`, `eyes_pose`, `expr`, and one focal length shared by the video. The camera is
+`neck_pose`, `jaw_pose`, `eyes_pose`, `expr`, one focal length shared by the video, and (with an
+`offset_map`) one smooth static offset of the mesh (geoavatar.head.smooth_offset), VHAP's
+`static_offset`: the identity modes of a head model do not reach every face. The camera is
 fixed (VHAP's monocular convention: a fixed camera, a moving head): it sits at (0, 0, D) on the +z
 axis looking at the origin (OpenCV axes: image x = world +x, image y = world -y), D being the median
 head distance found at initialisation, so translations stay small.
@@ -13,7 +15,7 @@ Loss (all terms are means over frames, residuals in units of the per-frame face 
 - data: pseudo-Huber (delta = `huber`) of the 2D reprojection error of every embedded landmark,
   weighted per landmark group (face oval and brows lower: their MediaPipe points slide along the
   contour) and per frame by the landmark confidence;
-- priors: L2 on shape, expression, neck, eyes and the jaw's sideways components; the jaw's opening
+- priors: L2 on shape, the static offset, neck, eyes and the jaw's sideways components; the jaw's opening
   angle is kept in [0, `jaw_max`] by a squared hinge; both eyes look alike (L2 of their difference);
   a weak log-normal prior on the focal length (it trades off with distance in a monocular video);
 - temporal smoothness: first and second differences of pose, jaw, eyes and expression.
@@ -36,6 +38,7 @@ from torch import Tensor
 
 from geoavatar.head import landmarks_mediapipe as mpids
 from geoavatar.head.base import HeadModel, HeadModelData
+from geoavatar.head.smooth_offset import SmoothOffset
 from geoavatar.render.camera import project
 
 # Landmark groups: weight in the data term, and whether the rigid stage uses them.
@@ -96,11 +99,18 @@ class TrackingConfig:
     w_smooth_eyes: float = 1e-3
     w_accel: float = 1e-2  # second differences of rotation / translation
     head_size: float = 0.2  # m: translation differences are measured in this unit
+    # Smooth static offset of the mesh (one per video, see geoavatar.head.smooth_offset): the
+    # person's face is not the head model's; without it, errors grow with the head's yaw.
+    fit_static_offset: bool = True
+    w_static_offset: float = 1e-6  # weight of the mean squared offset, in cm^2
+    w_static_smooth: float = 2e-7  # weight of the offset field's membrane energy (sum over edges), in cm^2
+    offset_decay: float = 0.05  # fade of the offset away from the landmarks (see smooth_offset)
 
 
 @dataclass
 class TrackingResult:
-    params: dict[str, np.ndarray]  # shape [S]; expr [T,E]; rotation, neck_pose, jaw_pose, translation [T,3]; eyes_pose [T,6]
+    params: dict[str, np.ndarray]  # shape [S]; expr [T,E]; rotation, neck_pose, jaw_pose, translation [T,3]; eyes_pose [T,6];
+    #                                static_offset [V, 3] (the full mesh's) when fitted
     focal: float  # pixels of the crop
     viewmat: np.ndarray  # [4, 4] world-to-camera (OpenCV), the same for every frame
     K: np.ndarray  # [T, 3, 3]
@@ -140,63 +150,10 @@ def landmark_head(data: HeadModelData) -> HeadModel:
         name=data.name, v_template=with_joints(data.v_template), faces=faces,
         shapedirs=with_joints(data.shapedirs), exprdirs=with_joints(data.exprdirs), j_regressor=reduced_jr,
         lbs_weights=lbs.astype(np.float32), posedirs=posedirs, landmark_ids=data.landmark_ids,
-        landmark_faces=np.arange(len(faces)), landmark_bary=data.landmark_bary, metadata={"reduced_from": data.name},
+        landmark_faces=np.arange(len(faces)), landmark_bary=data.landmark_bary,
+        metadata={"reduced_from": data.name, "vertex_ids": used},
     )
     return HeadModel(reduced)
-
-
-# Groups whose OpenHead positions come from the measured reference face (not from OpenHead's own
-# eye / lip contours); see `reembed_reference_groups`.
-REFERENCE_MAPPED = ("right_brow_upper", "right_brow_lower", "left_brow_upper", "left_brow_lower",
-                    "nose_ridge", "nose_right", "nose_left", "face_oval")
-ANCHOR_GROUPS = ("lips_outer_upper", "lips_outer_lower", "lips_inner_upper", "lips_inner_lower",
-                 "right_eye_upper", "right_eye_lower", "left_eye_upper", "left_eye_lower")
-
-
-def reembed_reference_groups(data: HeadModelData) -> HeadModelData:
-    """Re-place the reference-mapped landmarks (brows, nose, face oval) of a head with a MediaPipe embedding.
-
-    Why: OpenHead v1 maps the reference face into its own frame with a vertical scale fitted on an
-    anchor set whose "chin" is the lowest front mid-line skin vertex, which lies on the neck; its
-    brows, forehead and chin landmarks land ~2x too far from the eyes (the chin point on the neck).
-    This refits the per-axis map (x scale; y scale and offset) on the landmarks OpenHead places from
-    its own contours (eyelids, lips), which are right, and projects the reference positions onto the
-    frontmost skin along -z, as OpenHead's generator does. Landmarks outside those groups are kept.
-    """
-    from geoavatar.head.openhead.landmarks import frontal_hits
-
-    ids = [int(i) for i in data.landmark_ids]
-    rows = {i: k for k, i in enumerate(ids)}
-    tri = data.v_template[data.faces[data.landmark_faces]]  # [L, 3, 3]
-    placed = (tri * data.landmark_bary[:, :, None]).sum(1)  # [L, 3]
-    anchors = [i for name in ANCHOR_GROUPS for i in mpids.CONTOURS[name] if i in rows]
-    ref = np.array([mpids.REFERENCE_FACE[i] for i in anchors], np.float64) * 1e-4
-    got = placed[[rows[i] for i in anchors]]
-    sx = float((ref[:, 0] * got[:, 0]).sum() / (ref[:, 0] ** 2).sum())
-    sy, ty = np.linalg.lstsq(np.stack([ref[:, 1], np.ones(len(ref))], -1), got[:, 1], rcond=None)[0]
-    eyeball = set()
-    for name in ("left_eyeball", "right_eyeball"):
-        eyeball.update(int(v) for v in data.regions.get(name, ()))
-    mouth = set(int(v) for group in ("mouth_upper", "mouth_lower") for v in data.vertex_groups.get(group, ()))
-    excluded = np.zeros(data.num_vertices, bool)
-    excluded[list(eyeball | mouth)] = True
-    skin_faces = np.nonzero(~excluded[data.faces].any(1))[0]
-    targets = [i for name in REFERENCE_MAPPED for i in mpids.CONTOURS[name] if i in rows and i != 1]
-    targets = list(dict.fromkeys(targets))
-    r = np.array([mpids.REFERENCE_FACE[i] for i in targets], np.float64) * 1e-4
-    xy = np.stack([sx * r[:, 0], sy * r[:, 1] + ty], -1)
-    faces, bary = frontal_hits(xy, data.v_template.astype(np.float64), data.faces, skin_faces)
-    new_faces, new_bary = data.landmark_faces.copy(), data.landmark_bary.copy()
-    for k, i in enumerate(targets):
-        step = xy[k].copy()
-        f, b = faces[k], bary[k]
-        while f < 0 and abs(step[0]) > 1e-3:  # off the silhouette: step towards the mid-line
-            step[0] *= 0.98
-            fk, bk = frontal_hits(step[None], data.v_template.astype(np.float64), data.faces, skin_faces)
-            f, b = fk[0], bk[0]
-        if f >= 0:
-            new_faces[rows[i]], new_bary[rows[i]] = f, b.astype(new_bary.dtype)
-    return data.copy_with(landmark_faces=new_faces, landmark_bary=new_bary)
 
 
 def landmark_forward(model: HeadModel, params: dict[str, Tensor]) -> Tensor:
@@ -219,6 +176,8 @@ def landmark_forward(model: HeadModel, params: dict[str, Tensor]) -> Tensor:
     if identity is None:
         identity = model.v_template[None] + torch.einsum("bs,vcs->bvc", shape, model.shapedirs)
     v_shaped = identity + expression  # [B, V, 3]
+    if params.get("static_offset") is not None:  # [V, 3] or [1, V, 3]: vertices and joint carriers
+        v_shaped = v_shaped + params["static_offset"].to(dtype).reshape(1, num_v, 3)
     joints = torch.einsum("jv,bvc->bjc", model.j_regressor, v_shaped)  # [B, J, 3]
     pose = torch.cat([rotation, params["neck_pose"], params["jaw_pose"], params["eyes_pose"]], -1).to(dtype)
     rot_mats = axis_angle_to_matrix(pose.reshape(batch, -1, 3))  # [B, J, 3, 3]
@@ -247,8 +206,14 @@ def _pseudo_huber(x: Tensor, delta: float) -> Tensor:
 
 
 class _Fit(torch.nn.Module):
-    def __init__(self, frames: int, num_shape: int, num_expr: int, focal: float, translation: Tensor):
+    def __init__(self, frames: int, num_shape: int, num_expr: int, focal: float, translation: Tensor,
+                 offset_rows: Tensor | None):
         super().__init__()
+        # Free static offsets theta [P, 3] in cm (Adam's steps are ~lr in the parameter's unit) and
+        # their map to the reduced model's vertices [U + J, P].
+        self.offset_rows = offset_rows
+        self.offset_energy: Tensor | None = None  # [P, P]
+        self.offset_theta = None if offset_rows is None else torch.nn.Parameter(torch.zeros(offset_rows.shape[1], 3))
         z = lambda *s: torch.nn.Parameter(torch.zeros(*s, dtype=torch.float32))  # noqa: E731
         self.shape, self.expr = z(num_shape), z(frames, num_expr)
         self.rotation, self.neck_pose, self.jaw_pose, self.eyes_pose = z(frames, 3), z(frames, 3), z(frames, 3), z(frames, 6)
@@ -256,8 +221,11 @@ class _Fit(torch.nn.Module):
         self.log_focal = torch.nn.Parameter(torch.tensor(math.log(focal), dtype=torch.float32))
 
     def params(self) -> dict[str, Tensor]:
-        return {"shape": self.shape, "expr": self.expr, "rotation": self.rotation, "neck_pose": self.neck_pose,
-                "jaw_pose": self.jaw_pose, "eyes_pose": self.eyes_pose, "translation": self.translation}
+        params = {"shape": self.shape, "expr": self.expr, "rotation": self.rotation, "neck_pose": self.neck_pose,
+                  "jaw_pose": self.jaw_pose, "eyes_pose": self.eyes_pose, "translation": self.translation}
+        if self.offset_theta is not None:
+            params["static_offset"] = 0.01 * (self.offset_rows @ self.offset_theta)  # [U + J, 3] metres
+        return params
 
 
 def _intrinsics(focal: Tensor, principal: Tensor) -> Tensor:
@@ -286,6 +254,7 @@ def track(
     config: TrackingConfig = TrackingConfig(),
     focal_init: float | None = None,
     progress=None,  # callable(steps_done, stage_name) after each step, or None
+    offset_map: SmoothOffset | None = None,  # the full model's smooth offsets (fitted when config says so)
 ) -> TrackingResult:
     """Fit `model` to the landmarks of all frames at once; see the module docstring."""
     T = landmarks.shape[0]
@@ -319,7 +288,12 @@ def track(
         centre = neutral.mean(0)
         translation = torch.stack([xy[:, 0] - centre[0], -xy[:, 1] - centre[1], distance - depth - centre[2]], -1)
     viewmat = torch.as_tensor(camera_viewmat(distance), dtype=torch.float32)
-    fit = _Fit(T, num_shape, num_expr, f0, translation)
+    rows = None
+    if config.fit_static_offset and offset_map is not None:
+        rows = torch.as_tensor(offset_rows(offset_map, model), dtype=torch.float32)
+    fit = _Fit(T, num_shape, num_expr, f0, translation, rows)
+    if rows is not None:
+        fit.offset_energy = torch.as_tensor(offset_map.energy, dtype=torch.float32)
 
     def loss_terms(stage: str) -> dict[str, Tensor]:
         p = fit.params()
@@ -349,6 +323,9 @@ def track(
             "jaw": config.w_jaw_side * (jaw[:, 1:] ** 2).sum(-1).mean()
             + config.w_jaw_range * (torch.relu(-jaw[:, 0]) ** 2 + torch.relu(jaw[:, 0] - config.jaw_max) ** 2).mean(),
             "focal": config.focal_prior * (fit.log_focal - math.log(f0)) ** 2,
+            "static_offset": config.w_static_offset * (fit.offset_theta ** 2).sum(-1).mean()
+            + config.w_static_smooth * (fit.offset_theta * (fit.offset_energy @ fit.offset_theta)).sum()
+            if fit.offset_theta is not None else torch.zeros(()),
             "smooth": config.w_smooth_expr * _diff_penalty(p["expr"]) + config.w_smooth_jaw * _diff_penalty(jaw)
             + config.w_smooth_eyes * _diff_penalty(eyes) + config.w_smooth_pose * _diff_penalty(p["neck_pose"]),
         })
@@ -375,6 +352,8 @@ def track(
     full = [fit.shape, fit.expr, fit.rotation, fit.neck_pose, fit.jaw_pose, fit.eyes_pose, fit.translation]
     if config.fit_focal:
         full.append(fit.log_focal)
+    if fit.offset_theta is not None:
+        full.append(fit.offset_theta)
     run("full", config.full_steps, full, config.lr)
 
     with torch.no_grad():
@@ -384,8 +363,11 @@ def track(
         width = np.linalg.norm(landmarks[:, 234, :2] - landmarks[:, 454, :2], axis=-1)  # [T] cheek to cheek
         err = (pixels - target).norm(dim=-1).numpy()  # [T, L]
         errors = np.median(err, axis=1) / np.maximum(width, 1e-6)
+    params = {k: v.detach().numpy().copy() for k, v in params.items()}
+    if fit.offset_theta is not None:
+        params["static_offset"] = offset_map.extend(0.01 * fit.offset_theta.detach().numpy()).astype(np.float32)  # [V, 3]
     return TrackingResult(
-        params={k: v.detach().numpy().copy() for k, v in params.items()},
+        params=params,
         focal=float(fit.log_focal.detach().exp()),
         viewmat=viewmat.numpy().astype(np.float64),
         K=K.numpy().astype(np.float64),
@@ -394,6 +376,14 @@ def track(
         errors=errors,
         log=log,
     )
+
+
+def offset_rows(offset_map: SmoothOffset, model: HeadModel) -> np.ndarray:
+    """[U + J, P]: the static offset of a `landmark_head`'s vertices and joint carriers from theta."""
+    used = model.data.metadata.get("vertex_ids") if hasattr(model, "data") else None
+    if used is None:
+        raise ValueError("offset_rows: the model is not a landmark_head (no 'vertex_ids' in its metadata)")
+    return np.concatenate([offset_map.matrix[used], offset_map.at_joints], 0)
 
 
 def load_landmark_embedding(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -420,4 +410,4 @@ def load_landmark_embedding(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 __all__ = ["GROUP_WEIGHTS", "GROUP_OF", "TrackingConfig", "TrackingResult", "landmark_head", "camera_viewmat", "track",
-           "load_landmark_embedding"]
+           "offset_rows", "load_landmark_embedding"]

@@ -12,8 +12,12 @@ reference face):
 - irises: on the eyeball meshes (centre at the pupil, rim points 5.8 mm from it);
 - nose tip (id 1): the most forward point of the nose;
 - brows, the rest of the nose and the face oval: the reference positions mapped into OpenHead by
-  a per-axis scale and offset fitted on the eye corners, mouth corners, nose tip and chin, then
-  projected onto the skin along -z (the frontmost hit), as a frontal photo would see them.
+  a per-axis map (x scale; y scale and offset) fitted on the eyelid and lip landmarks placed from
+  OpenHead's own contours, then projected onto the skin along -z (the frontmost hit), as a frontal
+  photo would see them.
+The reference face is one person's; the tracker (geoavatar.prep.tracking) fits a smooth static
+offset of the mesh per video, which absorbs the difference between that face, OpenHead and the
+person filmed.
 """
 
 from __future__ import annotations
@@ -25,6 +29,11 @@ from geoavatar.head.openhead.rig import HeadLayout
 from geoavatar.head.openhead.surface import fissure_outline
 
 IRIS_RADIUS = 0.0058
+# Groups placed from the reference face, and the groups (OpenHead's own contours) that fit that map.
+REFERENCE_MAPPED = ("right_brow_upper", "right_brow_lower", "left_brow_upper", "left_brow_lower",
+                    "nose_ridge", "nose_right", "nose_left", "face_oval")
+ANCHOR_GROUPS = ("lips_outer_upper", "lips_outer_lower", "lips_inner_upper", "lips_inner_lower",
+                 "right_eye_upper", "right_eye_lower", "left_eye_upper", "left_eye_lower")
 
 
 def frontal_hits(points_xy: np.ndarray, vertices: np.ndarray, faces: np.ndarray, face_ids: np.ndarray):
@@ -90,29 +99,9 @@ def embed_landmarks(layout: HeadLayout) -> tuple[np.ndarray, np.ndarray, np.ndar
     front_skin = skin_faces  # the frontmost hit is what a frontal view sees
     placed: dict[int, tuple[int, np.ndarray]] = {}
 
-    # Eye corners, mouth corners, nose tip, chin of OpenHead: anchors of the reference mapping.
     hw = shape.fissure_half_width
-    ec = np.asarray(shape.eye_centre)
-    corner_y_out = fissure_outline(np.array([1.0]), shape)[0][0]
-    corner_y_in = fissure_outline(np.array([-1.0]), shape)[0][0]
-    skin = v[:n_skin]
-    chin = skin[(np.abs(skin[:, 0]) < 1e-6) & (skin[:, 2] > 0.02)]
-    chin_y = chin[:, 1].min()
     tip = layout.nose_tip
     mouth_corner = layout.mouth_corners[1]
-    anchors = {
-        263: (ec[0] + 0.0015 + hw, ec[1] + corner_y_out), 362: (ec[0] + 0.0015 - hw, ec[1] + corner_y_in),
-        291: (mouth_corner[0], mouth_corner[1]), 1: (0.0, tip[1]), 152: (0.0, chin_y),
-    }
-    ref = _reference(list(anchors))
-    target = np.array(list(anchors.values()))
-    sx = float((ref[:, 0] * target[:, 0]).sum() / max((ref[:, 0] ** 2).sum(), 1e-12))
-    ay = np.stack([ref[:, 1], np.ones(len(ref))], -1)
-    sy, ty = np.linalg.lstsq(ay, target[:, 1], rcond=None)[0]
-
-    def mapped_xy(ids):
-        r = _reference(ids)
-        return np.stack([sx * r[:, 0], sy * r[:, 1] + ty], -1)
 
     def project(ids, xy, face_ids):
         f, bary = frontal_hits(xy, v, faces, face_ids)
@@ -125,15 +114,6 @@ def embed_landmarks(layout: HeadLayout) -> tuple[np.ndarray, np.ndarray, np.ndar
             if f[k] < 0:
                 raise RuntimeError(f"OpenHead landmarks: landmark {i} does not project onto the head")
             placed[int(i)] = (int(f[k]), bary[k])
-
-    # Generic groups first (overridden below where OpenHead has the exact semantic point).
-    generic = [i for name in ("right_brow_upper", "right_brow_lower", "left_brow_upper", "left_brow_lower",
-                              "nose_ridge", "nose_right", "nose_left", "face_oval") for i in mp.CONTOURS[name]]
-    generic = list(dict.fromkeys(generic))
-    project(generic, mapped_xy(generic), front_skin)
-
-    # Nose tip: the most forward skin point on the mid-line.
-    project([1], np.array([[0.0, tip[1]]]), front_skin)
 
     # Inner lips: on the rings.
     ring_u, ring_l = layout.skin.lip_ring_upper, layout.skin.lip_ring_lower
@@ -150,7 +130,9 @@ def embed_landmarks(layout: HeadLayout) -> tuple[np.ndarray, np.ndarray, np.ndar
     for ids in (mp.LIPS_OUTER_UPPER, mp.LIPS_OUTER_LOWER):
         r = _reference(ids)
         corner_ref_y = 0.5 * (r[0, 1] + r[-1, 1])
-        xy = np.stack([r[:, 0] / r[-1, 0] * mouth_corner[0], mouth_corner[1] + sy * (r[:, 1] - corner_ref_y)], -1)
+        # Height above the corner line: the reference's, scaled by OpenHead's to reference mouth width.
+        sy_lips = mouth_corner[0] / r[-1, 0]
+        xy = np.stack([r[:, 0] / r[-1, 0] * mouth_corner[0], mouth_corner[1] + sy_lips * (r[:, 1] - corner_ref_y)], -1)
         project(list(ids[1:-1]), xy[1:-1], front_skin)
     for i, vid in ((mp.LIPS_OUTER_UPPER[0], ring_u[0]), (mp.LIPS_OUTER_UPPER[-1], ring_u[-1])):
         f, bary = _edge_point(faces, int(vid), int(vid), 0.0, upper_faces)
@@ -172,6 +154,22 @@ def embed_landmarks(layout: HeadLayout) -> tuple[np.ndarray, np.ndarray, np.ndar
             lateral = 0.0015 + s * hw * 0.985
             xy = np.stack([e[0] + side * lateral, e[1] + y], -1)
             project(list(ids), xy, front_skin)
+
+    # Brows, nose and face oval: the reference face mapped into OpenHead by a per-axis map fitted on the
+    # eyelid and lip landmarks placed above (OpenHead's own contours; a chin anchor would have to be
+    # picked on a mid-line profile that curves into the neck), then projected onto the frontmost skin.
+    anchors = [i for name in ANCHOR_GROUPS for i in mp.CONTOURS[name] if int(i) in placed]
+    ref = _reference(anchors)
+    got = np.stack([(v[faces[placed[int(i)][0]]] * placed[int(i)][1][:, None]).sum(0) for i in anchors])  # [A, 3]
+    sx = float((ref[:, 0] * got[:, 0]).sum() / max((ref[:, 0] ** 2).sum(), 1e-12))
+    sy, ty = np.linalg.lstsq(np.stack([ref[:, 1], np.ones(len(ref))], -1), got[:, 1], rcond=None)[0]
+    generic = [i for name in REFERENCE_MAPPED for i in mp.CONTOURS[name]]
+    generic = [i for i in dict.fromkeys(generic) if i != 1]
+    r = _reference(generic)
+    project(generic, np.stack([sx * r[:, 0], sy * r[:, 1] + ty], -1), front_skin)
+
+    # Nose tip: the most forward skin point on the mid-line.
+    project([1], np.array([[0.0, tip[1]]]), front_skin)
 
     # Irises on the eyeballs.
     for ids, eyeball, side in ((mp.LEFT_IRIS, layout.left_eyeball, 1), (mp.RIGHT_IRIS, layout.right_eyeball, -1)):
