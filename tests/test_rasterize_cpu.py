@@ -140,7 +140,7 @@ def _float32_render_and_grads(scene, background):
     return [rgb, alpha, m2d.grad] + [s[name].grad for name in PARAMS]
 
 
-def test_avx2_and_avx512_paths_agree_bit_for_bit(native, monkeypatch):
+def test_avx2_and_avx512_paths_agree(native, monkeypatch):
     if not {"avx512", "avx2"} <= set(native.simd_paths()):
         pytest.skip(f"needs both AVX-512 and AVX2, this CPU runs {native.simd_paths()}")
     scene = make_scene(12, n=400, width=53, height=37, dtype=torch.float32)  # partial tiles and rows
@@ -149,8 +149,10 @@ def test_avx2_and_avx512_paths_agree_bit_for_bit(native, monkeypatch):
     for path in ("avx512", "avx2", "scalar"):
         monkeypatch.setenv(cpu_backend.SIMD_ENV, path)
         outputs[path] = _float32_render_and_grads(scene, background)
-    for wide, narrow in zip(outputs["avx512"], outputs["avx2"]):
-        assert torch.equal(wide, narrow)  # same operations, no FMA contraction: the same bits
+    for wide, narrow in zip(outputs["avx512"][:2], outputs["avx2"][:2]):
+        assert torch.equal(wide, narrow)  # one forward code, no FMA contraction: the same bits
+    for wide, narrow in zip(outputs["avx512"][2:], outputs["avx2"][2:]):  # backwards differ in summation order
+        torch.testing.assert_close(wide, narrow, atol=1e-9, rtol=1e-6)
     # the scalar path differs in exp (libm) and state precision (double), not in what it computes
     assert not all(torch.equal(a, b) for a, b in zip(outputs["avx512"], outputs["scalar"]))
     for lanes, scalar in zip(outputs["avx512"], outputs["scalar"]):
