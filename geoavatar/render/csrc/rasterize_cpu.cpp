@@ -12,10 +12,13 @@
 //   backward       - per tile, back to front from T_final, recovering T by division as gsplat does,
 //                    with a running sum of what lies behind; gradients per (tile, Gaussian) entry,
 //                    then summed per Gaussian in a fixed order (deterministic for any thread count).
-// Per-pixel state (T, colour sums, the running sums of backward) is kept in double for both float32
-// and float64 inputs, so float32 results match the torch backend's float64 scans.
-// Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels are
-// evaluated.
+// Two implementations of forward and backward, chosen per call (cpu_backend.simd_path()):
+//   scalar         - pixel by pixel with libm's exp, per-pixel state (T, colour sums, the running sums
+//                    of backward) in double; float64 inputs always take it (gradcheck).
+//   avx512 / avx2  - float32 only: a Gaussian over a row of 16 pixels of its tile per step (see "float32
+//                    lanes" below), compiled for each instruction set and picked at run time; the
+//                    forward state is float32, the backward's double.
+// Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels count.
 
 #include <torch/extension.h>
 
