@@ -181,9 +181,11 @@ def test_resume_after_ctrl_c_and_after_a_kill_equals_straight_run(subject, strai
         train(options(subject, out, ckpt_every=2), None, resume=True, callback=killed_at_3)
     assert ckpt.load_checkpoint(ckpt.run_checkpoint_path(out, "last"))["step"] == 2
 
+    resume_options = options(subject, out, ckpt_every=2)
+    resume_options.data = None  # the run records its dataset
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ShortVideoWarning)
-        final = train(options(subject, out, ckpt_every=2), None, resume=True)
+        final = train(resume_options, None, resume=True)
     assert final.status == "finished" and final.step == STEPS
     assert_same(learned_tensors(straight_run), learned_tensors(out), tolerance=TOLERANCE)
     assert "resume at step 2" in (out / "train.log").read_text()
@@ -219,6 +221,8 @@ def test_bad_inputs_fail_clearly(subject, straight_run, tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit, match="geoavatar train: .*empty: not a dataset"):
         cli_train(data=tmp_path / "empty", out=tmp_path / "r2", steps=2, progress=False)
+    with pytest.raises(SystemExit, match="--data is required for a new run"):
+        cli_train(out=tmp_path / "r4", steps=2, progress=False)
     with pytest.raises(SystemExit, match="already holds a run.*--resume"):
         cli_train(data=subject, out=straight_run, steps=2, progress=False)
     with pytest.raises(SystemExit, match="nothing to resume"):

@@ -17,8 +17,8 @@ assert set(PresetName.__args__) == set(ABLATIONS), "PresetName must list every p
 
 
 def train(
-    data: Path,
     out: Path,
+    data: Optional[Path] = None,
     preset: Optional[PresetName] = None,
     steps: Optional[int] = None,
     resolution: Optional[int] = None,
@@ -42,8 +42,9 @@ def train(
     learning-rate decay) scales with --steps, so short CPU runs keep the paper's proportions.
 
     Args:
-        data: Dataset folder (VHAP / GaussianAvatars layout, e.g. from `geoavatar synth`, or INSTA).
         out: Run folder to create (or to continue with --resume).
+        data: Dataset folder (VHAP / GaussianAvatars layout, e.g. from `geoavatar synth`, or INSTA);
+            required for a new run, with --resume the run's own unless given (a moved dataset).
         preset: Ablation preset of the paper (Tables 3, 6): A = GaussianAvatars (SH 0) ... E = GeoAvatar
             (default E for a new run; with --resume the run's own).
         steps: Training steps (default: the paper's 200000 for a new run; with --resume the run's own).
@@ -65,6 +66,8 @@ def train(
     for name, value in (("--val-every", val_every), ("--ckpt-every", ckpt_every), ("--log-every", log_every)):
         if value is not None and value <= 0:
             raise SystemExit(f"geoavatar train: {name} must be positive, got {value}")
+    if data is None and not resume:
+        raise SystemExit("geoavatar train: --data is required for a new run (only --resume finds the run's own)")
     if resume:
         # The run's own configuration governs; explicit --preset/--steps must agree with it.
         config = None

@@ -62,7 +62,7 @@ class TrainingDiverged(RuntimeError):
 class RunOptions:
     """How a run is executed (not what is learned: that is TrainConfig)."""
 
-    data: Path
+    data: Path | None  # None only when resuming: the run's recorded dataset
     out: Path
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda | cuda:N
@@ -559,6 +559,10 @@ def train(
         elif options.resolution != saved_options.get("resolution"):
             raise ckpt.RunError(f"{last_path}: the run trained at --resolution {saved_options.get('resolution')}, "
                                 f"asked {options.resolution}; resume without --resolution")
+        if options.data is None:
+            if not saved_options.get("data"):
+                raise ckpt.RunError(f"{last_path}: the run does not record its dataset; pass --data")
+            options.data = Path(saved_options["data"])
         if options.test_frames is None:
             options.test_frames = saved_options.get("test_frames")
         options.seed = int(saved_options.get("seed", options.seed))
