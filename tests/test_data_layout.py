@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 
 import numpy as np
 import pytest
@@ -182,6 +183,9 @@ def test_writer_is_atomic(tmp_path):
     write_subject_overwrite.finish(SplitConfig(test_frames=1))
     assert read_layout(root).head_model == "flame"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["subject"]
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert root.stat().st_mode & 0o777 == 0o777 & ~mask  # a normal folder, not mkdtemp's 0700
 
 
 def test_writer_rejects_bad_input(tmp_path):

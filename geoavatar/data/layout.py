@@ -348,6 +348,7 @@ class LayoutWriter:
         self.png_compress_level = png_compress_level
         self.root.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.partial-", dir=self.root.parent))
+        self.tmp.chmod(0o777 & ~_umask())  # mkdtemp makes it 0700; the dataset gets a normal folder's mode
         for sub in ("images", "fg_masks", "flame_param"):
             (self.tmp / sub).mkdir()
         self.frames: list[dict] = []
@@ -528,6 +529,13 @@ def _to_uint8(value: np.ndarray | Tensor, name: str) -> np.ndarray:
         return np.ascontiguousarray(array.astype(np.uint8) * 255)
     raise ValueError(f"{name} must be uint8, bool or float in [0, 1], got dtype {array.dtype}")
 
+
+
+def _umask() -> int:
+    """The process umask (os has no getter: set and restore)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 __all__ = [
     "CANONICAL_FILE", "FORMAT_VERSION", "HEAD_MODEL_NAMES", "INFO_FILE", "LayoutWriter", "info_to_json",
