@@ -8,7 +8,9 @@ backward). Both run in csrc/rasterize_cpu.cpp on OpenMP threads (torch.get_num_t
 dynamic over tiles). Projection is native because in PyTorch its many small ops cost as much as the
 kernel itself (measured: 44 ms of 119 ms forward+backward at 256²/50k on one thread); when viewmat or
 K need gradients, the differentiable torch projection is used instead. means2d.grad (densification)
-is the gradient the kernel returns for the screen-space means.
+is the gradient the kernel returns for the screen-space means. For float32 inputs the compositing
+runs a Gaussian over a row of 16 pixels per step with AVX-512 or AVX2 when the CPU has it (picked at
+run time, see SIMD_ENV and simd_path()); float64 inputs and other CPUs take the per-pixel loop.
 
 The extension is built on first use with torch.utils.cpp_extension (g++ and ninja; about 40 s on
 our machines) into $GEOAVATAR_EXT_CACHE/<key>, else $GEOAVATAR_CACHE/ext/<key>, else
