@@ -159,6 +159,21 @@ def test_avx2_and_avx512_paths_agree(native, monkeypatch):
         torch.testing.assert_close(lanes, scalar, atol=2e-6, rtol=1e-4)
 
 
+@pytest.mark.parametrize("path", ["avx512", "avx2"])
+def test_simd_paths_with_any_tile_size(native, monkeypatch, path):
+    _use_simd_path(monkeypatch, native, path)
+    scene = make_scene(13, n=300, width=45, height=30, dtype=torch.float32)
+    background = torch.tensor([0.6, 0.2, 0.4])
+    reference = _float32_render_and_grads(scene, background)
+    for tile_size in (1, 3, 24, 64):  # rows shorter and longer than 16 lanes, one tile for the image
+        s = _with_grad(scene)
+        rgb, alpha, m2d, _, _ = _render(rasterize_cpu, s, background, tile_size=tile_size)
+        assert torch.equal(rgb, reference[0]) and torch.equal(alpha, reference[1])  # per pixel, the same steps
+        (rgb.square().sum() + alpha.sum()).backward()
+        for got, want in zip([m2d.grad] + [s[name].grad for name in PARAMS], reference[2:]):
+            torch.testing.assert_close(got, want, atol=1e-9, rtol=1e-6)  # sums grouped by other tiles
+
+
 def test_simd_path_setting(native, monkeypatch):
     monkeypatch.setenv(cpu_backend.SIMD_ENV, "auto")
     assert cpu_backend.simd_path() == native.simd_paths()[0]
