@@ -51,9 +51,18 @@ struct Splat {
   int32_t tx0, tx1, ty0, ty1;  // tiles of the box (inclusive): divided here, in parallel, not in binning
 };
 
+// Pixel rectangle of one tile: origin and size (tiles on the right and bottom edges may be cut).
+struct TileRect {
+  int64_t x0, y0, w, h;
+};
+
 struct Grid {
   int64_t width, height, tile, tiles_x, tiles_y;
   int64_t n_tiles() const { return tiles_x * tiles_y; }
+  TileRect rect(int64_t index) const {
+    const int64_t x0 = (index % tiles_x) * tile, y0 = (index / tiles_x) * tile;
+    return {x0, y0, std::min(tile, width - x0), std::min(tile, height - y0)};
+  }
 };
 
 int threads_for_torch() { return std::max(1, at::get_num_threads()); }
@@ -178,8 +187,8 @@ void forward_tiles_scalar(const std::vector<Splat<scalar_t>>& splats, const std:
     std::vector<uint8_t> done(tp);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
-      const int64_t tx0 = (tile % grid.tiles_x) * t, ty0 = (tile / grid.tiles_x) * t;
-      const int64_t tw = std::min(t, grid.width - tx0), th = std::min(t, grid.height - ty0);
+      const TileRect r = grid.rect(tile);
+      const int64_t tx0 = r.x0, ty0 = r.y0, tw = r.w, th = r.h;
       std::fill(trans.begin(), trans.end(), 1.0);
       std::fill(rgb.begin(), rgb.end(), 0.0);
       std::fill(last.begin(), last.end(), 0);
@@ -446,8 +455,8 @@ void forward_tiles_lanes(const std::vector<Splat<float>>& splats, const std::vec
     std::vector<int32_t> last(plane), done(plane), row_done(t);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
-      const int64_t tx0 = (tile % grid.tiles_x) * t, ty0 = (tile / grid.tiles_x) * t;
-      const int64_t tw = std::min(t, grid.width - tx0), th = std::min(t, grid.height - ty0);
+      const TileRect r = grid.rect(tile);
+      const int64_t tx0 = r.x0, ty0 = r.y0, tw = r.w, th = r.h;
       std::fill(trans.begin(), trans.end(), 1.0f);
       std::fill(red.begin(), red.end(), 0.0f);
       std::fill(green.begin(), green.end(), 0.0f);
@@ -508,8 +517,8 @@ void backward_tiles(const std::vector<Splat<scalar_t>>& splats, const int64_t* o
     for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
       const int64_t begin = offsets[tile], end = offsets[tile + 1];
       if (begin == end) continue;
-      const int64_t tx0 = (tile % grid.tiles_x) * t, ty0 = (tile / grid.tiles_x) * t;
-      const int64_t tw = std::min(t, grid.width - tx0), th = std::min(t, grid.height - ty0);
+      const TileRect r = grid.rect(tile);
+      const int64_t tx0 = r.x0, ty0 = r.y0, tw = r.w, th = r.h;
       int32_t max_last = 0;
       for (int64_t y = 0; y < th; ++y) {
         for (int64_t x = 0; x < tw; ++x) {
@@ -741,8 +750,8 @@ void backward_tiles_lanes(const std::vector<Splat<float>>& splats, const int64_t
     for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
       const int64_t begin = offsets[tile], end = offsets[tile + 1];
       if (begin == end) continue;
-      const int64_t tx0 = (tile % grid.tiles_x) * t, ty0 = (tile / grid.tiles_x) * t;
-      const int64_t tw = std::min(t, grid.width - tx0), th = std::min(t, grid.height - ty0);
+      const TileRect r = grid.rect(tile);
+      const int64_t tx0 = r.x0, ty0 = r.y0, tw = r.w, th = r.h;
       int32_t max_last = 0;
       for (int64_t y = 0; y < th; ++y) {
         for (int64_t x = 0; x < tw; ++x) {
