@@ -9,6 +9,7 @@ Validation images and checkpoints are not part of the step and not timed.
 
     .venv/bin/python benchmarks/train_bench.py                     # generates a 256 px subject first
     .venv/bin/python benchmarks/train_bench.py --data DIR --presets A E --steps 20 --resolution 256
+    .venv/bin/python benchmarks/train_bench.py --backends torch cpu           # before/after the native kernel
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ import warnings
 from pathlib import Path
 
 
-def child(data: str, preset_name: str, resolution: int, steps: int, warmup: int, schedule: int, seed: int) -> dict:
+def child(data: str, preset_name: str, resolution: int, steps: int, warmup: int, schedule: int, seed: int,
+          backend: str) -> dict:
     from geoavatar.runtime import setup_process
 
     setup_process()
@@ -37,7 +39,8 @@ def child(data: str, preset_name: str, resolution: int, steps: int, warmup: int,
 
     warnings.simplefilter("ignore", ShortVideoWarning)
     config = preset(preset_name, steps=schedule)
-    options = RunOptions(data=Path(data), out=Path(tempfile.mkdtemp()), seed=seed, device="cpu", resolution=resolution)
+    options = RunOptions(data=Path(data), out=Path(tempfile.mkdtemp()), seed=seed, device="cpu", resolution=resolution,
+                         backend=backend)
     data_ = open_training_data(options, config)
     state = new_state(data_, config, seed)
     data_.train_set.preload()
@@ -49,7 +52,7 @@ def child(data: str, preset_name: str, resolution: int, steps: int, warmup: int,
     seconds = time.perf_counter() - start
     item = data_.train_set[0]
     return {
-        "preset": preset_name, "steps": steps, "seconds": seconds, "steps_per_second": steps / seconds,
+        "preset": preset_name, "backend": data_.backend, "steps": steps, "seconds": seconds, "steps_per_second": steps / seconds,
         "gaussians": report.num_gaussians, "size": f"{item['width']}x{item['height']}",
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "threads": torch.get_num_threads(), "frames": len(data_.train_set),
@@ -66,11 +69,15 @@ def main() -> None:
     parser.add_argument("--schedule", type=int, default=3000, help="total steps the preset's schedule is scaled to")
     parser.add_argument("--frames", type=int, default=24, help="frames of the generated subject")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--backends", nargs="+", default=["auto"], choices=["auto", "cpu", "torch"],
+                        help="rasterizer backends to time side by side (e.g. torch cpu: before/after the native kernel)")
+    parser.add_argument("--backend", default="auto", help=argparse.SUPPRESS)
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
 
     if args.child:
-        result = child(str(args.data), args.child, args.resolution, args.steps, args.warmup, args.schedule, args.seed)
+        result = child(str(args.data), args.child, args.resolution, args.steps, args.warmup, args.schedule, args.seed,
+                       args.backend)
         print("RESULT " + json.dumps(result))
         return
 
@@ -89,21 +96,26 @@ def main() -> None:
 
     rows = []
     for name in args.presets:
-        command = [sys.executable, __file__, "--child", name, "--data", str(data), "--resolution", str(args.resolution),
-                   "--steps", str(args.steps), "--warmup", str(args.warmup), "--schedule", str(args.schedule),
-                   "--seed", str(args.seed)]
-        out = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
-        lines = [line for line in out.stdout.splitlines() if line.startswith("RESULT ")]
-        if out.returncode != 0 or not lines:
-            raise SystemExit(f"preset {name} failed:\n{out.stderr[-3000:]}")
-        rows.append(json.loads(lines[-1][len("RESULT "):]))
+        for backend in args.backends:
+            command = [sys.executable, __file__, "--child", name, "--data", str(data), "--resolution",
+                       str(args.resolution), "--steps", str(args.steps), "--warmup", str(args.warmup), "--schedule",
+                       str(args.schedule), "--seed", str(args.seed), "--backend", backend]
+            out = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
+            lines = [line for line in out.stdout.splitlines() if line.startswith("RESULT ")]
+            if out.returncode != 0 or not lines:
+                raise SystemExit(f"preset {name}, backend {backend} failed:\n{out.stderr[-3000:]}")
+            rows.append(json.loads(lines[-1][len("RESULT "):]))
 
     print(f"\ntraining step on CPU ({rows[0]['threads']} threads), {rows[0]['size']} px, "
           f"{args.steps} timed steps after {args.warmup} warm-up, schedule scaled to {args.schedule} steps")
-    print(f"{'preset':<8} {'Gaussians':>9} {'steps/s':>8} {'s/step':>7} {'peak RSS MB':>12}")
+    print(f"{'preset':<8} {'backend':<8} {'Gaussians':>9} {'steps/s':>8} {'s/step':>7} {'peak RSS MB':>12}")
     for r in rows:
-        print(f"{r['preset']:<8} {r['gaussians']:>9} {r['steps_per_second']:>8.2f} {1 / r['steps_per_second']:>7.3f} "
-              f"{r['peak_rss_mb']:>12.0f}")
+        print(f"{r['preset']:<8} {r['backend']:<8} {r['gaussians']:>9} {r['steps_per_second']:>8.2f} "
+              f"{1 / r['steps_per_second']:>7.3f} {r['peak_rss_mb']:>12.0f}")
+    for name in args.presets:
+        speed = {r["backend"]: r["steps_per_second"] for r in rows if r["preset"] == name}
+        if "torch" in speed and "cpu" in speed:
+            print(f"preset {name}: the cpu backend takes {speed['cpu'] / speed['torch']:.2f}x the torch backend's steps/s")
 
 
 if __name__ == "__main__":
