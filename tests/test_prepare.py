@@ -236,3 +236,21 @@ def test_flame_without_files_names_what_is_missing(tmp_path):
 
     with pytest.raises(PrepareError, match="flame2023.pkl"):
         load_tracking_head(_config(tmp_path / "v.mp4", tmp_path / "o", head="flame", flame_dir=tmp_path))
+
+
+@needs_video
+def test_head_region_keeps_the_hair_of_a_bowed_head(prepared):
+    from geoavatar.head import landmarks_mediapipe as mpids
+    from geoavatar.prep.masks import HAIR_MIN_REACH, HAIR_SCALE, head_region_polygons
+
+    _, out, _, _ = prepared
+    points = np.load(out / ".prepare" / "landmarks.npz")["filtered"][0, :, :2].astype(np.float64)  # [478, 2]
+    width = np.linalg.norm(points[234] - points[454])
+    bowed = points.copy()
+    centre_y = points[list(mpids.FACE_OVAL), 1].mean()
+    bowed[:, 1] = centre_y + 0.6 * (points[:, 1] - centre_y)  # a forward bow foreshortens the face vertically
+    for landmarks in (points, bowed):
+        head, _ = head_region_polygons(landmarks)
+        centre = landmarks[list(mpids.FACE_OVAL)].mean(0)
+        reach = centre[1] - head[:, 1].min()  # image y points down: the top of the region above the oval's centre
+        assert reach >= 0.99 * HAIR_SCALE * HAIR_MIN_REACH * width

@@ -11,8 +11,9 @@ runs offline:
 - head_region: a soft region built from the 478 landmarks, the parsing-like term; it removes the
   clothes and shoulders. With u = the face's up direction (chin 152 -> forehead 10), H = the
   forehead-chin distance and c = the mean of the face-oval points, every face-oval point p is moved
-  to c + 1.3 * lateral(p - c) + s * up(p - c), s = 1.9 above c (room for hair and the skull) and
-  1.05 below (the jaw line). A neck band joins it: a quadrilateral from the jaw-angle points
+  to c + l * lateral(p - c) + s * up(p - c): above c, l = 1.5 (ears, hair of a turned head) and
+  s = 1.9 (hair and the skull; stretched so that the top reaches at least 1.9 x 0.65 face widths,
+  because a bowed head foreshortens the forehead), below c, l = 1.3 and s = 1.05 (the jaw line). A neck band joins it: a quadrilateral from the jaw-angle points
   (ids 172 / 397, pulled 15 % towards the mid-line) down to 0.3 H below the chin. The union is
   filled and blurred (sigma = 2 % of H) so its edge is soft; where it is generous (hair, sides) the
   person mask decides the silhouette.
@@ -31,8 +32,10 @@ from geoavatar.head import landmarks_mediapipe as mpids
 from geoavatar.prep.landmarks import _mediapipe, _quiet_native_logs
 
 HAIR_SCALE = 1.9
+HAIR_MIN_REACH = 0.65  # the oval's top above c, before HAIR_SCALE, is at least this many face widths
 JAW_SCALE = 1.05
 LATERAL_SCALE = 1.3
+LATERAL_SCALE_UPPER = 1.5  # above c: room for the ears and the hair of a turned head
 NECK_LENGTH = 0.3  # below the chin, in face heights
 NECK_INSET = 0.15  # jaw-angle points pulled towards the mid-line
 EDGE_SIGMA = 0.02  # blur of the region edge, in face heights
@@ -74,7 +77,14 @@ def head_region_polygons(points: np.ndarray) -> list[np.ndarray]:
     d = oval - centre
     along = d @ up  # [36]
     lateral = d - along[:, None] * up
-    head = centre + LATERAL_SCALE * lateral + np.where(along > 0, HAIR_SCALE, JAW_SCALE)[:, None] * along[:, None] * up
+    # A head bowed forward foreshortens the forehead while more of the skull shows: the hair's reach
+    # is measured against the face width too (which pitch does not shrink), never below HAIR_MIN_REACH.
+    face_width = float(np.linalg.norm(p[234] - p[454]))
+    top = max(float(along.max()), 1e-9)
+    hair = HAIR_SCALE * max(1.0, HAIR_MIN_REACH * face_width / top)
+    upper = along > 0
+    head = (centre + np.where(upper, LATERAL_SCALE_UPPER, LATERAL_SCALE)[:, None] * lateral
+            + np.where(upper, hair, JAW_SCALE)[:, None] * along[:, None] * up)
     left, right = p[397], p[172]
     mid = 0.5 * (left + right)
     left = left + NECK_INSET * (mid - left)

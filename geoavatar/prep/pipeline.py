@@ -37,7 +37,9 @@ import numpy as np
 from geoavatar.prep.errors import PrepareError
 
 STAGES = ("frames", "landmarks", "masks", "tracking", "write")
-TRACKER_VERSION = 2  # part of the tracking stage's key: a changed fitter redoes tracking on a re-run
+# Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
+# later ones) instead of keeping outputs made the old way.
+STAGE_VERSIONS = {"masks": 2, "tracking": 2}
 WORK = ".prepare"
 
 
@@ -137,9 +139,9 @@ def _stage_keys(config: PrepareConfig) -> dict[str, str]:
         "frames": [str(video), stat.st_size, int(stat.st_mtime), config.size, config.fps, config.max_frames,
                    config.crop_scale, config.crop_sigma],
         "landmarks": [config.missing, config.min_frames],
-        "masks": [config.mask_backend],
+        "masks": [config.mask_backend, STAGE_VERSIONS["masks"]],
         "tracking": [config.head, str(config.flame_dir), str(config.flame_landmarks), list(config.tracking_steps),
-                     config.static_offset, TRACKER_VERSION],
+                     config.static_offset, STAGE_VERSIONS["tracking"]],
         "write": [config.test_fraction, config.overlay],
     }
     keys, chain = {}, ""
