@@ -296,10 +296,7 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
     marks = np.load(work / "landmarks.npz")
     keep = marks["keep"]
     data, model = load_tracking_head(config)
-    offset_map = None
-    if config.static_offset:
-        handles = model.data.metadata["vertex_ids"]
-        offset_map = smooth_offset(data, handles[handles < data.num_vertices])  # the rest are joint carriers
+
     width, height = (int(v) for v in frames["frame_size"])
     principal = []
     scale = 1.0
@@ -308,6 +305,10 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
         principal.append([scale * (width / 2 - ox), scale * (height / 2 - oy)])
     tracking_config = TrackingConfig(rigid_steps=config.tracking_steps[0], full_steps=config.tracking_steps[1],
                                      fit_static_offset=config.static_offset)
+    offset_map = None
+    if config.static_offset:
+        handles = model.data.metadata["vertex_ids"]  # those past the mesh are the joint carriers
+        offset_map = smooth_offset(data, handles[handles < data.num_vertices], decay=tracking_config.offset_decay)
     # Initial focal: 25 degrees across the source frame's longer side, in crop pixels.
     focal = scale * 0.5 * max(width, height) / math.tan(math.radians(tracking_config.fov_deg) / 2)
     total = sum(config.tracking_steps)

@@ -15,7 +15,8 @@ Loss (all terms are means over frames, residuals in units of the per-frame face 
 - data: pseudo-Huber (delta = `huber`) of the 2D reprojection error of every embedded landmark,
   weighted per landmark group (face oval and brows lower: their MediaPipe points slide along the
   contour) and per frame by the landmark confidence;
-- priors: L2 on shape, the static offset, neck, eyes and the jaw's sideways components; the jaw's opening
+- priors: L2 on shape, expression, neck, eyes and the jaw's sideways components, L2 and membrane
+  energy of the static offset; the jaw's opening
   angle is kept in [0, `jaw_max`] by a squared hinge; both eyes look alike (L2 of their difference);
   a weak log-normal prior on the focal length (it trades off with distance in a monocular video);
 - temporal smoothness: first and second differences of pose, jaw, eyes and expression.
