@@ -307,8 +307,8 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
                                      fit_static_offset=config.static_offset)
     offset_map = None
     if config.static_offset:
-        handles = model.data.metadata["vertex_ids"]  # those past the mesh are the joint carriers
-        offset_map = smooth_offset(data, handles[handles < data.num_vertices], decay=tracking_config.offset_decay)
+        # Handles: the mesh vertices under the landmarks, the ones the landmark-only model keeps.
+        offset_map = smooth_offset(data, model.data.metadata["vertex_ids"], decay=tracking_config.offset_decay)
     # Initial focal: 25 degrees across the source frame's longer side, in crop pixels.
     focal = scale * 0.5 * max(width, height) / math.tan(math.radians(tracking_config.fov_deg) / 2)
     total = sum(config.tracking_steps)

@@ -152,7 +152,7 @@ def landmark_head(data: HeadModelData) -> HeadModel:
         shapedirs=with_joints(data.shapedirs), exprdirs=with_joints(data.exprdirs), j_regressor=reduced_jr,
         lbs_weights=lbs.astype(np.float32), posedirs=posedirs, landmark_ids=data.landmark_ids,
         landmark_faces=np.arange(len(faces)), landmark_bary=data.landmark_bary,
-        metadata={"reduced_from": data.name, "vertex_ids": used},
+        metadata={"reduced_from": data.name, "vertex_ids": used},  # mesh ids of the first U vertices
     )
     return HeadModel(reduced)
 
@@ -208,12 +208,11 @@ def _pseudo_huber(x: Tensor, delta: float) -> Tensor:
 
 class _Fit(torch.nn.Module):
     def __init__(self, frames: int, num_shape: int, num_expr: int, focal: float, translation: Tensor,
-                 offset_rows: Tensor | None):
+                 offset_rows: Tensor | None, offset_energy: Tensor | None):
         super().__init__()
         # Free static offsets theta [P, 3] in cm (Adam's steps are ~lr in the parameter's unit) and
-        # their map to the reduced model's vertices [U + J, P].
-        self.offset_rows = offset_rows
-        self.offset_energy: Tensor | None = None  # [P, P]
+        # their map to the reduced model's vertices [U + J, P]; the field's membrane energy [P, P].
+        self.offset_rows, self.offset_energy = offset_rows, offset_energy
         self.offset_theta = None if offset_rows is None else torch.nn.Parameter(torch.zeros(offset_rows.shape[1], 3))
         z = lambda *s: torch.nn.Parameter(torch.zeros(*s, dtype=torch.float32))  # noqa: E731
         self.shape, self.expr = z(num_shape), z(frames, num_expr)
@@ -289,12 +288,11 @@ def track(
         centre = neutral.mean(0)
         translation = torch.stack([xy[:, 0] - centre[0], -xy[:, 1] - centre[1], distance - depth - centre[2]], -1)
     viewmat = torch.as_tensor(camera_viewmat(distance), dtype=torch.float32)
-    rows = None
+    rows = energy = None
     if config.fit_static_offset and offset_map is not None:
         rows = torch.as_tensor(offset_rows(offset_map, model), dtype=torch.float32)
-    fit = _Fit(T, num_shape, num_expr, f0, translation, rows)
-    if rows is not None:
-        fit.offset_energy = torch.as_tensor(offset_map.energy, dtype=torch.float32)
+        energy = torch.as_tensor(offset_map.energy, dtype=torch.float32)
+    fit = _Fit(T, num_shape, num_expr, f0, translation, rows, energy)
 
     def loss_terms(stage: str) -> dict[str, Tensor]:
         p = fit.params()
@@ -381,7 +379,7 @@ def track(
 
 def offset_rows(offset_map: SmoothOffset, model: HeadModel) -> np.ndarray:
     """[U + J, P]: the static offset of a `landmark_head`'s vertices and joint carriers from theta."""
-    used = model.data.metadata.get("vertex_ids") if hasattr(model, "data") else None
+    used = model.data.metadata.get("vertex_ids")
     if used is None:
         raise ValueError("offset_rows: the model is not a landmark_head (no 'vertex_ids' in its metadata)")
     return np.concatenate([offset_map.matrix[used], offset_map.at_joints], 0)
