@@ -87,9 +87,20 @@ def main(argv: list[str] | None = None) -> int:
     setup_process()
     import tyro
 
+    from geoavatar.errors import GeoAvatarError
+
     func = _resolve(entry)
-    result = tyro.cli(func, args=argv, prog=prog)  # the function's docstring is the description
+    try:
+        result = tyro.cli(func, args=argv, prog=prog)  # the function's docstring is the description
+    except GeoAvatarError as err:
+        # the user's input is wrong, not the code: one line, no traceback (any other error keeps it)
+        print(f"{prog}: {_one_line(str(err))}", file=sys.stderr)
+        return 2
     return int(result) if isinstance(result, int) else 0
+
+
+def _one_line(message: str) -> str:
+    return " ".join(message.split()) or "failed (no message)"
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ from PIL import Image
 
 from geoavatar.apps.head_show import contact_sheet, head_show
 from geoavatar.head.base import HeadModel, HeadModelData
+from geoavatar.head.flame import FlameFileNotFoundError
 
 
 def _sphere(centre, radii, n_lat=10, n_lon=16):
@@ -116,7 +117,7 @@ def test_head_show_writes_a_contact_sheet_of_openhead(tmp_path):
 
 def test_missing_flame_gives_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.delenv("GEOAVATAR_FLAME_DIR", raising=False)
-    with pytest.raises(SystemExit) as info:
+    with pytest.raises(FlameFileNotFoundError) as info:
         head_show(model="flame", out=tmp_path / "x.png", flame_dir=tmp_path / "nothing-here")
     message = str(info.value)
     assert "FLAME" in message and "nothing-here" in message

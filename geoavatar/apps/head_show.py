@@ -79,10 +79,7 @@ def head_show(
     options = {}
     if model == "flame" and flame_dir is not None:
         options["flame_dir"] = flame_dir
-    try:
-        head = load_head_model(model, mouth=mouth, **options)
-    except (FileNotFoundError, ValueError) as err:  # missing FLAME files, or a model without lip rings
-        raise SystemExit(f"geoavatar head show: cannot load head model '{model}': {err}") from err
+    head = load_head_model(model, mouth=mouth, **options)  # FLAME's file errors are GeoAvatarErrors: one line
     sheet = contact_sheet(head, tile=size)
     write_png_atomic(sheet, out)
     print(f"wrote {out} ({sheet.width}x{sheet.height}): {head.name}, {head.num_vertices} vertices, "

@@ -7,8 +7,10 @@ the file and says what is wrong, so the CLI can print it without a traceback.
 
 from __future__ import annotations
 
+from geoavatar.errors import GeoAvatarError
 
-class DatasetError(ValueError):
+
+class DatasetError(GeoAvatarError, ValueError):
     """A dataset on disk is missing something or is inconsistent; the message names the file."""
 
 

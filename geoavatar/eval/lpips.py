@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from geoavatar.errors import GeoAvatarError
 from geoavatar.head.safe_pickle import ForbiddenPickleGlobal, RestrictedUnpickler
 
 LPIPS_NETS = ("vgg", "alex")
@@ -51,7 +52,7 @@ _ALEX_CONVS = ((64, 11, 4, 2, False), (192, 5, 1, 2, True), (384, 3, 1, 1, True)
 MIN_SIZE = {"vgg": 16, "alex": 32}  # smallest image side whose deepest tap still has a pixel
 
 
-class LPIPSWeightsError(FileNotFoundError):
+class LPIPSWeightsError(GeoAvatarError, FileNotFoundError):
     """The LPIPS weights are not installed or not readable; the message says how to install them."""
 
 

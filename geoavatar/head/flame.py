@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.head.base import FLAME_SHAPE_DIM, JOINT_NAMES, PARENTS, REGION_NAMES, HeadModelData
 from geoavatar.head.safe_pickle import load_restricted_pickle
 
@@ -43,8 +44,12 @@ FLAME_LIP_RING_LOWER = (1572, 1573, 1860, 1862, 1830, 1835, 1852, 3497, 2941, 29
 _REQUIRED_KEYS = ("v_template", "f", "shapedirs", "J_regressor", "weights", "kintree_table")
 
 
-class FlameFileNotFoundError(FileNotFoundError):
+class FlameFileNotFoundError(GeoAvatarError, FileNotFoundError):
     """A FLAME file the user has to download is missing; the message says what, where and how."""
+
+
+class FlameFileError(GeoAvatarError, ValueError):
+    """A FLAME model or masks file is not what it should be; the message names the file."""
 
 
 def resolve_flame_dir(flame_dir: str | Path | None = None) -> Path:
@@ -77,7 +82,7 @@ def _download_hint() -> str:
 def find_flame_files(flame_dir: str | Path | None = None, version: str = "auto") -> tuple[Path, Path, str]:
     """(model pickle, masks pickle, version) in the FLAME folder; FlameFileNotFoundError names what is missing."""
     if version not in ("auto", *MODEL_FILES):
-        raise ValueError(f"unknown FLAME version '{version}'; choose auto, 2023 or 2020")
+        raise OptionError(f"unknown FLAME version '{version}'; choose auto, 2023 or 2020")
     folder = resolve_flame_dir(flame_dir)
     candidates = ["2023", "2020"] if version == "auto" else [version]
     model_path, found_version = None, None
@@ -106,17 +111,17 @@ def flame_head_data(model: dict, masks: dict, source: str = "<flame>", masks_sou
                     version: str = "unknown") -> HeadModelData:
     """Convert the plain dicts of a FLAME model pickle and a masks pickle into HeadModelData."""
     if not isinstance(model, dict):
-        raise ValueError(f"{source}: expected a dict of FLAME arrays, found {type(model).__name__}")
+        raise FlameFileError(f"{source}: expected a dict of FLAME arrays, found {type(model).__name__}")
     missing = [k for k in _REQUIRED_KEYS if k not in model]
     if missing:
-        raise ValueError(f"{source}: not a FLAME model, keys missing: {', '.join(missing)}")
+        raise FlameFileError(f"{source}: not a FLAME model, keys missing: {', '.join(missing)}")
 
     v_template = np.asarray(model["v_template"], dtype=np.float32)  # [V, 3]
     num_vertices = v_template.shape[0]
     faces = np.asarray(model["f"], dtype=np.int64)  # [F, 3]
     dirs = np.asarray(model["shapedirs"], dtype=np.float32)  # [V, 3, 300 + 100]
     if dirs.ndim != 3 or dirs.shape[:2] != (num_vertices, 3):
-        raise ValueError(f"{source}: shapedirs has shape {dirs.shape}, expected [{num_vertices}, 3, modes]")
+        raise FlameFileError(f"{source}: shapedirs has shape {dirs.shape}, expected [{num_vertices}, 3, modes]")
     num_shape = min(FLAME_SHAPE_DIM, dirs.shape[2])  # FLAME stores 300 identity then the expression modes
     shapedirs, exprdirs = dirs[:, :, :num_shape], dirs[:, :, num_shape:]
     j_regressor = model["J_regressor"]
@@ -127,7 +132,7 @@ def flame_head_data(model: dict, masks: dict, source: str = "<flame>", masks_sou
     kintree = np.asarray(model["kintree_table"]).astype(np.int64)  # [2, J]; root parent is 2**32-1
     parents = tuple(int(p) for p in kintree[0, 1:])
     if kintree.shape != (2, len(JOINT_NAMES)) or parents != PARENTS[1:]:
-        raise ValueError(f"{source}: kinematic tree {kintree.tolist()} is not FLAME's 5-joint chain {PARENTS}")
+        raise FlameFileError(f"{source}: kinematic tree {kintree.tolist()} is not FLAME's 5-joint chain {PARENTS}")
 
     regions = _read_regions(masks, masks_source, num_vertices)
     ring_upper, ring_lower = _lip_rings(masks, v_template, masks_source)
@@ -158,20 +163,20 @@ def flame_head_data(model: dict, masks: dict, source: str = "<flame>", masks_sou
     try:
         return data.validate()
     except ValueError as err:
-        raise ValueError(f"{source}: {err}") from err
+        raise FlameFileError(f"{source}: {err}") from err
 
 
 def _read_regions(masks, masks_source: str, num_vertices: int) -> dict[str, np.ndarray]:
     if not isinstance(masks, dict):
-        raise ValueError(f"{masks_source}: expected a dict of region name -> vertex ids, found {type(masks).__name__}")
+        raise FlameFileError(f"{masks_source}: expected a dict of region name -> vertex ids, found {type(masks).__name__}")
     missing = [name for name in REGION_NAMES if name not in masks]
     if missing:
-        raise ValueError(f"{masks_source}: FLAME masks file lacks the regions {', '.join(missing)}")
+        raise FlameFileError(f"{masks_source}: FLAME masks file lacks the regions {', '.join(missing)}")
     regions = {}
     for name in REGION_NAMES:
         ids = np.asarray(masks[name]).astype(np.int64).ravel()
         if ids.size and (ids.min() < 0 or ids.max() >= num_vertices):
-            raise ValueError(f"{masks_source}: region '{name}' has vertex ids outside 0..{num_vertices - 1}")
+            raise FlameFileError(f"{masks_source}: region '{name}' has vertex ids outside 0..{num_vertices - 1}")
         regions[name] = ids
     return regions
 
@@ -185,7 +190,7 @@ def _lip_rings(masks: dict, v_template: np.ndarray, masks_source: str) -> tuple[
         rings = [np.asarray(FLAME_LIP_RING_UPPER, np.int64), np.asarray(FLAME_LIP_RING_LOWER, np.int64)]
         origin = "FLAME's topology (VHAP / GaussianAvatars inner lip rings)"
     else:
-        raise ValueError(
+        raise FlameFileError(
             f"{masks_source}: the model has {v_template.shape[0]} vertices, not FLAME's {FLAME_NUM_VERTICES}, so "
             "FLAME's lip-ring vertex ids do not apply; add keys 'lip_ring_upper' and 'lip_ring_lower' "
             "(15 vertex ids each, along the mouth opening) to the masks file"
@@ -193,7 +198,7 @@ def _lip_rings(masks: dict, v_template: np.ndarray, masks_source: str) -> tuple[
     out = []
     for name, ring in zip(("upper", "lower"), rings):
         if ring.shape != (15,) or ring.min() < 0 or ring.max() >= v_template.shape[0]:
-            raise ValueError(f"lip ring '{name}' from {origin} must be 15 valid vertex ids, got {ring.tolist()}")
+            raise FlameFileError(f"lip ring '{name}' from {origin} must be 15 valid vertex ids, got {ring.tolist()}")
         x = v_template[ring, 0]
         if x[0] > x[-1]:  # store from the subject's right corner (smaller x) to the left corner
             ring = ring[::-1].copy()

@@ -34,11 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
+from geoavatar.errors import GeoAvatarError
+
 SPARSE_CLASSES = ("csc_matrix", "csr_matrix", "coo_matrix", "csc_array", "csr_array", "coo_array")
 
 
-class ForbiddenPickleGlobal(pickle.UnpicklingError):
+class ForbiddenPickleGlobal(GeoAvatarError, pickle.UnpicklingError):
     """The pickle names a global outside the allow-list (it could run code when loaded)."""
+
+
+class UnreadablePickle(GeoAvatarError, pickle.UnpicklingError):
+    """The file is not a pickle this loader can read (truncated, foreign objects); the message names it."""
 
 
 class ChumpyStandIn:
@@ -57,7 +63,7 @@ class ChumpyStandIn:
     def to_array(self, source: str) -> np.ndarray:
         value = getattr(self, "state", {}).get("x")
         if value is None:
-            raise pickle.UnpicklingError(
+            raise UnreadablePickle(
                 f"{source}: a chumpy object of class {self.chumpy_path} holds no array in attribute 'x'; "
                 "only plain chumpy.ch.Ch values are supported (re-save the model with numpy arrays)"
             )
@@ -92,7 +98,7 @@ class SparseStandIn:
                 row, col = st["row"], st["col"]
             return sp.coo_matrix((st["data"], (row, col)), shape=shape)
         except (KeyError, ValueError, TypeError) as err:
-            raise pickle.UnpicklingError(
+            raise UnreadablePickle(
                 f"{source}: cannot rebuild a scipy.sparse {self.sparse_format} matrix from its pickled state "
                 f"(keys {sorted(self.state)}): {err}"
             ) from err
@@ -111,7 +117,7 @@ def _numpy_global(submodule: str, name: str):
 def _latin1_encode(text: str, encoding: str = "latin1") -> bytes:
     """The one use of _codecs.encode in protocol-2 pickles: bytes stored as latin1 text."""
     if encoding not in ("latin1", "latin-1") or not isinstance(text, str):
-        raise pickle.UnpicklingError(f"_codecs.encode with encoding {encoding!r} is not allowed in a model pickle")
+        raise UnreadablePickle(f"_codecs.encode with encoding {encoding!r} is not allowed in a model pickle")
     return codecs.encode(text, "latin1")
 
 
@@ -186,5 +192,5 @@ def loads_restricted(data: bytes, source: str = "<pickle>"):
     except ForbiddenPickleGlobal:
         raise
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError) as err:
-        raise pickle.UnpicklingError(f"{source}: not a readable pickle ({type(err).__name__}: {err})") from err
+        raise UnreadablePickle(f"{source}: not a readable pickle ({type(err).__name__}: {err})") from err
     return to_plain(obj, source)

@@ -44,6 +44,7 @@ import torch
 
 from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
+from geoavatar.errors import GeoAvatarError
 
 FORMAT = "geoavatar-checkpoint"
 VERSION = 1
@@ -56,7 +57,7 @@ LOG_FILE = "train.log"
 VAL_DIR = "val"
 
 
-class RunError(ValueError):
+class RunError(GeoAvatarError, ValueError):
     """A RUN folder or checkpoint is missing or unusable; the message names the path."""
 
 

@@ -45,6 +45,7 @@ from geoavatar.avatar import densify as densify_ops
 from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
 from geoavatar.data.subject import Subject
+from geoavatar.errors import GeoAvatarError
 from geoavatar.render import RasterizeResult, rasterize
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.frame_params import FrameParams
@@ -54,7 +55,7 @@ OPTIMIZER_NAMES = ("gaussians", "tracking", "deformer")
 MLP_ADAM_EPS = 1e-8  # the mouth MLPs use Adam's usual eps; GaussianAvatars' 1e-15 is for the Gaussians
 
 
-class TrainingDiverged(RuntimeError):
+class TrainingDiverged(GeoAvatarError, RuntimeError):
     """The loss became NaN or infinite; the message says where and which checkpoint is intact."""
 
 
