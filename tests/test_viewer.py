@@ -102,3 +102,40 @@ def test_head_turn_edit_turns_the_head_about_its_centre(run):
 def test_view_command_starts_and_stops(run, capsys):
     assert view_app.view(run.info.run_dir, port=free_port(), device="cpu", serve_forever=False) == 0
     assert "http://127.0.0.1:" in capsys.readouterr().out
+
+
+def sent_splats(handle) -> tuple[np.ndarray, np.ndarray]:
+    """(centres [N, 3], covariance upper triangles [N, 6]) exactly as viser packs them for the browser:
+    rows of 8 uint32 words, float32 centre in words 0-2, float16 covariance terms in words 4-6."""
+    buffer = np.asarray(handle.buffer)
+    assert buffer.dtype == np.uint32 and buffer.ndim == 2 and buffer.shape[1] == 8
+    centres = np.ascontiguousarray(buffer[:, 0:3]).view(np.float32)
+    covariance = np.ascontiguousarray(buffer[:, 4:7]).view(np.float16).astype(np.float32)
+    return centres, covariance
+
+
+def test_viewer_sends_only_finite_positions(run):
+    """The browser must get finite centres, finite positive-diagonal covariances (float16: no overflow) and a
+    finite initial camera, for the first frame and for extreme edits (a NaN here would give three.js a NaN
+    bounding sphere)."""
+    viewer = view_app.start_viewer(run, port=free_port(), expr_sliders=4)
+    try:
+        def check() -> None:
+            centres, cov = sent_splats(viewer.splats)
+            assert centres.shape == (run.avatar.num_gaussians, 3)
+            assert np.isfinite(centres).all() and np.isfinite(cov).all()
+            assert (cov[:, [0, 3, 5]] >= 0).all() and (cov[:, [0, 3, 5]].sum(axis=1) > 0).all()
+
+        check()
+        camera = viewer.server.initial_camera
+        for value in (camera.position, camera.look_at, camera.up, (camera.fov,)):
+            assert np.isfinite(np.asarray(value, dtype=np.float64)).all()
+        assert 0.0 < camera.fov < math.pi
+        for slider in viewer.expr:
+            slider.value = slider.max
+        viewer.jaw.value, viewer.yaw.value, viewer.pitch.value = 0.5, 45.0, -45.0
+        check()
+        viewer.frame.value = len(viewer.frames) - 1
+        check()
+    finally:
+        viewer.stop()

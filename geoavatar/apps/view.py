@@ -15,6 +15,13 @@ parameters); an edited frame is a new animation and uses T = 0.
 `start_viewer(...)` returns a running `Viewer` (tests and notebooks: `viewer.stop()` ends it);
 `view(...)` serves until Ctrl-C. The server listens on 127.0.0.1 unless --host says otherwise: only
 this machine can connect (use --host 0.0.0.0 to serve the network, e.g. through an SSH tunnel's far end).
+
+Browser console: viser 1.1.1's client logs "THREE.BufferGeometry.computeBoundingSphere(): Computed radius
+is NaN" once per splat set. It is not our data (every centre, covariance and the initial camera we send
+are finite; tests/test_viewer.py decodes viser's packed buffer to check): viser draws each splat on a
+quad whose "position" attribute has 2 components (client/src/Splatting/GaussianSplatsHelpers.ts), and
+three.js's frustum test reads 3, so the quad's bounding sphere is NaN. The NaN sphere never culls, so
+the avatar always draws; the message goes away when viser marks that mesh frustumCulled={false}.
 """
 
 from __future__ import annotations
