@@ -43,10 +43,13 @@ def bench_camera(run: LoadedRun, frames: RunFrames, resolution: int) -> Camera:
         return Camera(look_at(eye, centre), intrinsics_from_fov(14.0, resolution, resolution, "y"), resolution, resolution)
 
 
-def _time(fn, iterations: int, warmup: int, device: torch.device) -> float:
-    """Mean wall seconds of fn(i) over `iterations` calls, after `warmup` untimed ones."""
+def _time(fn, iterations: int, warmup: int, device: torch.device, bar=None) -> float:
+    """Mean wall seconds of fn(i) over `iterations` calls, after `warmup` untimed ones (`bar`: a tqdm
+    advanced once per call, updated outside the timed span)."""
     for i in range(warmup):
         fn(i)
+        if bar is not None:
+            bar.update(1)
     synchronize(device)
     total = 0.0
     for i in range(iterations):
@@ -55,12 +58,14 @@ def _time(fn, iterations: int, warmup: int, device: torch.device) -> float:
         fn(warmup + i)
         synchronize(device)
         total += time.perf_counter() - start
+        if bar is not None:
+            bar.update(1)
     return total / iterations
 
 
 @torch.no_grad()
 def run_bench(run: LoadedRun, resolution: int = 512, iterations: int = 20, warmup: int = 3,
-              backend: str = "auto") -> dict:
+              backend: str = "auto", show_progress: bool = False) -> dict:
     """Seconds per frame of each stage; returns a JSON-able report."""
     if resolution <= 0 or iterations <= 0 or warmup < 0:
         raise ValueError(f"--resolution and --iterations must be positive and --warmup >= 0, got "
@@ -79,12 +84,17 @@ def run_bench(run: LoadedRun, resolution: int = 512, iterations: int = 20, warmu
     def full(i: int) -> None:
         rasterize_gaussians(run.avatar(posed_head_vertices(run, params_of(i))), camera, background, backend)
 
-    seconds = {
-        STAGES[0]: _time(lambda i: posed_head_vertices(run, params_of(i)), iterations, warmup, device),
-        STAGES[1]: _time(lambda i: run.avatar(fixed_vertices), iterations, warmup, device),
-        STAGES[2]: _time(lambda i: rasterize_gaussians(fixed, camera, background, backend), iterations, warmup, device),
-        STAGES[3]: _time(full, iterations, warmup, device),
-    }
+    from tqdm.auto import tqdm
+
+    with tqdm(total=len(STAGES) * (iterations + warmup), disable=not show_progress, desc="bench", unit="frame",
+              dynamic_ncols=True) as bar:
+        seconds = {
+            STAGES[0]: _time(lambda i: posed_head_vertices(run, params_of(i)), iterations, warmup, device, bar),
+            STAGES[1]: _time(lambda i: run.avatar(fixed_vertices), iterations, warmup, device, bar),
+            STAGES[2]: _time(lambda i: rasterize_gaussians(fixed, camera, background, backend), iterations, warmup,
+                             device, bar),
+            STAGES[3]: _time(full, iterations, warmup, device, bar),
+        }
     return {
         "run": str(run.info.run_dir),
         "device": str(device) if device.type != "cuda" else f"{device} ({torch.cuda.get_device_name(device)})",
@@ -123,6 +133,7 @@ def bench(
     device: str = "auto",
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
+    progress: bool = True,
 ) -> int:
     """Measure frames per second of the full animation path and of rasterization alone.
 
@@ -138,10 +149,11 @@ def bench(
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
+        progress: Show progress bars.
     """
     with command_errors("bench"):
         loaded = open_run(run, device, flame_dir)
-        report = run_bench(loaded, resolution, iterations, warmup, backend)
+        report = run_bench(loaded, resolution, iterations, warmup, backend, progress)
         if out is not None:
             atomic_write_json(out, report)
     print(format_report(report))

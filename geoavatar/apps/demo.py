@@ -79,6 +79,7 @@ def demo(
     seed: int = DemoSettings.seed,
     device: str = "auto",
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
+    progress: bool = True,
 ) -> int:
     """Run the whole pipeline on a generated subject and write OUT/report.md.
 
@@ -100,6 +101,7 @@ def demo(
         backend: Rasterizer of every stage: auto (gsplat on CUDA, the native cpu kernel on CPU when it
             builds, else torch), cpu, torch or gsplat; `--backend torch` times the demo without the
             native kernel.
+        progress: Show progress bars.
     """
     from geoavatar.apps.eval import eval_runs
     from geoavatar.apps.orbit import orbit
@@ -120,26 +122,29 @@ def demo(
     timer = StageTimer(out / "timings.json")
 
     timer.run("generate subject", lambda: is_layout(data),
-              lambda: synth(out=data, subject=0, frames=frames, size=size, seed=seed, preview=True))
+              lambda: synth(out=data, subject=0, frames=frames, size=size, seed=seed, preview=True,
+                            progress=progress))
     timer.run("generate driver", lambda: is_layout(driver),
-              lambda: synth(out=driver, subject=DRIVER_SUBJECT, frames=driver_frames, size=size, seed=seed + 1))
+              lambda: synth(out=driver, subject=DRIVER_SUBJECT, frames=driver_frames, size=size, seed=seed + 1,
+                            progress=progress))
     final_ckpt = run / "checkpoints" / "final.pt"
     resume = (run / "checkpoints" / "last.pt").is_file()
     timer.run("train GeoAvatar (preset E)", final_ckpt.is_file,
               lambda: _checked(train(data=data, out=run, preset=None if resume else "E", steps=None if resume else steps,
                                      resolution=resolution, resume=resume, seed=seed, device=device,
-                                     backend=backend), "train"))
+                                     backend=backend, progress=progress), "train"))
     timer.run("evaluate (test split)", metrics_json.is_file,
-              lambda: _checked(eval_runs([run], split="test", device=device, backend=backend), "eval"))
+              lambda: _checked(eval_runs([run], split="test", device=device, backend=backend, progress=progress), "eval"))
     timer.run("render test re-enactment", videos["render"].is_file,
-              lambda: _checked(render(run, split="test", out=videos["render"], device=device, backend=backend),
+              lambda: _checked(render(run, split="test", out=videos["render"], device=device, backend=backend,
+                                      progress=progress),
                                "render"))
     timer.run("render novel-view orbit", videos["orbit"].is_file,
               lambda: _checked(orbit(run, out=videos["orbit"], frames=DemoSettings.orbit_frames, device=device,
-                                     backend=backend), "orbit"))
+                                     backend=backend, progress=progress), "orbit"))
     timer.run("render cross re-enactment", videos["reenact"].is_file,
               lambda: _checked(reenact(run, driver=driver, out=videos["reenact"], relative=True, device=device,
-                                               backend=backend),
+                                       backend=backend, progress=progress),
                                "reenact"))
 
     stills = {name: out / f"{name}.png" for name in videos}

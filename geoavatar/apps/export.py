@@ -164,7 +164,7 @@ def export(
         overwrite: Replace an existing --sequence folder.
         device: cpu, auto (CUDA when available), cuda or cuda:N.
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
-        progress: Show a progress bar (--sequence).
+        progress: Show progress bars.
     """
     with command_errors("export"):
         if frame is not None and sequence:

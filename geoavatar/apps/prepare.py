@@ -4,14 +4,20 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
+
+import tyro
 
 from geoavatar.prep.errors import PrepareError
 from geoavatar.prep.pipeline import PrepareConfig, run_prepare
 
 
+# The input video: the subject of the command, first and positional (`geoavatar prepare talk.mp4 --out data/talk`).
+VideoPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="VIDEO")]
+
+
 def prepare(
-    video: Path,
+    video: VideoPath,
     out: Path,
     head: Literal["openhead", "flame"] = "openhead",
     size: int = 512,

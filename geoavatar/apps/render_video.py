@@ -87,7 +87,7 @@ def render(
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
-        progress: Show a progress bar.
+        progress: Show progress bars.
     """
     with command_errors("render"):
         loaded = open_run(run, device, flame_dir)

@@ -17,6 +17,7 @@ def synth(
     seed: int = 0,
     preview: bool = False,
     tracking_noise: bool = True,
+    progress: bool = True,
 ) -> None:
     """Generate a synthetic monocular head video with known ground truth, in the VHAP layout.
 
@@ -36,6 +37,7 @@ def synth(
         seed: Seed of the motion script and the tracker error (the actor is fixed by --subject).
         preview: Also write preview.png, a contact sheet across the sequence with side views.
         tracking_noise: Add tracker-like error to the written parameters (off: they equal the ground truth).
+        progress: Show progress bars.
     """
     try:
         get_subject(subject)  # clear error for --subject outside 0..NUM_SUBJECTS-1
@@ -43,7 +45,7 @@ def synth(
             subject=subject, frames=frames, size=size, seed=seed,
             tracking_noise=TrackingNoise(enabled=tracking_noise),
         )
-        generate_dataset(Path(out), config, preview=preview, progress=True)
+        generate_dataset(Path(out), config, preview=preview, progress=progress)
     except (FileExistsError, NotADirectoryError, ValueError) as err:
         raise SystemExit(f"geoavatar synth: {err}") from None
     print(f"wrote {out}" + (f" (preview: {Path(out) / PREVIEW_FILE})" if preview else ""))
