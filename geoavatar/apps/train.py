@@ -59,7 +59,7 @@ def train(
             else the INSTA rule: last 350, or the last 25 % of a short video).
         flame_dir: Folder with your FLAME model files (datasets tracked with FLAME only).
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
-        progress: Show a progress bar.
+        progress: Show progress bars.
     """
     if steps is not None and steps <= 0:
         raise SystemExit(f"geoavatar train: --steps must be positive, got {steps}")
