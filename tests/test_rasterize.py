@@ -427,3 +427,15 @@ def test_parity_with_gsplat_on_cuda():
         assert rel < 1e-3, f"{name}: relative gradient difference {rel:.2e}"
     rel = (t_out.means2d.grad - g_out.means2d.grad).norm() / g_out.means2d.grad.norm()
     assert rel < 1e-3
+
+
+def test_value_checks_can_be_sampled_but_shapes_are_always_checked():
+    scene = _valid_scene()
+    scene["means"] = scene["means"].index_fill(0, torch.tensor([1]), float("nan"))
+    with pytest.raises(ValueError, match="'means' contains 3 NaN/Inf"):
+        rasterize(**scene, backend="torch")
+    rasterize(**scene, backend="torch", check_values=False)  # a loop's unsampled step: no device sync
+    scene = _valid_scene()
+    scene["colors"] = scene["colors"][:4]
+    with pytest.raises(ValueError, match="colors"):
+        rasterize(**scene, backend="torch", check_values=False)

@@ -3,7 +3,8 @@
 All backends follow gsplat 1.5.3's conventions (see torch_backend's docstring); the torch backend
 runs anywhere (CPU or CUDA tensors), "cpu" is the native C++/OpenMP kernel for CPU tensors (built on
 first use, cpu_backend.py), gsplat runs only on CUDA. Inputs are validated here, once, so every
-backend gets the same clear errors.
+backend gets the same clear errors (gsplat itself asserts shapes only). The value checks (NaN/Inf,
+ranges) cost one device sync; `check_values=False` skips them for loops that sample them.
 
 A batch of cameras is supported: pass viewmat [C, 4, 4] and K [C, 3, 3] (and background [3] or
 [C, 3]); every output then gains a leading C dimension.
@@ -39,7 +40,7 @@ class RasterizeResult:
 
 
 def _check_tensor(name: str, value, shapes: tuple[tuple, ...], dtype=None, device=None) -> Tensor:
-    """Type, shape (None = any size), floating dtype, device and finiteness of one argument."""
+    """Type, shape (None = any size), floating dtype and device of one argument (no device sync)."""
     if not isinstance(value, Tensor):
         raise TypeError(f"rasterize: argument '{name}' must be a torch.Tensor, got {type(value).__name__}")
     if not any(
@@ -56,14 +57,49 @@ def _check_tensor(name: str, value, shapes: tuple[tuple, ...], dtype=None, devic
             f"rasterize: argument '{name}' is on device {value.device} but 'means' is on {device}; "
             "move all inputs to one device"
         )
-    if not bool(torch.isfinite(value).all()):
-        bad = int((~torch.isfinite(value)).sum())
-        raise ValueError(f"rasterize: argument '{name}' contains {bad} NaN/Inf value(s)")
     return value
 
 
-def validate_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background):
-    """Check every argument; returns (viewmats [C,4,4], Ks [C,3,3], backgrounds [C,3], batched)."""
+@torch.no_grad()
+def check_input_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds) -> None:
+    """Value checks of the (shape-checked) inputs: finiteness, unit-able quaternions, scales >= 0,
+    opacities in [0, 1], rigid viewmats, pinhole Ks. Every condition is reduced on the device and
+    read back in ONE transfer (one sync on CUDA); the first failing one raises ValueError."""
+    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+               "viewmat": viewmats, "K": Ks, "background": backgrounds}
+    problems: list[tuple[Tensor, str]] = [(~torch.isfinite(value).all(), name) for name, value in tensors.items()]
+    last_row = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=means.dtype, device=means.device)
+    no = torch.zeros((), dtype=torch.bool, device=means.device)
+    problems += [
+        ((quats.norm(dim=-1) < 1e-12).any() if len(quats) else no,
+         "rasterize: argument 'quats' has zero-length quaternion(s); they cannot be normalised"),
+        ((scales < 0).any() if len(scales) else no,
+         "rasterize: argument 'scales' has negative values; scales are linear (pass exp(log_scales))"),
+        (((opacities < 0) | (opacities > 1)).any() if len(opacities) else no,
+         "rasterize: argument 'opacities' must lie in [0, 1] (pass sigmoid(logits))"),
+        ((viewmats[:, 3] - last_row).abs().max() > 1e-6,
+         "rasterize: argument 'viewmat' must be a rigid world-to-camera matrix with last row [0,0,0,1]"),
+        ((Ks[:, 2] - last_row[1:]).abs().max() > 1e-6,
+         "rasterize: argument 'K' must be a pinhole intrinsic matrix with last row [0,0,1]"),
+        ((Ks[:, 0, 0] <= 0).any() | (Ks[:, 1, 1] <= 0).any(),
+         "rasterize: argument 'K' must have positive focal lengths K[0,0], K[1,1]"),
+    ]
+    failed = torch.stack([flag for flag, _ in problems]).tolist()  # the one read-back
+    for (_, message), bad in zip(problems, failed):
+        if bad and message in tensors:  # a finiteness flag: count the culprits (error path only)
+            value = tensors[message]
+            count = int((~torch.isfinite(value)).sum())
+            raise ValueError(f"rasterize: argument '{message}' contains {count} NaN/Inf value(s)")
+        if bad:
+            raise ValueError(message)
+
+
+def validate_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
+                    values: bool = True):
+    """Check every argument; returns (viewmats [C,4,4], Ks [C,3,3], backgrounds [C,3], batched).
+
+    Types, shapes, dtypes and devices are checked on every call (free); `values` adds check_input_values
+    (one device sync), which a training loop runs at a sampled cadence."""
     _check_tensor("means", means, ((None, 3),))
     n, dtype, device = means.shape[0], means.dtype, means.device
     if dtype not in (torch.float32, torch.float64):
@@ -77,13 +113,6 @@ def validate_inputs(means, quats, scales, opacities, colors, viewmat, K, width, 
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
             raise ValueError(f"rasterize: argument '{name}' must be a positive int, got {value!r}")
-    with torch.no_grad():
-        if n and bool((quats.norm(dim=-1) < 1e-12).any()):
-            raise ValueError("rasterize: argument 'quats' has zero-length quaternion(s); they cannot be normalised")
-        if n and bool((scales < 0).any()):
-            raise ValueError("rasterize: argument 'scales' has negative values; scales are linear (pass exp(log_scales))")
-        if n and bool(((opacities < 0) | (opacities > 1)).any()):
-            raise ValueError("rasterize: argument 'opacities' must lie in [0, 1] (pass sigmoid(logits))")
     batched = viewmat.dim() == 3
     viewmats = viewmat if batched else viewmat[None]
     Ks = K if K.dim() == 3 else K[None]
@@ -95,19 +124,13 @@ def validate_inputs(means, quats, scales, opacities, colors, viewmat, K, width, 
     cameras = viewmats.shape[0]
     if cameras == 0:
         raise ValueError("rasterize: argument 'viewmat' holds no camera")
-    with torch.no_grad():
-        last_row = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device)
-        if bool((viewmats[:, 3] - last_row).abs().max() > 1e-6):
-            raise ValueError("rasterize: argument 'viewmat' must be a rigid world-to-camera matrix with last row [0,0,0,1]")
-        if bool((Ks[:, 2] - last_row[1:]).abs().max() > 1e-6):
-            raise ValueError("rasterize: argument 'K' must be a pinhole intrinsic matrix with last row [0,0,1]")
-        if bool((Ks[:, 0, 0] <= 0).any() | (Ks[:, 1, 1] <= 0).any()):
-            raise ValueError("rasterize: argument 'K' must have positive focal lengths K[0,0], K[1,1]")
     if background is None:
         backgrounds = torch.zeros(cameras, 3, dtype=dtype, device=device)
     else:
         _check_tensor("background", background, ((3,), (cameras, 3)), dtype, device)
         backgrounds = background.expand(cameras, 3) if background.dim() == 1 else background
+    if values:
+        check_input_values(means, quats, scales, opacities, colors, viewmats, Ks, backgrounds)
     return viewmats, Ks, backgrounds, batched
 
 
@@ -123,6 +146,7 @@ def rasterize(
     height: int,
     background: Optional[Tensor] = None,  # [3] or [C, 3]; None = black
     backend: Backend = "auto",
+    check_values: bool = True,  # value checks (one device sync); shapes/dtypes/devices are always checked
 ) -> RasterizeResult:
     """Render Gaussians to an image, differentiably in every floating-point input.
 
@@ -134,7 +158,7 @@ def rasterize(
     if backend not in BACKENDS:
         raise ValueError(f"rasterize: argument 'backend' must be one of {BACKENDS}, got {backend!r}")
     viewmats, Ks, backgrounds, batched = validate_inputs(
-        means, quats, scales, opacities, colors, viewmat, K, width, height, background
+        means, quats, scales, opacities, colors, viewmat, K, width, height, background, values=check_values
     )
     if backend == "auto":
         on_cuda = means.device.type == "cuda" and means.dtype == torch.float32
