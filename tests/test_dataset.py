@@ -143,6 +143,58 @@ def test_image_size_mismatch_is_named(subject):
         HeadAvatarDataset(subject, "train")[0]
 
 
+def test_every_bad_file_is_named_before_any_frame_is_decoded(subject, monkeypatch):
+    from PIL import Image
+
+    frames = subject.frames
+    frames[0].image_path.write_bytes(b"\x89PNG\r\n\x1a\n garbage, not an image")  # corrupt
+    Image.fromarray(np.zeros((10, 12, 3), np.uint8)).save(frames[2].image_path)  # wrong size
+    data = frames[3].image_path.read_bytes()
+    frames[3].image_path.write_bytes(data[: len(data) // 2])  # truncated: header intact, no IEND
+    Image.fromarray(np.zeros((HEIGHT, WIDTH + 1), np.uint8)).save(frames[4].mask_path)  # mask of the wrong size
+    frames[5].mask_path.unlink()
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the check decoded an image")
+
+    monkeypatch.setattr(dataset_module, "decode_frame", fail)
+    with pytest.raises(DatasetError) as raised:
+        HeadAvatarDataset(subject, "train")  # made, not yet read: training would not reach step 0
+    message = str(raised.value)
+    assert "\n" not in message and message.startswith("5 bad image files: ")
+    assert f"{frames[0].image_path}: not a readable image" in message
+    assert f"{frames[2].image_path} is 12x10 but " in message and "declares 64x48" in message
+    assert f"{frames[3].image_path}: truncated PNG" in message
+    assert f"{frames[4].mask_path} is 65x48" in message
+    assert f"file not found: {frames[5].mask_path}" in message
+    assert str(frames[1].image_path) not in message  # good files are not named
+    # The test split's frames (6, 7) are untouched: that split still opens.
+    assert len(HeadAvatarDataset(subject, "test")) == 2
+
+
+def test_bad_file_list_is_capped(tmp_path):
+    _write(tmp_path / "many", frames=14, test_frames=1)
+    subject = open_subject(tmp_path / "many")
+    for frame in subject.frames:
+        frame.image_path.write_bytes(b"not a png")
+    with pytest.raises(DatasetError, match=r"^13 bad image files: .*; and 3 more$") as raised:
+        HeadAvatarDataset(subject, "train")
+    assert str(raised.value).count("not a readable image") == dataset_module.MAX_NAMED
+
+
+def test_header_check_accepts_jpeg_and_rgba_png(tmp_path):
+    from PIL import Image
+
+    image = Image.fromarray(np.random.default_rng(0).integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8))
+    image.save(tmp_path / "a.jpg", quality=90)
+    image.convert("RGBA").save(tmp_path / "b.png")
+    for name in ("a.jpg", "b.png"):
+        assert dataset_module.header_problem(tmp_path / name, WIDTH, HEIGHT, "test") is None
+    data = (tmp_path / "a.jpg").read_bytes()
+    (tmp_path / "c.jpg").write_bytes(data[: len(data) - 200])
+    assert "truncated JPEG" in dataset_module.header_problem(tmp_path / "c.jpg", WIDTH, HEIGHT, "test")
+
+
 # --- splits ----------------------------------------------------------------------------------------
 
 

@@ -25,6 +25,10 @@ upscaled) and K is scaled with them. With cache="memory" every frame of the spli
 300 frames at 512 x 512 take 300 * 512 * 512 * 4 B = 315 MB, and a training step then reads
 memory instead of decoding PNGs. Fill the cache before forking DataLoader workers (`preload()`),
 or use num_workers=0, since workers' caches do not flow back to the parent.
+
+Every image and mask of the split is checked when the dataset is made (`check_frame_files`: the file's
+header, its size against the frame record, a PNG's IEND / a JPEG's EOI marker at the end), so a corrupt,
+truncated or wrongly sized file stops training before step 0, with every bad file named at once.
 """
 
 from __future__ import annotations
@@ -133,6 +137,7 @@ class HeadAvatarDataset(Dataset):
         self.sizes = [_target_size(f.width, f.height, self.config.resolution) for f in self.frames]  # (w, h)
         self.background = torch.tensor(subject.info.background, dtype=torch.float32)  # [3]
         self._cache: list[tuple[Tensor, Tensor] | None] = [None] * len(self.frames)  # uint8 RGB, mask
+        check_frame_files(self.frames)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -222,9 +227,58 @@ def _open(path: Path, frame: FrameRecord) -> Image.Image:
     return image
 
 
+MAX_NAMED = 10  # bad files named in one error; the rest are counted
+_TAIL = 1024  # bytes read from the end of a file to find its end marker
+_END_MARKERS = {"PNG": b"IEND\xaeB`\x82", "JPEG": b"\xff\xd9"}  # IEND chunk type + its CRC; JPEG's EOI
+
+
+def header_problem(path: Path, width: int, height: int, where: str) -> str | None:
+    """What is wrong with one image file, from its header and its last bytes (no decoding), or None."""
+    try:
+        with Image.open(path) as image:
+            size, kind = image.size, image.format
+    except FileNotFoundError:
+        return f"{where}: file not found: {path}"
+    except (UnidentifiedImageError, OSError) as err:
+        return f"{path}: not a readable image ({err})"
+    if size != (width, height):
+        return f"{path} is {size[0]}x{size[1]} but {where} declares {width}x{height}"
+    marker = _END_MARKERS.get(kind or "")
+    if marker is not None:
+        try:
+            with open(path, "rb") as file:
+                file.seek(max(0, os.fstat(file.fileno()).st_size - _TAIL))
+                tail = file.read()
+        except OSError as err:
+            return f"{path}: not a readable image ({err})"
+        if marker not in tail:
+            return f"{path}: truncated {kind} (no end marker in its last {_TAIL} bytes)"
+    return None
+
+
+def check_frame_files(frames: list[FrameRecord]) -> None:
+    """Check every frame's image and mask file from its header (fast: nothing is decoded); raise one
+    DatasetError naming every bad file (the first MAX_NAMED of them, and how many more)."""
+    problems: list[str] = []
+    for frame in frames:
+        for path in (frame.image_path, frame.mask_path):
+            if path is not None:
+                problem = header_problem(Path(path), frame.width, frame.height, frame.where)
+                if problem is not None:
+                    problems.append(problem)
+    if not problems:
+        return
+    if len(problems) == 1:
+        raise DatasetError(problems[0])
+    shown = "; ".join(problems[:MAX_NAMED])
+    more = f"; and {len(problems) - MAX_NAMED} more" if len(problems) > MAX_NAMED else ""
+    raise DatasetError(f"{len(problems)} bad image files: {shown}{more}")
+
+
 def open_dataset(root: str | os.PathLike, split: str = "train", config: DataConfig | None = None, **head_options) -> HeadAvatarDataset:
     """open_subject + HeadAvatarDataset in one call."""
     return HeadAvatarDataset(open_subject(root), split, config, head_options=head_options)
 
 
-__all__ = ["DataConfig", "HeadAvatarDataset", "check_head_model", "decode_frame", "open_dataset", "open_subject"]
+__all__ = ["DataConfig", "HeadAvatarDataset", "check_frame_files", "check_head_model", "decode_frame", "open_dataset",
+           "open_subject"]
