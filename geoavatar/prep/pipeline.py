@@ -8,13 +8,20 @@ Output folder OUT:
     OUT/report.json       per-frame reprojection error, missing frames, focal, timings
     OUT/.prepare/         work files of the stages and their completion markers
 
-Stages (each writes `.prepare/<stage>.json` last; a re-run skips a stage whose marker exists and
-whose options key matches, and redoes it and every later stage otherwise):
+Stages (each writes `.prepare/<stage>.json` last, holding its key; a re-run skips a stage whose marker
+holds the key it would have now, and redoes it and every stage that depends on it otherwise):
     frames     decode, face detection on whole frames, smoothed square crop, crops as PNG
     landmarks  face mesh on the crops, One-Euro filtering, confidence, missing frames
     masks      selfie segmentation x landmark head region (see geoavatar.prep.masks)
     tracking   the head-model fit (geoavatar.prep.tracking)
     write      the dataset through LayoutWriter, then the overlay video and the report
+
+A stage's key is the sha256 of the canonical JSON of {its version, its config, its upstream stages'
+keys}. Its config is derived from PrepareConfig: every field names the stage that reads it
+(`_stage_field`; the class will not import with a field that does not), and the tracking stage adds
+every field of the TrackingConfig it runs with, so a new option or a changed default can never reuse
+results made without it. Upstream (DEPENDS_ON): landmarks <- frames; masks, tracking <- frames,
+landmarks; write <- all four. Changing --mask-backend redoes masks and write, not the tracking.
 
 Bad input raises PrepareError with a message naming the file or option; OUT/dataset is only ever
 created complete. A run that fails before any stage completes removes an OUT it created itself.
@@ -28,9 +35,9 @@ import math
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Any, Callable, Literal
 
 import numpy as np
 
@@ -38,32 +45,58 @@ from geoavatar.prep.errors import PrepareError
 
 STAGES = ("frames", "landmarks", "masks", "tracking", "write")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
-# later ones) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"masks": 2, "tracking": 2}
+# ones depending on it) instead of keeping outputs made the old way.
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "write": 1}
+# The stages whose outputs a stage reads: a rerun of one redoes these dependants.
+DEPENDS_ON: dict[str, tuple[str, ...]] = {
+    "frames": (),
+    "landmarks": ("frames",),
+    "masks": ("frames", "landmarks"),
+    "tracking": ("frames", "landmarks"),
+    "write": ("frames", "landmarks", "masks", "tracking"),
+}
 WORK = ".prepare"
+UNKEYED = "-"  # a PrepareConfig field no stage output depends on (where to write, logging)
+
+
+def _stage_field(stage: str, *default: Any, **kwargs) -> Any:
+    """A PrepareConfig field read by `stage` (a name of STAGES, or UNKEYED): it goes into that stage's key.
+    Without a default the field is required."""
+    if stage != UNKEYED and stage not in STAGES:
+        raise ValueError(f"unknown prepare stage '{stage}'")
+    if default:
+        kwargs["default"] = default[0]
+    return field(metadata={"stage": stage}, **kwargs)
 
 
 @dataclass
 class PrepareConfig:
-    video: Path
-    out: Path
-    head: Literal["openhead", "flame"] = "openhead"
-    size: int = 512  # side of the square crop written to the dataset
-    fps: float | None = None  # subsample to this rate (None: every frame)
-    max_frames: int | None = None
-    missing: Literal["interpolate", "drop"] = "interpolate"
-    min_frames: int = 5
-    crop_scale: float = 2.6  # crop side / face-detector box side
-    crop_sigma: float = 12.0  # temporal smoothing of the crop centre, frames
-    test_fraction: float = 0.2  # the last 20 % of the frames are the test split
-    flame_dir: Path | None = None
-    flame_landmarks: Path | None = None  # MediaPipe embedding for FLAME (default: FLAME_DIR/mediapipe_landmark_embedding.npz)
-    tracking_steps: tuple[int, int] = (100, 300)  # rigid, full
-    static_offset: bool = True  # fit a smooth static offset of the mesh (geoavatar.head.smooth_offset)
-    overlay: bool = True
-    mask_backend: str = "selfie"
-    progress: bool = True
-    log: Callable[[str], None] = field(default=print, repr=False)
+    video: Path = _stage_field("frames")  # keyed by its resolved path, size and mtime
+    out: Path = _stage_field(UNKEYED)
+    head: Literal["openhead", "flame"] = _stage_field("tracking", "openhead")
+    size: int = _stage_field("frames", 512)  # side of the square crop written to the dataset
+    fps: float | None = _stage_field("frames", None)  # subsample to this rate (None: every frame)
+    max_frames: int | None = _stage_field("frames", None)
+    missing: Literal["interpolate", "drop"] = _stage_field("landmarks", "interpolate")
+    min_frames: int = _stage_field("landmarks", 5)
+    crop_scale: float = _stage_field("frames", 2.6)  # crop side / face-detector box side
+    crop_sigma: float = _stage_field("frames", 12.0)  # temporal smoothing of the crop centre, frames
+    test_fraction: float = _stage_field("write", 0.2)  # the last 20 % of the frames are the test split
+    flame_dir: Path | None = _stage_field("tracking", None)
+    # MediaPipe embedding for FLAME (default: FLAME_DIR/mediapipe_landmark_embedding.npz)
+    flame_landmarks: Path | None = _stage_field("tracking", None)
+    tracking_steps: tuple[int, int] = _stage_field("tracking", (100, 300))  # rigid, full
+    # fit a smooth static offset of the mesh (geoavatar.head.smooth_offset)
+    static_offset: bool = _stage_field("tracking", True)
+    overlay: bool = _stage_field("write", True)
+    mask_backend: str = _stage_field("masks", "selfie")
+    progress: bool = _stage_field(UNKEYED, True)
+    log: Callable[[str], None] = _stage_field(UNKEYED, print, repr=False)
+
+
+_unassigned = [f.name for f in fields(PrepareConfig) if f.metadata.get("stage") is None]
+if _unassigned:  # a field outside every stage key would silently reuse stale stage results
+    raise TypeError(f"PrepareConfig fields without a stage (use _stage_field): {_unassigned}")
 
 
 # --- small helpers ----------------------------------------------------------------------------------
@@ -107,22 +140,22 @@ def _bar(config: PrepareConfig, total: int | None, desc: str, unit: str = "frame
 
 
 class _Stages:
-    """Completion markers `.prepare/<stage>.json` holding the options key of each stage."""
+    """Completion markers `.prepare/<stage>.json` holding the key of each stage."""
 
     def __init__(self, work: Path, keys: dict[str, str]):
         self.work, self.keys = work, keys
-        self.dirty = False  # once a stage reruns, every later stage reruns
+        self.rerun: set[str] = set()  # stages redone by this run: their dependants are redone too
 
     def done(self, stage: str) -> bool:
         marker = self.work / f"{stage}.json"
-        if self.dirty or not marker.is_file():
-            self.dirty = True
-            return False
-        try:
-            ok = json.loads(marker.read_text()).get("key") == self.keys[stage]
-        except (OSError, json.JSONDecodeError):
-            ok = False
-        self.dirty = not ok
+        ok = marker.is_file() and not self.rerun.intersection(DEPENDS_ON[stage])
+        if ok:
+            try:
+                ok = json.loads(marker.read_text()).get("key") == self.keys[stage]
+            except (OSError, json.JSONDecodeError):
+                ok = False
+        if not ok:
+            self.rerun.add(stage)
         return ok
 
     def start(self, stage: str) -> None:
@@ -132,22 +165,52 @@ class _Stages:
         _atomic_json(self.work / f"{stage}.json", {"key": self.keys[stage], **info})
 
 
-def _stage_keys(config: PrepareConfig) -> dict[str, str]:
+def tracking_config(config: PrepareConfig):
+    """The TrackingConfig the tracking stage runs with (all of its fields are part of the stage's key)."""
+    from geoavatar.prep.tracking import TrackingConfig
+
+    return TrackingConfig(rigid_steps=config.tracking_steps[0], full_steps=config.tracking_steps[1],
+                          fit_static_offset=config.static_offset)
+
+
+def _canonical(value: Any) -> Any:
+    """JSON-able form of a config value: paths as strings, tuples as lists, dataclasses as dicts."""
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _canonical(v) for k, v in value.items()}
+    if hasattr(value, "__dataclass_fields__"):
+        return _canonical(asdict(value))
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    raise TypeError(f"prepare stage key: cannot put {type(value).__name__} {value!r} into a key")
+
+
+def stage_configs(config: PrepareConfig) -> dict[str, dict[str, Any]]:
+    """Each stage's config: the PrepareConfig fields it reads (by their `_stage_field` stage), plus the
+    video file's identity (frames) and the full TrackingConfig (tracking)."""
+    out: dict[str, dict[str, Any]] = {stage: {} for stage in STAGES}
+    for f in fields(PrepareConfig):
+        stage = f.metadata["stage"]
+        if stage != UNKEYED:
+            out[stage][f.name] = _canonical(getattr(config, f.name))
     video = Path(config.video).resolve()
     stat = video.stat()
-    parts = {
-        "frames": [str(video), stat.st_size, int(stat.st_mtime), config.size, config.fps, config.max_frames,
-                   config.crop_scale, config.crop_sigma],
-        "landmarks": [config.missing, config.min_frames],
-        "masks": [config.mask_backend, STAGE_VERSIONS["masks"]],
-        "tracking": [config.head, str(config.flame_dir), str(config.flame_landmarks), list(config.tracking_steps),
-                     config.static_offset, STAGE_VERSIONS["tracking"]],
-        "write": [config.test_fraction, config.overlay],
-    }
-    keys, chain = {}, ""
+    out["frames"]["video"] = {"path": str(video), "bytes": stat.st_size, "mtime": int(stat.st_mtime)}
+    out["tracking"]["tracking_config"] = _canonical(tracking_config(config))
+    return out
+
+
+def _stage_keys(config: PrepareConfig) -> dict[str, str]:
+    """sha256 of {stage, version, config, upstream keys} in canonical JSON, per stage (STAGES order)."""
+    configs, keys = stage_configs(config), {}
     for stage in STAGES:
-        chain = hashlib.sha256((chain + json.dumps(parts[stage])).encode()).hexdigest()[:16]
-        keys[stage] = chain
+        record = {"stage": stage, "version": STAGE_VERSIONS[stage], "config": configs[stage],
+                  "upstream": {up: keys[up] for up in DEPENDS_ON[stage]}}
+        text = json.dumps(record, sort_keys=True, separators=(",", ":"), allow_nan=False)
+        keys[stage] = hashlib.sha256(text.encode()).hexdigest()
     return keys
 
 
@@ -289,7 +352,7 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
     import torch
 
     from geoavatar.head.smooth_offset import smooth_offset
-    from geoavatar.prep.tracking import TrackingConfig, track
+    from geoavatar.prep.tracking import track
     from geoavatar.prep.video import crop_intrinsics
 
     frames = np.load(work / "frames.npz")
@@ -303,20 +366,19 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
     for k in keep:
         scale, ox, oy = crop_intrinsics(frames["boxes"][k], config.size)
         principal.append([scale * (width / 2 - ox), scale * (height / 2 - oy)])
-    tracking_config = TrackingConfig(rigid_steps=config.tracking_steps[0], full_steps=config.tracking_steps[1],
-                                     fit_static_offset=config.static_offset)
+    settings = tracking_config(config)
     offset_map = None
     if config.static_offset:
         # Handles: the mesh vertices under the landmarks, the ones the landmark-only model keeps.
-        offset_map = smooth_offset(data, model.data.metadata["vertex_ids"], decay=tracking_config.offset_decay)
+        offset_map = smooth_offset(data, model.data.metadata["vertex_ids"], decay=settings.offset_decay)
     # Initial focal: 25 degrees across the source frame's longer side, in crop pixels.
-    focal = scale * 0.5 * max(width, height) / math.tan(math.radians(tracking_config.fov_deg) / 2)
+    focal = scale * 0.5 * max(width, height) / math.tan(math.radians(settings.fov_deg) / 2)
     total = sum(config.tracking_steps)
     bar = _bar(config, total, "tracking", unit="step")
     try:
         with torch.enable_grad():
             result = track(model, marks["filtered"], marks["confidence"], np.array(principal), config.size,
-                           tracking_config, focal_init=focal, progress=lambda n, _stage: bar.update(n),
+                           settings, focal_init=focal, progress=lambda n, _stage: bar.update(n),
                            offset_map=offset_map)
     finally:
         bar.close()
