@@ -4,7 +4,10 @@ ablation presets A–I of the paper (Tables 3 and 6).
 Everything here is a plain dataclass (tyro turns it into CLI options). Step-based milestones are
 written for the paper's 200k-step schedule and `TrainConfig.scaled_to(steps)` rescales all of them
 proportionally, so a short CPU run keeps the same shape of schedule (APS at half of the run,
-densification window, opacity resets, learning-rate decay).
+densification window, opacity resets, learning-rate decay); `keep` names milestones to leave as they
+are (`geoavatar train` keeps those set on its command line: they are steps of that run).
+`TrainConfig.extended(n)` is the same run n steps longer with every milestone where it was
+(`geoavatar train --extend`). `config_values` / `with_values` read and set fields by dotted name.
 
 Sources of the defaults:
 - GeoAvatar (paper, appendix "Hyperparameters"): SH degree 0, 200k steps, APS at N = 100k,
@@ -28,8 +31,8 @@ a hard wall under Adam. L_angle is part of the same sum in the paper, so it gets
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
-from typing import Literal
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from typing import Any, Iterable, Literal
 
 # Which regulariser threshold each face uses (see geoavatar.avatar.aps.face_set_ids):
 #   "aps"             rigid until the APS step, then per-part rigid/flexible; mouth faces tau_mouth
@@ -42,15 +45,18 @@ FaceSetMode = Literal["aps", "rigid", "flexible", "gaussianavatars"]
 MouthKind = Literal["none", "gaussianavatars", "geoavatar"]
 
 PAPER_STEPS = 200_000
+# The fields of TrainConfig counted in steps (dotted names): TrainConfig.scaled_to scales them.
+STEP_FIELDS = ("aps_step", "densify.start", "densify.stop", "densify.every", "densify.reset_opacity_every",
+               "lr.position_decay_steps")
 
 
 @dataclass
 class MouthDeformConfig:
     """Part-wise mouth deformation Phi_upper / Phi_lower (paper Sec. 3.2)."""
 
-    enabled: bool = True
+    enabled: bool = True  # learn the offsets (presets D, E, H, I, E-no-mouth)
     hidden_width: int = 128  # units per hidden layer
-    hidden_layers: int = 2
+    hidden_layers: int = 2  # hidden layers of each MLP
     frequencies: int = 10  # L of gamma(T): sin/cos(2^l * pi * T / num_frames), l = 0..L-1
     expr_dim: int = 100  # expression coefficients fed to Phi (FLAME npz layout: 100)
     offset_unit: float = 0.01  # metres per unit of MLP output (the MLP predicts centimetres)
@@ -62,9 +68,9 @@ class ModelConfig:
 
     sh_degree: int = 0  # GeoAvatar uses SH degree 0 (view-independent colour)
     init_opacity: float = 0.1  # one Gaussian per face at the start, opacity 0.1 (GaussianAvatars)
-    mouth: MouthKind = "geoavatar"
-    face_sets: FaceSetMode = "aps"
-    mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)
+    mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
+    face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
+    mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation
 
 
 @dataclass
@@ -73,8 +79,8 @@ class LossConfig:
 
     lambda_dssim: float = 0.2  # L_rgb = (1 - lambda) L1 + lambda (1 - SSIM)
     lambda_reg: float = 1e-2  # weight of the mean of ReLU(r - tau_set) (see module docstring)
-    tau_rigid: float = 0.1
-    tau_flexible: float = 2.0
+    tau_rigid: float = 0.1  # distance threshold of the rigid set
+    tau_flexible: float = 2.0  # distance threshold of the flexible set
     tau_mouth: float | None = None  # None: tau_rigid, as the paper sets
     tau_gaussianavatars: float = 1.0  # GaussianAvatars' threshold_xyz, used by face_sets="gaussianavatars"
     use_angle: bool = True  # L_angle on/off (preset E on; A-D, F, G off)
@@ -96,14 +102,14 @@ class DensifyConfig:
 
     start: int = 10_000  # densify when step > start ...
     stop: int = PAPER_STEPS  # ... and step < stop (GaussianAvatars densifies for the whole run)
-    every: int = 2_000
-    reset_opacity_every: int = 60_000
+    every: int = 2_000  # densify and prune every this many steps
+    reset_opacity_every: int = 60_000  # reset the opacities every this many steps (while densifying)
     reset_opacity_value: float = 0.01  # opacities are clamped to at most this value at a reset
     grad_threshold: float = 2e-4  # mean screen-space gradient norm in NDC units (3DGS convention)
     percent_dense: float = 0.01  # clone if max world scale <= percent_dense * extent, else split
-    split_children: int = 2
+    split_children: int = 2  # Gaussians a split makes of one
     split_shrink: float = 0.8  # children scale = parent scale / (split_shrink * split_children)
-    prune_opacity: float = 0.005
+    prune_opacity: float = 0.005  # prune Gaussians less opaque than this
     max_screen_size: float = 20.0  # px; applied once step > reset_opacity_every
     max_world_size: float = 0.1  # x extent; applied once step > reset_opacity_every
     min_scene_extent: float = 1.0  # metres; floor for a monocular (single camera) scene extent
@@ -115,12 +121,12 @@ class LearningRates:
 
     position: float = 5e-3  # x scene extent, decays exponentially to position_final
     position_final: float = 5e-5
-    position_decay_steps: int = PAPER_STEPS
-    features: float = 2.5e-3
+    position_decay_steps: int = PAPER_STEPS  # steps of the decay; position_final after them
+    features: float = 2.5e-3  # colour (SH 0)
     opacity: float = 0.05
     scaling: float = 0.017
     rotation: float = 1e-3
-    adam_eps: float = 1e-15
+    adam_eps: float = 1e-15  # Adam's eps for the Gaussians
     mouth_deform: float = 1e-4  # not given by the paper; a common MLP learning rate
     tracking_expr: float = 1e-3  # tracking refinement (GaussianAvatars)
     tracking_pose: float = 1e-5  # rotation, neck, jaw, eyes
@@ -131,36 +137,43 @@ class LearningRates:
 class TrainConfig:
     """Everything that defines a training run of the avatar."""
 
-    steps: int = PAPER_STEPS
+    steps: int = PAPER_STEPS  # total training steps (the CLI sets it with --steps or --minutes)
     aps_step: int = 100_000  # N: APS happens after this many steps (face_sets="aps")
     # GaussianAvatars refines the tracked per-frame expression, pose and translation during
     # training with tiny learning rates (its default, not_finetune_flame_params=False); GeoAvatar
     # follows GaussianAvatars' settings, so it is on in every preset. Test frames are never refined.
     refine_tracking: bool = True
-    model: ModelConfig = field(default_factory=ModelConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    densify: DensifyConfig = field(default_factory=DensifyConfig)
-    lr: LearningRates = field(default_factory=LearningRates)
+    model: ModelConfig = field(default_factory=ModelConfig)  # the learned avatar
+    loss: LossConfig = field(default_factory=LossConfig)  # L = L_rgb + L_reg (+ L_angle, scale loss)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)  # adaptive density control
+    lr: LearningRates = field(default_factory=LearningRates)  # Adam learning rates
 
-    def scaled_to(self, steps: int) -> "TrainConfig":
-        """The same schedule for `steps` total steps: every step-based milestone scaled in proportion."""
+    def scaled_to(self, steps: int, keep: Iterable[str] = ()) -> "TrainConfig":
+        """The same schedule for `steps` total steps: every step-based milestone (STEP_FIELDS) scaled in
+        proportion, except those named in `keep` (dotted names, e.g. "aps_step"), which stay as they are:
+        `geoavatar train` keeps the milestones a user set on the command line, read as steps of this run."""
         if int(steps) <= 0:
             raise ValueError(f"TrainConfig.scaled_to: steps must be positive, got {steps}")
+        keep = set(keep)
+        unknown = sorted(keep - set(STEP_FIELDS))
+        if unknown:
+            raise ValueError(f"TrainConfig.scaled_to: keep names no step-based field: {', '.join(unknown)}")
         steps = int(steps)
         ratio = steps / self.steps
+        minimum = {"densify.start": 0, "densify.stop": 0, "aps_step": 0}
+        values = config_values(self)
+        scaled = {name: values[name] if name in keep else max(minimum.get(name, 1), int(round(values[name] * ratio)))
+                  for name in STEP_FIELDS}
+        return with_values(replace(self, steps=steps), scaled)
 
-        def scale(value: int, minimum: int = 1) -> int:
-            return max(minimum, int(round(value * ratio)))
-
-        densify = replace(
-            self.densify,
-            start=scale(self.densify.start, 0),
-            stop=scale(self.densify.stop, 0),
-            every=scale(self.densify.every),
-            reset_opacity_every=scale(self.densify.reset_opacity_every),
-        )
-        lr = replace(self.lr, position_decay_steps=scale(self.lr.position_decay_steps))
-        return replace(self, steps=steps, aps_step=scale(self.aps_step, 0), densify=densify, lr=lr)
+    def extended(self, extra_steps: int) -> "TrainConfig":
+        """This run's configuration trained `extra_steps` longer (`geoavatar train --extend`): `steps` grows,
+        every milestone stays at its step. So the added steps run after the schedule's end: no densification
+        or opacity reset (densify.stop <= the old end), APS already done, the position learning rate at
+        lr.position_final (its decay ended at lr.position_decay_steps), the other rates constant as always."""
+        if int(extra_steps) <= 0:
+            raise ValueError(f"TrainConfig.extended: extra_steps must be positive, got {extra_steps}")
+        return replace(self, steps=self.steps + int(extra_steps))
 
     def validate(self) -> "TrainConfig":
         """Raise ValueError naming the option when a value is out of range."""
@@ -240,6 +253,8 @@ ABLATIONS: dict[str, AblationComponents] = {
     "E-no-deform": AblationComponents("aps", "geoavatar", False, True, "GeoAvatar w/o part-wise deformation (Table 7)"),
 }
 DEFAULT_PRESET = "E"
+PresetName = Literal["A", "B", "C", "D", "E", "F", "G", "H", "I", "E-no-mouth", "E-no-deform"]
+assert set(PresetName.__args__) == set(ABLATIONS), "PresetName must list every preset of ABLATIONS"
 
 
 def preset(name: str = DEFAULT_PRESET, steps: int | None = None) -> TrainConfig:
@@ -256,6 +271,37 @@ def preset(name: str = DEFAULT_PRESET, steps: int | None = None) -> TrainConfig:
     )
     config = replace(base, model=model, loss=replace(base.loss, use_angle=parts.angle_loss)).validate()
     return config if steps is None else config.scaled_to(steps)
+
+
+def config_values(config: Any, prefix: str = "") -> dict[str, Any]:
+    """Every leaf field of a (nested) config dataclass by dotted name: {"aps_step": 100000, "loss.tau_rigid": 0.1, ...}."""
+    out = {}
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if is_dataclass(value):
+            out.update(config_values(value, f"{prefix}{f.name}."))
+        else:
+            out[f"{prefix}{f.name}"] = value
+    return out
+
+
+def with_values(config: Any, values: dict[str, Any]) -> Any:
+    """A copy of a (nested) config dataclass with the leaf fields named by dotted names set; ValueError
+    naming an unknown field."""
+    nested: dict[str, dict[str, Any]] = {}
+    direct = {}
+    names = {f.name for f in fields(config)}
+    for name, value in values.items():
+        head, _, rest = name.partition(".")
+        if head not in names or bool(rest) != is_dataclass(getattr(config, head)):
+            raise ValueError(f"{type(config).__name__} has no field '{name}'")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            direct[head] = value
+    for head, inner in nested.items():
+        direct[head] = with_values(getattr(config, head), inner)
+    return replace(config, **direct)
 
 
 def preset_components(config: TrainConfig) -> AblationComponents:

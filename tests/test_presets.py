@@ -4,7 +4,8 @@ import dataclasses
 
 import pytest
 
-from geoavatar.config import ABLATIONS, TrainConfig, preset, preset_components, presets_table
+from geoavatar.config import (ABLATIONS, STEP_FIELDS, TrainConfig, config_values, preset, preset_components,
+                              presets_table, with_values)
 
 # (face sets, mouth structure, part-wise deformation, L_angle), read off the paper:
 # Table 3: A baseline GaussianAvatars_0; B +APS; C +FLAME mouth; D +part-wise deformation; E +L_angle.
@@ -86,3 +87,37 @@ def test_bad_values_name_the_option():
     bad.model.mouth = "none"
     with pytest.raises(ValueError, match="mouth_deform"):
         bad.validate()
+
+
+def test_scaled_to_leaves_the_kept_milestones_and_scales_the_rest():
+    base = with_values(preset("E"), {"aps_step": 700, "densify.every": 7})
+    c = base.scaled_to(2_000, keep=("aps_step", "densify.every"))
+    assert (c.steps, c.aps_step, c.densify.every) == (2_000, 700, 7)  # as set: steps of this run
+    assert (c.densify.start, c.densify.stop, c.densify.reset_opacity_every, c.lr.position_decay_steps) == (
+        100, 2_000, 600, 2_000)  # the others scale as always
+    assert base.scaled_to(2_000).aps_step == 7 and base.scaled_to(2_000).densify.every == 1  # scaled: 700/100, 7/100
+    with pytest.raises(ValueError, match="keep names no step-based field: loss.tau_rigid"):
+        base.scaled_to(2_000, keep=("loss.tau_rigid",))
+    assert set(STEP_FIELDS) <= set(config_values(TrainConfig()))
+
+
+def test_extended_adds_steps_and_keeps_every_milestone():
+    c = preset("E", steps=400)
+    longer = c.extended(100)
+    assert longer.steps == 500
+    assert dataclasses.replace(longer, steps=400) == c  # nothing else changes
+    assert longer.densify.stop == 400 and longer.lr.position_decay_steps == 400  # no densification after 400
+    with pytest.raises(ValueError, match="extra_steps must be positive"):
+        c.extended(0)
+
+
+def test_config_values_and_with_values_by_dotted_name():
+    values = config_values(preset("A"))
+    assert values["model.face_sets"] == "gaussianavatars" and values["loss.use_angle"] is False
+    assert values["model.mouth_deform.enabled"] is False and "model.mouth_deform" not in values
+    changed = with_values(preset("A"), {"loss.lambda_angle": 0.5, "model.mouth_deform.hidden_width": 64})
+    assert changed.loss.lambda_angle == 0.5 and changed.model.mouth_deform.hidden_width == 64
+    assert config_values(changed) == {**values, "loss.lambda_angle": 0.5, "model.mouth_deform.hidden_width": 64}
+    for bad in ("loss.nope", "loss", "aps_step.x"):
+        with pytest.raises(ValueError, match="has no field"):
+            with_values(preset("A"), {bad: 1})
