@@ -19,17 +19,21 @@ import tyro
 from plyfile import PlyData
 
 from apps_fixtures import SIZE, make_run, make_subject
+from geoavatar import cli
 from geoavatar.apps import bench as bench_app
 from geoavatar.apps import export as export_app
 from geoavatar.apps import orbit as orbit_app
 from geoavatar.apps import reenact as reenact_app
 from geoavatar.apps import render_video
 from geoavatar.apps import view as view_app
-from geoavatar.apps.common import (Camera, Mp4Writer, RunFrames, colormap_lut, error_map, open_run, open_run_dataset,
+from geoavatar.apps.common import (Camera, RunFrames, colormap_lut, error_map, open_run, open_run_dataset,
                                    pose_gaussians, record_camera, render_params)
 from geoavatar.data import open_subject
+from geoavatar.errors import OptionError
 from geoavatar.io.ply import PLY_PROPERTIES, read_gaussian_ply
+from geoavatar.io.video import Mp4Writer
 from geoavatar.render.camera import project, rigid_inverse
+from geoavatar.train.checkpoint import RunError
 from geoavatar.train.trainer import composite_target
 
 
@@ -150,7 +154,7 @@ def test_export_sequence_folder_and_npz(run, run_dir, tmp_path):
     test_steps = run.info.timesteps["test"]
     assert sorted(p.name for p in folder.iterdir()) == [f"frame_{t:05d}.ply" for t in test_steps]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]  # the temporary folder is gone
-    with pytest.raises(SystemExit, match="geoavatar export: .*already exists; pass --overwrite"):
+    with pytest.raises(OptionError, match="--out .*already exists; pass --overwrite"):
         export_app.export(run_dir, out=folder, sequence=True, split="test", progress=False)
     assert export_app.export(run_dir, out=folder, sequence=True, split="test", overwrite=True, progress=False) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
@@ -167,9 +171,9 @@ def test_export_sequence_folder_and_npz(run, run_dir, tmp_path):
         first = read_gaussian_ply(folder / f"frame_{test_steps[0]:05d}.ply")
         assert np.array_equal(arrays["means"][0], first.means)
         assert not np.allclose(arrays["means"][0], arrays["means"][1])  # the head moves between frames
-    with pytest.raises(SystemExit, match="--frame and --sequence"):
+    with pytest.raises(OptionError, match="--frame and --sequence"):
         export_app.export(run_dir, frame=0, sequence=True)
-    with pytest.raises(SystemExit, match="not a timestep"):
+    with pytest.raises(OptionError, match="not a timestep"):
         export_app.export(run_dir, out=tmp_path / "x.ply", frame=999)
 
 
@@ -185,7 +189,7 @@ def test_reenact_absolute_and_relative_videos(run_dir, driver, tmp_path):
         frames = decode(out)
         # driver (40 px, scaled to the avatar's 48 px height) | avatar (48 px)
         assert len(frames) == 2 and frames[0].shape == (SIZE, 2 * SIZE, 3)
-    with pytest.raises(SystemExit, match="geoavatar reenact: --driver .*not found"):
+    with pytest.raises(RunError, match="--driver .*not found"):
         reenact_app.reenact(run_dir, tmp_path / "missing", out=tmp_path / "x.mp4")
 
 
@@ -287,12 +291,15 @@ def test_commands_build_a_cli_with_documented_options(name, capsys):
 
 
 @pytest.mark.parametrize("name", sorted(COMMANDS))
-def test_bad_run_folder_gives_a_clear_error(name, tmp_path):
+def test_bad_run_folder_gives_a_clear_error(name, tmp_path, capsys):
     args = {"reenact": {"driver": tmp_path}}.get(name, {})
-    with pytest.raises(SystemExit, match=f"geoavatar {name}: .*not a GeoAvatar run"):
+    with pytest.raises(RunError, match="not a GeoAvatar run"):
         COMMANDS[name](tmp_path, **args)
-    with pytest.raises(SystemExit, match=f"geoavatar {name}: .*run folder not found"):
-        COMMANDS[name](tmp_path / "missing", **args)
+    # through `geoavatar`: one line naming the command, exit status 2
+    cli_args = ["--driver", str(tmp_path)] if name == "reenact" else []
+    assert cli.main([name, str(tmp_path / "missing"), *cli_args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"geoavatar {name}: ") and "run folder not found" in err and err.count("\n") == 1
 
 
 def test_export_through_the_cli_parser(run, run_dir, tmp_path):

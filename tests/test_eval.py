@@ -19,9 +19,11 @@ import torch
 from geoavatar.apps.eval import eval_runs
 from geoavatar.config import preset
 from geoavatar.data.splits import ShortVideoWarning
+from geoavatar.errors import OptionError
 from geoavatar.eval import evaluate as evaluate_module
 from geoavatar.eval.evaluate import crop_box, mouth_face_mask, mouth_mask, open_run_dataset, render_run_frames
 from geoavatar.train import checkpoint as ckpt
+from geoavatar.train.checkpoint import RunError
 from geoavatar.train.trainer import RunOptions, new_state, open_training_data, state_payload, train
 
 
@@ -154,17 +156,17 @@ def test_mouth_mask_and_crop_box(run_e):
 
 
 def test_bad_run_folders_fail_clearly(run_e, tmp_path):
-    with pytest.raises(SystemExit, match="run folder not found"):
+    with pytest.raises(RunError, match="run folder not found"):
         eval_runs([tmp_path / "missing"], progress=False, device="cpu")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(SystemExit, match="not a GeoAvatar run"):
+    with pytest.raises(RunError, match="not a GeoAvatar run"):
         eval_runs([tmp_path / "empty"], progress=False, device="cpu")
     broken = tmp_path / "broken" / "checkpoints"
     broken.mkdir(parents=True)
     (broken / "last.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(SystemExit, match="not a readable GeoAvatar checkpoint"):
+    with pytest.raises(RunError, match="not a readable GeoAvatar checkpoint"):
         eval_runs([tmp_path / "broken"], progress=False, device="cpu")
-    with pytest.raises(SystemExit, match="dataset folder .* not found; pass --data"):
+    with pytest.raises(RunError, match="dataset folder .* not found; pass --data"):
         eval_runs([run_e], data=tmp_path / "moved", progress=False, device="cpu")
-    with pytest.raises(SystemExit, match="--max-frames must be positive"):
+    with pytest.raises(OptionError, match="--max-frames must be positive"):
         eval_runs([run_e], max_frames=0, progress=False, device="cpu")

@@ -21,6 +21,7 @@ from geoavatar.data.synth.motion import TRAIN_ROLL_MAX
 from geoavatar.data.synth.render import frontal_camera
 from geoavatar.data.synth.subjects import get_subject
 from geoavatar.data.synth.tracking import apply_tracking_noise
+from geoavatar.errors import OptionError
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import box_downsample, rasterize_mesh, scale_intrinsics
 
@@ -239,19 +240,19 @@ def test_subjects_differ_and_noise_off_writes_ground_truth(dataset, tmp_path):
 def test_bad_arguments_fail_clearly_and_keep_user_files(tmp_path, monkeypatch):
     from geoavatar.apps.synth import synth
 
-    with pytest.raises(SystemExit, match="--subject"):
+    with pytest.raises(OptionError, match="--subject"):
         synth(tmp_path / "x", subject=3, frames=4, size=32)
     with pytest.raises(ValueError, match="--frames"):
         generate_dataset(tmp_path / "x", _config(frames=1), progress=False)
     user = tmp_path / "mine"
     user.mkdir()
     (user / "notes.txt").write_text("keep me")
-    with pytest.raises(SystemExit, match="not a dataset made by `geoavatar synth`"):
+    with pytest.raises(OptionError, match="not a dataset made by `geoavatar synth`"):
         synth(user, frames=4, size=32)
     assert (user / "notes.txt").read_text() == "keep me" and len(list(user.iterdir())) == 1
     a_file = tmp_path / "file.png"
     a_file.write_bytes(b"x")
-    with pytest.raises(NotADirectoryError, match="--out"):
+    with pytest.raises(OptionError, match="--out"):
         generate_dataset(a_file, _config(frames=4), progress=False)
     # A failure half-way leaves nothing that looks like a dataset (and no temporary folder).
     from geoavatar.data.synth import render

@@ -23,11 +23,13 @@ from typing import Literal, Optional
 
 import torch
 
-from geoavatar.apps.common import (Camera, RunFrames, RunPath, command_errors, head_centre, open_run,
-                                   posed_head_vertices, rasterize_gaussians, record_camera, run_device, synchronize)
+from geoavatar.apps.common import (Camera, RunFrames, RunPath, head_centre, open_run, posed_head_vertices,
+                                   rasterize_gaussians, record_camera, run_device, synchronize)
 from geoavatar.data import DatasetError, open_subject
+from geoavatar.errors import OptionError
+from geoavatar.io.atomic import atomic_write_json
 from geoavatar.render.camera import intrinsics_from_fov, look_at
-from geoavatar.train.checkpoint import LoadedRun, atomic_write_json
+from geoavatar.train.checkpoint import LoadedRun
 
 STAGES = ("head + mouth deformer", "local -> global", "rasterize", "full animation path")
 
@@ -36,7 +38,7 @@ def bench_camera(run: LoadedRun, frames: RunFrames, resolution: int) -> Camera:
     """The dataset camera at `resolution` (longer side), or a frontal square camera when the data is gone."""
     try:
         return record_camera(open_subject(run.info.data_root), frames.timesteps[0], None).resized(resolution)
-    except (DatasetError, ValueError):
+    except DatasetError:
         params, _ = frames.params(frames.timesteps[0])
         centre = head_centre(run, params).cpu()
         eye = centre + torch.tensor([0.0, 0.0, 1.0])  # 1 m in front (+z is out of the face)
@@ -68,7 +70,7 @@ def run_bench(run: LoadedRun, resolution: int = 512, iterations: int = 20, warmu
               backend: str = "auto", show_progress: bool = False) -> dict:
     """Seconds per frame of each stage; returns a JSON-able report."""
     if resolution <= 0 or iterations <= 0 or warmup < 0:
-        raise ValueError(f"--resolution and --iterations must be positive and --warmup >= 0, got "
+        raise OptionError(f"--resolution and --iterations must be positive and --warmup >= 0, got "
                          f"{resolution}, {iterations}, {warmup}")
     device = run_device(run)
     frames = RunFrames(run)
@@ -151,11 +153,10 @@ def bench(
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         progress: Show progress bars.
     """
-    with command_errors("bench"):
-        loaded = open_run(run, device, flame_dir)
-        report = run_bench(loaded, resolution, iterations, warmup, backend, progress)
-        if out is not None:
-            atomic_write_json(out, report)
+    loaded = open_run(run, device, flame_dir)
+    report = run_bench(loaded, resolution, iterations, warmup, backend, progress)
+    if out is not None:
+        atomic_write_json(out, report)
     print(format_report(report))
     return 0
 

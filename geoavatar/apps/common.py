@@ -4,29 +4,28 @@
     frames = RunFrames(run)                          # per-timestep parameters + the dataset's cameras
     params, T = frames.params(timestep)              # the head parameters of a frame and its T rule
     result = render_params(run, params, camera, T)   # posed head -> mouth deformer -> avatar -> rasterize
-    with Mp4Writer(path, fps=25) as video: video.write(frame_uint8)   # atomic mp4 (PyAV, libx264)
+    with Mp4Writer(path, fps=25) as video: video.write(frame_uint8)   # geoavatar.io.video: the one mp4 writer
 
 The T rule (the mouth deformer's time input gamma(T)), the same as `geoavatar eval`: a training
 timestep renders with its own T and the run's refined parameters, which reproduces what training
 saw; any other timestep (test frames, a driver's frames, edited parameters) renders with T = 0, the
 paper's inference setting, and the parameters as tracked (the trainer never refines test rows).
 
-Errors: functions raise RunError (bad run, dataset gone or changed) or ValueError (bad option); the
-command functions turn both, and DatasetError, into `SystemExit("geoavatar <cmd>: <message>")` with
-`command_errors`, so a user sees one clear line and a non-zero exit status.
+Errors: what the user can cause raises a GeoAvatarError (geoavatar/errors.py): RunError (bad run,
+dataset gone or changed), DatasetError, OptionError (a bad option value), DiskFullError. The command
+functions let them through and `geoavatar` (cli.py) prints them as one line, `geoavatar <cmd>:
+<message>`, with exit status 2. Any other exception, a plain ValueError included, is a bug and keeps
+its traceback.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
-from fractions import Fraction
 from pathlib import Path
-from typing import Annotated, Iterable, Iterator, NamedTuple
+from typing import Annotated, Iterable, NamedTuple
 
 import numpy as np
 import torch
@@ -36,6 +35,7 @@ from torch import Tensor
 from geoavatar.avatar import GlobalGaussians, posed_head
 from geoavatar.data import DatasetError
 from geoavatar.data.subject import SUBJECT_KEYS, Subject
+from geoavatar.errors import OptionError
 from geoavatar.render import RasterizeResult, rasterize
 from geoavatar.train.checkpoint import LoadedRun, RunError, load_run, open_run_dataset
 from geoavatar.train.trainer import resolve_device
@@ -47,16 +47,7 @@ VIDEO_DIR = "videos"  # RUN/videos/<command>_....mp4 unless --out says otherwise
 EXPORT_DIR = "export"
 
 
-# --- errors and devices ---------------------------------------------------------------------------
-
-
-@contextlib.contextmanager
-def command_errors(command: str) -> Iterator[None]:
-    """Turn RunError / DatasetError / ValueError / FileExistsError into SystemExit('geoavatar CMD: msg')."""
-    try:
-        yield
-    except (RunError, DatasetError, ValueError, FileExistsError, NotADirectoryError) as err:
-        raise SystemExit(f"geoavatar {command}: {err}") from None
+# --- devices ---------------------------------------------------------------------------------------
 
 
 def synchronize(device: torch.device | str) -> None:
@@ -69,8 +60,12 @@ def synchronize(device: torch.device | str) -> None:
 
 
 def open_run(run_dir: str | os.PathLike, device: str = "auto", flame_dir: str | os.PathLike | None = None) -> LoadedRun:
-    """load_run on the resolved device (auto: CUDA when available). RunError / ValueError on bad input."""
-    return load_run(run_dir, resolve_device(device), flame_dir=flame_dir)
+    """load_run on the resolved device (auto: CUDA when available). RunError / OptionError on bad input."""
+    try:
+        torch_device = resolve_device(device)
+    except ValueError as err:  # resolve_device's messages name --device
+        raise OptionError(str(err)) from err
+    return load_run(run_dir, torch_device, flame_dir=flame_dir)
 
 
 def run_device(run: LoadedRun) -> torch.device:
@@ -101,7 +96,7 @@ def record_camera(subject: Subject, timestep: int, resolution: int | None) -> Ca
     """The camera of `timestep` in a subject (its first camera), at `resolution` (longer side; None: stored)."""
     frames = subject.frames_of([timestep])
     if not frames:
-        raise ValueError(f"{subject.root}: has no frame with timestep {timestep}")
+        raise DatasetError(f"{subject.root}: has no frame with timestep {timestep}")
     frame = frames[0]
     camera = Camera(torch.from_numpy(frame.viewmat).float(), torch.from_numpy(frame.K).float(), frame.width, frame.height)
     if resolution is not None and resolution < max(frame.width, frame.height):
@@ -132,7 +127,7 @@ class RunFrames:
             return self.timesteps[0]
         if timestep not in self._row:
             lo, hi = self.timesteps[0], self.timesteps[-1]
-            raise ValueError(f"--frame {timestep}: not a timestep of the run's dataset ({len(self)} frames, {lo}..{hi})")
+            raise OptionError(f"--frame {timestep}: not a timestep of the run's dataset ({len(self)} frames, {lo}..{hi})")
         return int(timestep)
 
     def params(self, timestep: int) -> tuple[dict[str, Tensor], int | None]:
@@ -218,7 +213,7 @@ def colormap_lut(name: str = "inferno") -> Tensor:
         try:
             cmap = matplotlib.colormaps[name]
         except KeyError as err:
-            raise ValueError(f"unknown colormap {name!r} (any matplotlib colormap, e.g. inferno, turbo)") from err
+            raise OptionError(f"unknown colormap {name!r} (any matplotlib colormap, e.g. inferno, turbo)") from err
         _COLORMAP_CACHE[name] = torch.from_numpy(cmap(np.linspace(0.0, 1.0, 256))[:, :3]).float()
     return _COLORMAP_CACHE[name]
 
@@ -229,7 +224,7 @@ def error_map(pred: Tensor, target: Tensor, error_max: float = 0.25, colormap: s
     pred, target [H, W, 3]; errors of `error_max` and above get the top colour, so one scale holds for
     every frame of a video."""
     if error_max <= 0:
-        raise ValueError(f"--error-max must be positive, got {error_max}")
+        raise OptionError(f"--error-max must be positive, got {error_max}")
     error = (pred - target).abs().mean(dim=-1)  # [H, W]
     index = (error / error_max).clamp(0.0, 1.0).mul(255.0).round().long()
     return colormap_lut(colormap).to(pred.device)[index]
@@ -251,83 +246,6 @@ def fit_height(image: np.ndarray, height: int) -> np.ndarray:
 
     width = max(1, round(image.shape[1] * height / image.shape[0]))
     return np.asarray(Image.fromarray(image).resize((width, height), Image.Resampling.BOX))
-
-
-# --- video -------------------------------------------------------------------------------------------
-
-
-class Mp4Writer:
-    """Frames -> H.264 mp4 (PyAV, libx264, yuv420p), written atomically.
-
-    Frames go to a temporary file beside `path`; leaving the `with` block normally moves it into place
-    (os.replace), an exception deletes it, so `path` is either the old file or the complete new one.
-    yuv420p needs even sizes: odd frames get one edge row/column repeated. Every frame must have the
-    size of the first.
-    """
-
-    def __init__(self, path: str | os.PathLike, fps: float = 25.0, crf: int = 18):
-        if fps <= 0:
-            raise ValueError(f"--fps must be positive, got {fps}")
-        if not 0 <= crf <= 51:
-            raise ValueError(f"--crf must be in [0, 51], got {crf}")
-        self.path = Path(path)
-        if self.path.suffix.lower() != ".mp4":
-            raise ValueError(f"{self.path}: the video file name must end in .mp4")
-        self.fps, self.crf = fps, crf
-        self.frames = 0
-        self._container = self._stream = None
-        self._tmp: str | None = None
-        self._size: tuple[int, int] | None = None  # (height, width) of the input frames
-
-    def __enter__(self) -> "Mp4Writer":
-        import av
-
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, self._tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=".tmp.mp4", dir=self.path.parent)
-        os.close(fd)
-        self._container = av.open(self._tmp, mode="w", format="mp4")
-        return self
-
-    def write(self, frame: np.ndarray) -> None:
-        """Append one uint8 RGB frame [H, W, 3]."""
-        import av
-
-        frame = np.asarray(frame)
-        if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
-            raise ValueError(f"Mp4Writer: frames must be uint8 [H, W, 3], got {frame.dtype} {frame.shape}")
-        if self._size is None:
-            self._size = frame.shape[:2]
-            height, width = (s + s % 2 for s in self._size)
-            rate = Fraction(self.fps).limit_denominator(1001)
-            self._stream = self._container.add_stream("libx264", rate=rate)
-            self._stream.width, self._stream.height = width, height
-            self._stream.pix_fmt = "yuv420p"
-            self._stream.options = {"crf": str(self.crf), "preset": "medium"}
-        elif frame.shape[:2] != self._size:
-            raise ValueError(f"Mp4Writer: frame {self.frames} has size {frame.shape[1]}x{frame.shape[0]}, the first "
-                             f"{self._size[1]}x{self._size[0]}; every frame of a video needs one size")
-        pad = ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0))
-        if any(p[1] for p in pad):
-            frame = np.pad(frame, pad, mode="edge")
-        video_frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
-        for packet in self._stream.encode(video_frame):
-            self._container.mux(packet)
-        self.frames += 1
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        try:
-            if exc_type is None:
-                if self.frames == 0:
-                    raise ValueError(f"{self.path}: no frames to write")
-                for packet in self._stream.encode():
-                    self._container.mux(packet)
-            self._container.close()
-            if exc_type is None:
-                os.chmod(self._tmp, 0o644)
-                os.replace(self._tmp, self.path)
-        finally:
-            if self._tmp is not None and os.path.exists(self._tmp):
-                os.unlink(self._tmp)
 
 
 def default_output(run: LoadedRun, folder: str, name: str) -> Path:
@@ -361,14 +279,14 @@ class Timer:
 def even_frames(count: int, limit: int | None) -> list[int]:
     """`limit` indices spread evenly over range(count) (all of them when limit is None or >= count)."""
     if limit is not None and limit <= 0:
-        raise ValueError(f"--max-frames must be positive, got {limit}")
+        raise OptionError(f"--max-frames must be positive, got {limit}")
     if limit is None or limit >= count:
         return list(range(count))
     return sorted({int(round(i)) for i in np.linspace(0, count - 1, limit)})
 
 
 __all__ = [
-    "Camera", "EXPORT_DIR", "Mp4Writer", "RunFrames", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut", "command_errors",
+    "Camera", "EXPORT_DIR", "RunFrames", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut",
     "default_output", "error_map", "even_frames", "fit_height", "head_centre", "open_run", "open_run_dataset",
     "pose_gaussians", "posed_head_vertices", "progress", "rasterize_gaussians", "record_camera", "render_params", "run_device",
     "side_by_side", "synchronize", "to_uint8",

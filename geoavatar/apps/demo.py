@@ -17,9 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
-import numpy as np
-
-from geoavatar.train.checkpoint import atomic_write_text
+from geoavatar.io.atomic import atomic_write_png, atomic_write_text
 
 DRIVER_SUBJECT = 1
 
@@ -161,17 +159,13 @@ def demo(
 def save_still(video: Path, png: Path, position: float = 0.5) -> Path:
     """The frame at `position` (0..1) of an mp4 as a PNG (written atomically)."""
     import av
-    from PIL import Image
 
     with av.open(str(video)) as container:
         frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
     if not frames:
         raise SystemExit(f"geoavatar demo: {video} holds no frames")
     image = frames[min(len(frames) - 1, int(position * len(frames)))]
-    tmp = png.with_name(f".{png.name}.tmp")
-    Image.fromarray(np.ascontiguousarray(image)).save(tmp, format="PNG")
-    tmp.replace(png)
-    return png
+    return atomic_write_png(png, image)
 
 
 def write_report(out: Path, data: Path, run: Path, metrics_json: Path, videos: dict[str, Path],

@@ -8,9 +8,7 @@ from typing import Literal, Optional
 
 import tyro
 
-from geoavatar.data import DatasetError
-from geoavatar.eval.lpips import LPIPSWeightsError
-from geoavatar.train.checkpoint import RunError
+from geoavatar.errors import OptionError
 
 
 def _common_parent(paths: list[Path]) -> Path:
@@ -72,21 +70,17 @@ def eval_runs(
         raise SystemExit("geoavatar eval: give at least one RUN folder")
     config = EvalConfig(split=split, lpips_net=lpips_net, lpips_unit_inputs=lpips_unit_inputs, max_frames=max_frames,
                         mouth=mouth, backend=backend, keep_images=save_images)
+    config.validate()  # OptionError naming the option
     try:
-        config.validate()
         torch_device = resolve_device(device)
-    except ValueError as err:
-        raise SystemExit(f"geoavatar eval: {err}") from None
+    except ValueError as err:  # resolve_device's messages name --device
+        raise OptionError(str(err)) from err
     results = []
     for run_dir in runs:
-        try:
-            run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
-            result = evaluate_run(run, config, data=data, progress=progress, flame_dir=flame_dir)
-            written = write_run_report(result)
-        except (RunError, DatasetError, LPIPSWeightsError) as err:
-            raise SystemExit(f"geoavatar eval: {err}") from None
-        except ValueError as err:
-            raise SystemExit(f"geoavatar eval: {run_dir}: {err}") from None
+        # RunError, DatasetError, LPIPSWeightsError...: GeoAvatarErrors, one line at the CLI
+        run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
+        result = evaluate_run(run, config, data=data, progress=progress, flame_dir=flame_dir)
+        written = write_run_report(result)
         results.append(result)
         print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
     if len(results) == 1:

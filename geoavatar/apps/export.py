@@ -18,21 +18,18 @@ with the local one), colour and opacity are the learned SH-0 coefficient and opa
 
 from __future__ import annotations
 
-import io
-import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
 import torch
 
-from geoavatar.apps.common import (EXPORT_DIR, RunFrames, RunPath, command_errors, default_output, open_run,
-                                   pose_gaussians, progress)
+from geoavatar.apps.common import EXPORT_DIR, RunFrames, RunPath, default_output, open_run, pose_gaussians, progress
 from geoavatar.avatar import GlobalGaussians
+from geoavatar.errors import OptionError
+from geoavatar.io.atomic import atomic_folder, atomic_write_npz
 from geoavatar.io.ply import GaussianPly, write_gaussian_ply
-from geoavatar.train.checkpoint import LoadedRun, atomic_write_bytes
+from geoavatar.train.checkpoint import LoadedRun
 
 FRAME_FILE = "frame_{:05d}.ply"
 
@@ -69,7 +66,7 @@ def sequence_timesteps(run: LoadedRun, split: str) -> list[int]:
     if split == "all":
         return list(run.info.timesteps["all"])
     if split not in run.info.timesteps:
-        raise ValueError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
+        raise OptionError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
     return list(run.info.timesteps[split])
 
 
@@ -78,38 +75,15 @@ def export_sequence_ply(run: LoadedRun, out: Path, split: str = "all", overwrite
     """One PLY per frame into the folder `out`, which appears complete or not at all."""
     out = Path(out)
     if out.exists() and not overwrite:
-        raise FileExistsError(f"--out {out} already exists; pass --overwrite to replace it")
+        raise OptionError(f"--out {out} already exists; pass --overwrite to replace it")
     if out.exists() and not out.is_dir():
-        raise NotADirectoryError(f"--out {out} exists and is not a folder")
+        raise OptionError(f"--out {out} exists and is not a folder")
     frames = RunFrames(run)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    try:
+    with atomic_folder(out) as folder:
         for t in progress(sequence_timesteps(run, split), enabled=show_progress, desc="export"):
             gaussians = to_ply_gaussians(run, frame_gaussians(run, frames, t))
-            write_gaussian_ply(tmp / FRAME_FILE.format(t), gaussians)
-        os.chmod(tmp, 0o755)
-        _replace_folder(tmp, out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+            write_gaussian_ply(folder / FRAME_FILE.format(t), gaussians)
     return out
-
-
-def _replace_folder(new: Path, out: Path) -> None:
-    """Move the folder `new` to `out`; an existing `out` is moved aside first and deleted after."""
-    if not out.exists():
-        os.replace(new, out)
-        return
-    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-    os.rmdir(old)
-    os.replace(out, old)
-    try:
-        os.replace(new, out)
-    except BaseException:
-        os.replace(old, out)  # put the previous export back
-        raise
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def export_sequence_npz(run: LoadedRun, out: Path, split: str = "all", show_progress: bool = True) -> Path:
@@ -122,17 +96,13 @@ def export_sequence_npz(run: LoadedRun, out: Path, split: str = "all", show_prog
         means.append(g.means)
         quats.append(g.quats)
         log_scales.append(g.log_scales)
-    buffer = io.BytesIO()
-    np.savez(
-        buffer,
+    return atomic_write_npz(
+        out,
         timesteps=np.asarray(timesteps, dtype=np.int64),
         means=np.stack(means), quats=np.stack(quats), log_scales=np.stack(log_scales),  # [T, N, ...]
         opacity_logits=g.opacity_logits, f_dc=g.f_dc,  # the same in every frame
         binding=run.avatar.binding.cpu().numpy(), faces=run.avatar.faces.cpu().numpy(),
     )
-    path = atomic_write_bytes(out, buffer.getvalue())
-    os.chmod(path, 0o644)
-    return path
 
 
 def export(
@@ -166,27 +136,26 @@ def export(
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         progress: Show progress bars.
     """
-    with command_errors("export"):
-        if frame is not None and sequence:
-            raise ValueError("--frame and --sequence exclude each other (--sequence exports every frame of --split)")
-        if out is not None and not sequence and out.suffix.lower() != ".ply":
-            raise ValueError(f"--out {out}: a single frame is written as a .ply file")
-        if out is not None and sequence and format == "npz" and out.suffix.lower() != ".npz":
-            raise ValueError(f"--out {out}: --format npz writes an .npz file")
-        loaded = open_run(run, device, flame_dir)
-        if not sequence:
-            timestep = RunFrames(loaded).resolve(frame)
-            target = out or default_output(loaded, EXPORT_DIR, FRAME_FILE.format(timestep))
-            export_frame(loaded, target, timestep)
-            print(f"wrote {target} ({loaded.avatar.num_gaussians} Gaussians, frame {timestep})")
-        elif format == "ply":
-            target = out or default_output(loaded, EXPORT_DIR, f"sequence_{split}")
-            export_sequence_ply(loaded, target, split, overwrite, progress)
-            print(f"wrote {target}/ ({len(sequence_timesteps(loaded, split))} frames)")
-        else:
-            target = out or default_output(loaded, EXPORT_DIR, f"sequence_{split}.npz")
-            export_sequence_npz(loaded, target, split, progress)
-            print(f"wrote {target} ({len(sequence_timesteps(loaded, split))} frames)")
+    if frame is not None and sequence:
+        raise OptionError("--frame and --sequence exclude each other (--sequence exports every frame of --split)")
+    if out is not None and not sequence and out.suffix.lower() != ".ply":
+        raise OptionError(f"--out {out}: a single frame is written as a .ply file")
+    if out is not None and sequence and format == "npz" and out.suffix.lower() != ".npz":
+        raise OptionError(f"--out {out}: --format npz writes an .npz file")
+    loaded = open_run(run, device, flame_dir)
+    if not sequence:
+        timestep = RunFrames(loaded).resolve(frame)
+        target = out or default_output(loaded, EXPORT_DIR, FRAME_FILE.format(timestep))
+        export_frame(loaded, target, timestep)
+        print(f"wrote {target} ({loaded.avatar.num_gaussians} Gaussians, frame {timestep})")
+    elif format == "ply":
+        target = out or default_output(loaded, EXPORT_DIR, f"sequence_{split}")
+        export_sequence_ply(loaded, target, split, overwrite, progress)
+        print(f"wrote {target}/ ({len(sequence_timesteps(loaded, split))} frames)")
+    else:
+        target = out or default_output(loaded, EXPORT_DIR, f"sequence_{split}.npz")
+        export_sequence_npz(loaded, target, split, progress)
+        print(f"wrote {target} ({len(sequence_timesteps(loaded, split))} frames)")
     return 0
 
 

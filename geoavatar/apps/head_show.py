@@ -9,8 +9,6 @@ tile at the default size).
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -20,6 +18,7 @@ import torch
 from torch import Tensor
 
 from geoavatar.head.base import HeadModel
+from geoavatar.io.atomic import atomic_write_png
 from geoavatar.render.camera import intrinsics_from_fov, look_at, world_to_camera
 from geoavatar.render.mesh import Lighting, render_mesh
 
@@ -81,7 +80,7 @@ def head_show(
         options["flame_dir"] = flame_dir
     head = load_head_model(model, mouth=mouth, **options)  # FLAME's file errors are GeoAvatarErrors: one line
     sheet = contact_sheet(head, tile=size)
-    write_png_atomic(sheet, out)
+    atomic_write_png(out, sheet, optimize=True)
     print(f"wrote {out} ({sheet.width}x{sheet.height}): {head.name}, {head.num_vertices} vertices, "
           f"{head.num_faces} faces, {head.num_expr} expression modes, mouth={mouth}")
 
@@ -475,21 +474,4 @@ def _font(pixels: int):
         return ImageFont.load_default()
 
 
-def write_png_atomic(image, path: Path) -> None:
-    """Write a PIL image as PNG through a temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            image.save(handle, format="PNG", optimize=True)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-__all__ = ["head_show", "contact_sheet", "Tile", "write_png_atomic"]
+__all__ = ["head_show", "contact_sheet", "Tile"]

@@ -19,10 +19,12 @@ from typing import Literal, Optional
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (VIDEO_DIR, Camera, Mp4Writer, RunFrames, RunPath, command_errors, default_output,
-                                   head_centre, open_run, progress, record_camera, render_params, to_uint8)
+from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, head_centre, open_run,
+                                   progress, record_camera, render_params, to_uint8)
 from geoavatar.data import open_subject
+from geoavatar.errors import OptionError
 from geoavatar.geometry import axis_angle_to_matrix
+from geoavatar.io.video import Mp4Writer
 from geoavatar.render.camera import look_at, rigid_inverse
 from geoavatar.train.checkpoint import RunError
 
@@ -30,7 +32,7 @@ from geoavatar.train.checkpoint import RunError
 def sweep_angles(frames: int, yaw_max: float, pitch_max: float) -> list[tuple[float, float]]:
     """(yaw, pitch) in degrees per frame: a sinusoidal yaw sweep, then a pitch sweep (none when 0)."""
     if frames < 1:
-        raise ValueError(f"--frames must be positive, got {frames}")
+        raise OptionError(f"--frames must be positive, got {frames}")
     yaw_frames = frames if pitch_max == 0 else (frames + 1) // 2
     angles = [(yaw_max * math.sin(2 * math.pi * i / yaw_frames), 0.0) for i in range(yaw_frames)]
     pitch_frames = frames - yaw_frames
@@ -71,7 +73,7 @@ def orbit_video(
 ) -> int:
     """Write the orbit video of one frame; returns the number of frames."""
     if not 0 <= yaw < 180 or not 0 <= pitch < 90:
-        raise ValueError(f"--yaw must be in [0, 180) and --pitch in [0, 90) degrees, got {yaw}, {pitch}")
+        raise OptionError(f"--yaw must be in [0, 180) and --pitch in [0, 90) degrees, got {yaw}, {pitch}")
     run_frames = RunFrames(run)
     timestep = run_frames.resolve(timestep)
     params, t = run_frames.params(timestep)
@@ -124,13 +126,12 @@ def orbit(
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         progress: Show progress bars.
     """
-    with command_errors("orbit"):
-        if resolution is not None and resolution <= 0:
-            raise ValueError(f"--resolution must be positive, got {resolution}")
-        loaded = open_run(run, device, flame_dir)
-        timestep = RunFrames(loaded).resolve(frame)
-        target = out or default_output(loaded, VIDEO_DIR, f"orbit_{timestep:05d}.mp4")
-        count = orbit_video(loaded, target, timestep, frames, yaw, pitch, resolution, fps, crf, backend, data, progress)
+    if resolution is not None and resolution <= 0:
+        raise OptionError(f"--resolution must be positive, got {resolution}")
+    loaded = open_run(run, device, flame_dir)
+    timestep = RunFrames(loaded).resolve(frame)
+    target = out or default_output(loaded, VIDEO_DIR, f"orbit_{timestep:05d}.mp4")
+    count = orbit_video(loaded, target, timestep, frames, yaw, pitch, resolution, fps, crf, backend, data, progress)
     print(f"wrote {target} ({count} frames, yaw +-{yaw:g} deg, pitch +-{pitch:g} deg)")
     return 0
 

@@ -40,12 +40,13 @@ from typing import Literal, Optional
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (VIDEO_DIR, Camera, Mp4Writer, RunFrames, RunPath, command_errors, default_output,
-                                   even_frames, fit_height, open_run, progress, record_camera, render_params,
-                                   side_by_side, to_uint8)
+from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, even_frames, fit_height,
+                                   open_run, progress, record_camera, render_params, side_by_side, to_uint8)
 from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
 from geoavatar.data.subject import SUBJECT_KEYS, Subject
+from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
+from geoavatar.io.video import Mp4Writer
 from geoavatar.train.checkpoint import LoadedRun, RunError
 from geoavatar.train.trainer import composite_target
 
@@ -67,9 +68,9 @@ def reference_frame(values: dict[str, Tensor], timesteps: list[int], spec: str, 
         try:
             timestep = int(spec)
         except ValueError:
-            raise ValueError(f"{what} must be 'first', 'mean' or a timestep number, got {spec!r}") from None
+            raise OptionError(f"{what} must be 'first', 'mean' or a timestep number, got {spec!r}") from None
         if timestep not in timesteps:
-            raise ValueError(f"{what} {timestep}: not a timestep of the sequence ({timesteps[0]}..{timesteps[-1]})")
+            raise OptionError(f"{what} {timestep}: not a timestep of the sequence ({timesteps[0]}..{timesteps[-1]})")
         rows = [timesteps.index(timestep)]
     index = torch.as_tensor(rows, dtype=torch.long, device=values["expr"].device)
     return {key: values[key].index_select(0, index).mean(dim=0, keepdim=True) for key in TRANSFERRED_KEYS}
@@ -126,7 +127,7 @@ def frame_of(params: dict[str, Tensor], row: int) -> dict[str, Tensor]:
 def open_driver(driver: Path, run: LoadedRun) -> Subject:
     try:
         subject = open_subject(driver)
-    except Exception as err:  # DatasetError and friends: name the option
+    except GeoAvatarError as err:  # DatasetError, a FLAME file error: name the option
         raise RunError(f"--driver {driver}: {err}") from err
     if subject.head_model != run.info.head_model:
         raise RunError(f"--driver {driver}: tracked with head model '{subject.head_model}', but the avatar uses "
@@ -154,7 +155,7 @@ def reenact_video(
 ) -> int:
     """Write the re-enactment video; returns the number of frames."""
     if camera_mode not in ("avatar", "driver"):
-        raise ValueError(f"--camera must be avatar or driver, got {camera_mode!r}")
+        raise OptionError(f"--camera must be avatar or driver, got {camera_mode!r}")
     frames = RunFrames(run)
     device = frames.device
     subject = open_driver(driver_root, run)
@@ -168,7 +169,7 @@ def reenact_video(
 
     driver_set = HeadAvatarDataset(subject, driver_split, DataConfig(cache="none"), check_head=False)
     if len(driver_set) == 0:
-        raise ValueError(f"--driver-split {driver_split}: the driver has no frames in this split")
+        raise OptionError(f"--driver-split {driver_split}: the driver has no frames in this split")
     if camera_mode == "avatar":
         avatar_root = Path(data) if data is not None else run.info.data_root
         if not avatar_root.is_dir():
@@ -245,12 +246,11 @@ def reenact(
         flame_dir: Folder with your FLAME model files (FLAME-tracked data only).
         progress: Show progress bars.
     """
-    with command_errors("reenact"):
-        loaded = open_run(run, device, flame_dir)
-        name = f"reenact_{Path(driver).name}{'_relative' if relative else ''}.mp4"
-        target = out or default_output(loaded, VIDEO_DIR, name)
-        count = reenact_video(loaded, Path(driver), target, relative, driver_neutral, avatar_neutral, camera,
-                              driver_split, max_frames, fps, crf, side_by_side, backend, data, progress)
+    loaded = open_run(run, device, flame_dir)
+    name = f"reenact_{Path(driver).name}{'_relative' if relative else ''}.mp4"
+    target = out or default_output(loaded, VIDEO_DIR, name)
+    count = reenact_video(loaded, Path(driver), target, relative, driver_neutral, avatar_neutral, camera,
+                          driver_split, max_frames, fps, crf, side_by_side, backend, data, progress)
     shown = "driver | avatar" if side_by_side else "avatar"
     print(f"wrote {target} ({count} frames: {shown}, {'relative' if relative else 'absolute'} transfer)")
     return 0

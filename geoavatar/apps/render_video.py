@@ -14,9 +14,10 @@ from typing import Literal, Optional
 
 import torch
 
-from geoavatar.apps.common import (VIDEO_DIR, Camera, Mp4Writer, RunFrames, RunPath, command_errors, default_output,
-                                   error_map, even_frames, open_run, open_run_dataset, progress, render_params,
-                                   side_by_side, to_uint8)
+from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, error_map, even_frames,
+                                   open_run, open_run_dataset, progress, render_params, side_by_side, to_uint8)
+from geoavatar.errors import OptionError
+from geoavatar.io.video import Mp4Writer
 from geoavatar.train.checkpoint import LoadedRun
 from geoavatar.train.trainer import composite_target
 
@@ -40,7 +41,7 @@ def render_split_video(
     """Write the gt | render | error video of a split to `out`; returns the number of frames."""
     dataset = open_run_dataset(run, split, data)
     if len(dataset) == 0:
-        raise ValueError(f"--split {split}: the run's dataset has no frames in this split")
+        raise OptionError(f"--split {split}: the run's dataset has no frames in this split")
     frames = RunFrames(run)
     device = frames.device
     indices = even_frames(len(dataset), max_frames)
@@ -89,11 +90,10 @@ def render(
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         progress: Show progress bars.
     """
-    with command_errors("render"):
-        loaded = open_run(run, device, flame_dir)
-        target = out or default_output(loaded, VIDEO_DIR, f"render_{split}.mp4")
-        count = render_split_video(loaded, target, split, max_frames, fps, crf, error_max, colormap, backend, data,
-                                   progress)
+    loaded = open_run(run, device, flame_dir)
+    target = out or default_output(loaded, VIDEO_DIR, f"render_{split}.mp4")
+    count = render_split_video(loaded, target, split, max_frames, fps, crf, error_max, colormap, backend, data,
+                               progress)
     print(f"wrote {target} ({count} frames: ground truth | render | error)")
     return 0
 

@@ -39,15 +39,12 @@ def synth(
         tracking_noise: Add tracker-like error to the written parameters (off: they equal the ground truth).
         progress: Show progress bars.
     """
-    try:
-        get_subject(subject)  # clear error for --subject outside 0..NUM_SUBJECTS-1
-        config = SynthConfig(
-            subject=subject, frames=frames, size=size, seed=seed,
-            tracking_noise=TrackingNoise(enabled=tracking_noise),
-        )
-        generate_dataset(Path(out), config, preview=preview, progress=progress)
-    except (FileExistsError, NotADirectoryError, ValueError) as err:
-        raise SystemExit(f"geoavatar synth: {err}") from None
+    get_subject(subject)  # OptionError for --subject outside 0..NUM_SUBJECTS-1 (bad options: one line at the CLI)
+    config = SynthConfig(
+        subject=subject, frames=frames, size=size, seed=seed,
+        tracking_noise=TrackingNoise(enabled=tracking_noise),
+    )
+    generate_dataset(Path(out), config, preview=preview, progress=progress)
     print(f"wrote {out}" + (f" (preview: {Path(out) / PREVIEW_FILE})" if preview else ""))
 
 

@@ -36,10 +36,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (RunFrames, RunPath, command_errors, head_centre, open_run, pose_gaussians,
-                                   record_camera)
+from geoavatar.apps.common import RunFrames, RunPath, head_centre, open_run, pose_gaussians, record_camera
 from geoavatar.avatar import GlobalGaussians
 from geoavatar.data import DatasetError, open_subject
+from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle, quaternion_to_matrix
 from geoavatar.train.checkpoint import LoadedRun
 
@@ -186,7 +186,7 @@ class Viewer:
         try:
             root = Path(data) if data is not None else self.run.info.data_root
             camera = record_camera(open_subject(root), self.frames.timesteps[0], None)
-        except (DatasetError, ValueError):
+        except DatasetError:
             return  # no dataset: viser's default camera
         viewmat = camera.viewmat.double()
         eye = -(viewmat[:3, :3].T @ viewmat[:3, 3])  # camera centre in world
@@ -217,9 +217,9 @@ def start_viewer(run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr
                  fps: float = 25.0, data: Path | None = None) -> Viewer:
     """Start serving `run` and return the running Viewer (call .stop() to end it)."""
     if not 0 <= port <= 65535:
-        raise ValueError(f"--port must be in [0, 65535], got {port}")
+        raise OptionError(f"--port must be in [0, 65535], got {port}")
     if expr_sliders < 0:
-        raise ValueError(f"--expr-sliders must be >= 0, got {expr_sliders}")
+        raise OptionError(f"--expr-sliders must be >= 0, got {expr_sliders}")
     return Viewer(run, host, port, expr_sliders, fps, data)
 
 
@@ -249,12 +249,11 @@ def view(
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         serve_forever: Keep serving until Ctrl-C (off: start, print the address and stop; a smoke test).
     """
-    with command_errors("view"):
-        loaded = open_run(run, device, flame_dir)
-        try:
-            viewer = start_viewer(loaded, host, port, expr_sliders, fps, data)
-        except (ImportError, OSError) as err:  # viser missing; the address cannot be bound
-            raise ValueError(str(err)) from err
+    loaded = open_run(run, device, flame_dir)
+    try:
+        viewer = start_viewer(loaded, host, port, expr_sliders, fps, data)
+    except (ImportError, OSError) as err:  # viser missing; the address cannot be bound
+        raise GeoAvatarError(f"cannot start the viewer: {err}") from err
     print(f"GeoAvatar viewer: {viewer.url}  ({loaded.avatar.num_gaussians} Gaussians, {len(viewer.frames)} frames; "
           "Ctrl-C stops)", flush=True)
     try:

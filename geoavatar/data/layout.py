@@ -41,15 +41,15 @@ folder into place. A half-written dataset therefore never exists under the targe
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
 import shutil
-import tempfile
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -66,7 +66,9 @@ from geoavatar.data.subject import (
     normalize_frame_params,
     stack_params,
 )
+from geoavatar.errors import DiskFullError
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
+from geoavatar.io.atomic import disk_full_as_error, replace_folder, temporary_folder_for
 from geoavatar.render.camera import opengl_c2w_to_viewmat, viewmat_to_opengl_c2w
 
 log = logging.getLogger(__name__)
@@ -347,8 +349,7 @@ class LayoutWriter:
         self.overwrite = overwrite
         self.png_compress_level = png_compress_level
         self.root.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.partial-", dir=self.root.parent))
-        self.tmp.chmod(0o777 & ~_umask())  # mkdtemp makes it 0700; the dataset gets a normal folder's mode
+        self.tmp = temporary_folder_for(self.root)  # with a normal folder's mode (the umask's)
         for sub in ("images", "fg_masks", "flame_param"):
             (self.tmp / sub).mkdir()
         self.frames: list[dict] = []
@@ -397,18 +398,22 @@ class LayoutWriter:
 
         stem = f"{timestep:05d}_{camera:02d}"
         frame: dict[str, Any] = {"timestep_index": timestep, "camera_index": camera, "file_path": f"images/{stem}.png"}
-        Image.fromarray(pixels).save(self.tmp / frame["file_path"], compress_level=self.png_compress_level)
+        alpha = None
         if mask is not None:
             alpha = _to_uint8(mask, "mask")
             alpha = alpha[..., 0] if alpha.ndim == 3 and alpha.shape[2] == 1 else alpha
             if alpha.shape != (height, width):
                 raise ValueError(f"mask must be [H, W] or [H, W, 1] matching the image, got {alpha.shape}")
             frame["fg_mask_path"] = f"fg_masks/{stem}.png"
-            Image.fromarray(alpha).save(self.tmp / frame["fg_mask_path"], compress_level=self.png_compress_level)
         frame["flame_param_path"] = f"flame_param/{timestep:05d}.npz"
-        if timestep not in self._written_params:
-            np.savez(self.tmp / frame["flame_param_path"], **self._npz_arrays(params, f"frame {timestep}"))
-            self._written_params.add(timestep)
+        arrays = self._npz_arrays(params, f"frame {timestep}") if timestep not in self._written_params else None
+        with self._disk_full():
+            Image.fromarray(pixels).save(self.tmp / frame["file_path"], compress_level=self.png_compress_level)
+            if alpha is not None:
+                Image.fromarray(alpha).save(self.tmp / frame["fg_mask_path"], compress_level=self.png_compress_level)
+            if arrays is not None:
+                np.savez(self.tmp / frame["flame_param_path"], **arrays)
+                self._written_params.add(timestep)
 
         c2w = viewmat_to_opengl_c2w(torch.from_numpy(viewmat_np)).numpy()
         fl_x, fl_y, cx, cy = K_np[0, 0], K_np[1, 1], K_np[0, 2], K_np[1, 2]
@@ -452,22 +457,33 @@ class LayoutWriter:
             self.abort()
             raise ValueError(f"{self.root}: no frames were added")
         try:
-            self._write_canonical()
-            self.frames.sort(key=lambda f: (f["timestep_index"], f["camera_index"]))
-            timesteps = sorted({f["timestep_index"] for f in self.frames})
-            chosen = split_timesteps(timesteps, split or self.split or SplitConfig(), source=str(self.root))
-            self._write_transforms(ALL_FILE, self.frames)
-            self._write_transforms(SPLIT_FILES["train"], [f for f in self.frames if f["timestep_index"] in set(chosen.train)])
-            self._write_transforms(SPLIT_FILES["val"], [f for f in self.frames if f["timestep_index"] in set(chosen.val)])
-            self._write_transforms(SPLIT_FILES["test"], [f for f in self.frames if f["timestep_index"] in set(chosen.test)])
-            # geoavatar.json last: inside the temporary folder it marks the content complete.
-            (self.tmp / INFO_FILE).write_text(json.dumps(info_to_json(self.info), indent=2) + "\n")
-            self._move_into_place()
+            with self._disk_full():
+                self._write_canonical()
+                self.frames.sort(key=lambda f: (f["timestep_index"], f["camera_index"]))
+                timesteps = sorted({f["timestep_index"] for f in self.frames})
+                chosen = split_timesteps(timesteps, split or self.split or SplitConfig(), source=str(self.root))
+                self._write_transforms(ALL_FILE, self.frames)
+                self._write_transforms(SPLIT_FILES["train"], [f for f in self.frames if f["timestep_index"] in set(chosen.train)])
+                self._write_transforms(SPLIT_FILES["val"], [f for f in self.frames if f["timestep_index"] in set(chosen.val)])
+                self._write_transforms(SPLIT_FILES["test"], [f for f in self.frames if f["timestep_index"] in set(chosen.test)])
+                # geoavatar.json last: inside the temporary folder it marks the content complete.
+                (self.tmp / INFO_FILE).write_text(json.dumps(info_to_json(self.info), indent=2) + "\n")
+                self._move_into_place()
         except BaseException:
             self.abort()
             raise
         self.done = True
         return self.root
+
+    @contextlib.contextmanager
+    def _disk_full(self) -> Iterator[None]:
+        """A full disk while writing: remove the temporary folder (its space is freed), DiskFullError naming root."""
+        try:
+            with disk_full_as_error(self.root, f"{self.root} is unchanged" if self.root.exists() else "nothing was written"):
+                yield
+        except DiskFullError:
+            self.abort()
+            raise
 
     def abort(self) -> None:
         """Remove the temporary folder; the target is left as it was."""
@@ -495,15 +511,9 @@ class LayoutWriter:
         (self.tmp / name).write_text(json.dumps(data, indent=2) + "\n")
 
     def _move_into_place(self) -> None:
-        old = None
-        if self.root.exists():
-            if not self.overwrite:
-                raise FileExistsError(f"{self.root} appeared while writing; not replacing it")
-            old = self.root.with_name(f".{self.root.name}.old-{os.getpid()}")
-            os.replace(self.root, old)
-        os.replace(self.tmp, self.root)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        if self.root.exists() and not self.overwrite:
+            raise FileExistsError(f"{self.root} appeared while writing; not replacing it")
+        replace_folder(self.tmp, self.root)
 
 
 def _numpy(value: np.ndarray | Tensor) -> np.ndarray:
@@ -529,13 +539,6 @@ def _to_uint8(value: np.ndarray | Tensor, name: str) -> np.ndarray:
         return np.ascontiguousarray(array.astype(np.uint8) * 255)
     raise ValueError(f"{name} must be uint8, bool or float in [0, 1], got dtype {array.dtype}")
 
-
-
-def _umask() -> int:
-    """The process umask (os has no getter: set and restore)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
 
 __all__ = [
     "CANONICAL_FILE", "FORMAT_VERSION", "HEAD_MODEL_NAMES", "INFO_FILE", "LayoutWriter", "info_to_json",

@@ -44,6 +44,7 @@ from torch import Tensor
 
 from geoavatar.avatar import posed_head
 from geoavatar.data import HeadAvatarDataset
+from geoavatar.errors import OptionError
 from geoavatar.eval import metrics
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
 from geoavatar.render.camera import world_to_camera
@@ -80,17 +81,17 @@ class EvalConfig:
 
     def validate(self) -> "EvalConfig":
         if self.split not in SPLITS:
-            raise ValueError(f"--split must be one of {', '.join(SPLITS)}, got {self.split!r}")
+            raise OptionError(f"--split must be one of {', '.join(SPLITS)}, got {self.split!r}")
         if self.lpips_net not in LPIPS_NETS:
-            raise ValueError(f"--lpips-net must be one of {', '.join(LPIPS_NETS)}, got {self.lpips_net!r}")
+            raise OptionError(f"--lpips-net must be one of {', '.join(LPIPS_NETS)}, got {self.lpips_net!r}")
         if self.max_frames is not None and self.max_frames <= 0:
-            raise ValueError(f"--max-frames must be positive, got {self.max_frames}")
+            raise OptionError(f"--max-frames must be positive, got {self.max_frames}")
         if self.timestep_mode not in ("auto", "zero", "frame"):
-            raise ValueError(f"timestep_mode must be auto, zero or frame, got {self.timestep_mode!r}")
+            raise OptionError(f"timestep_mode must be auto, zero or frame, got {self.timestep_mode!r}")
         if self.mouth_dilate < 0:
-            raise ValueError(f"mouth_dilate must be >= 0, got {self.mouth_dilate}")
+            raise OptionError(f"mouth_dilate must be >= 0, got {self.mouth_dilate}")
         if self.mouth_min_crop < MIN_SIZE[self.lpips_net]:
-            raise ValueError(f"mouth_min_crop must be >= {MIN_SIZE[self.lpips_net]} for LPIPS {self.lpips_net}")
+            raise OptionError(f"mouth_min_crop must be >= {MIN_SIZE[self.lpips_net]} for LPIPS {self.lpips_net}")
         return self
 
 
@@ -199,7 +200,8 @@ def mouth_face_mask(head) -> Tensor:
         in_lips[np.asarray(lips, dtype=np.int64)] = True
         selected |= in_lips[faces].all(axis=1)
     if not selected.any():
-        raise ValueError("the head model has neither a mouth structure nor a 'lips' region: no mouth metrics")
+        raise OptionError("--mouth: the head model has neither a mouth structure nor a 'lips' region, so there are "
+                          "no mouth metrics; pass --no-mouth")
     return torch.from_numpy(selected)
 
 

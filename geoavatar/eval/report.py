@@ -5,7 +5,7 @@ Markdown follows the paper. Table 1 layout (`metric_table`): one row per metric,
 the std). Ablation layout (`ablation_table`, Tables 3 / 6): one row per run, one column per metric.
 In comparisons the best value of each metric is bold and the second underlined, as in the paper.
 
-Files (all written atomically: temporary file in the same folder, then os.replace):
+Files (all written atomically through geoavatar.io: the umask's mode, DiskFullError on a full disk):
 
     RUN/eval/<split>/metrics.json    per-frame metrics, summary (mean, std, count), settings, run info
     RUN/eval/<split>/metrics.md      the Table 1 column of this run
@@ -15,7 +15,6 @@ Files (all written atomically: temporary file in the same folder, then os.replac
 
 from __future__ import annotations
 
-import io
 import json
 import math
 from dataclasses import dataclass
@@ -25,7 +24,7 @@ from typing import Sequence
 import numpy as np
 
 from geoavatar.eval.evaluate import EvalResult, frame_dicts
-from geoavatar.train.checkpoint import atomic_write_bytes, atomic_write_json, atomic_write_text
+from geoavatar.io.atomic import atomic_write_json, atomic_write_png, atomic_write_text
 
 REPORT_FORMAT = "geoavatar-eval"
 REPORT_VERSION = 1
@@ -140,14 +139,6 @@ def run_json(result: EvalResult) -> dict:
     }
 
 
-def _png(image: np.ndarray) -> bytes:
-    from PIL import Image
-
-    buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="PNG")
-    return buffer.getvalue()
-
-
 def write_frame_images(result: EvalResult, folder: Path) -> list[Path]:
     """gt | pred | |error| x 4 | mouth mask for each kept frame, as PNG files named by timestep and camera."""
     paths = []
@@ -159,7 +150,7 @@ def write_frame_images(result: EvalResult, folder: Path) -> list[Path]:
             panels.append(images["mouth"].float()[..., None].expand_as(gt))
         row = (np.concatenate([p.numpy() for p in panels], axis=1) * 255.0 + 0.5).astype(np.uint8)
         path = folder / f"{frame.timestep:05d}_{frame.camera:02d}.png"
-        paths.append(atomic_write_bytes(path, _png(row)))
+        paths.append(atomic_write_png(path, row))
     return paths
 
 
@@ -190,7 +181,7 @@ def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[st
     body = {"format": REPORT_FORMAT + "-comparison", "version": REPORT_VERSION, "runs": [
         {k: v for k, v in run_json(r).items() if k != "frames"} for r in results]}
     return {"markdown": atomic_write_text(markdown, comparison_markdown(results)),
-            "json": atomic_write_text(markdown.with_suffix(".json"), json.dumps(body, indent=2) + "\n")}
+            "json": atomic_write_json(markdown.with_suffix(".json"), body)}
 
 
 __all__ = ["COLUMNS", "MetricColumn", "ablation_table", "comparison_markdown", "eval_dir", "metric_table",

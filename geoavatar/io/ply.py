@@ -11,7 +11,7 @@ One binary little-endian `vertex` element with float32 properties, in this order
     scale_0..2       log of the standard deviations (viewers apply exp)
     rot_0..3         rotation quaternion w, x, y, z (normalised on write)
 
-Written with plyfile through a temporary file and os.replace (atomic).
+Written with plyfile, atomically (geoavatar.io.atomic: the umask's mode, DiskFullError on a full disk).
 """
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from geoavatar.io.atomic import atomic_write_bytes
 
 BASE_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2")
 TAIL_PROPERTIES = ("opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
@@ -59,7 +61,6 @@ def write_gaussian_ply(path: str | os.PathLike, gaussians: GaussianPly) -> Path:
     """Write `gaussians` as a standard 3DGS PLY at `path` (atomically); returns the path."""
     from plyfile import PlyData, PlyElement
 
-    from geoavatar.train.checkpoint import atomic_write_bytes
 
     means = _as_rows("means", gaussians.means, None, 3)
     count = means.shape[0]
@@ -84,9 +85,7 @@ def write_gaussian_ply(path: str | os.PathLike, gaussians: GaussianPly) -> Path:
         vertex[name] = columns[:, i]
     buffer = io.BytesIO()
     PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<").write(buffer)
-    path = atomic_write_bytes(path, buffer.getvalue())
-    os.chmod(path, 0o644)
-    return path
+    return atomic_write_bytes(path, buffer.getvalue())
 
 
 def read_gaussian_ply(path: str | os.PathLike) -> GaussianPly:

@@ -7,13 +7,13 @@ resized to the frame (the CPU z-buffer rasterizer is the cost of this stage).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
 import torch
 
+from geoavatar.io.video import write_mp4
 from geoavatar.render.mesh import render_mesh, scale_intrinsics
 
 MESH_ALPHA = 0.45
@@ -54,33 +54,9 @@ def overlay_frame(
 
 
 def write_video(path: Path, frames: Iterable[np.ndarray], fps: float) -> Path:
-    """Encode RGB frames [H, W, 3] uint8 as H.264 mp4 (PyAV), atomically (temp file + rename)."""
-    import av
-    from fractions import Fraction
-
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.mp4")
-    try:
-        with av.open(str(tmp), mode="w") as container:
-            stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
-            stream.pix_fmt = "yuv420p"
-            stream.options = {"crf": "20", "preset": "veryfast"}
-            started = False
-            for rgb in frames:
-                if not started:
-                    # yuv420p needs even sizes
-                    stream.height, stream.width = rgb.shape[0] // 2 * 2, rgb.shape[1] // 2 * 2
-                    started = True
-                rgb = np.ascontiguousarray(rgb[: stream.height, : stream.width])
-                for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
-                    container.mux(packet)
-            for packet in stream.encode():
-                container.mux(packet)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    """Encode RGB frames [H, W, 3] uint8 as H.264 mp4 with the one mp4 writer (geoavatar.io.video: atomic,
+    odd sizes padded with the edge row / column); a fast preset, as the overlay is a check, not a result."""
+    return write_mp4(path, frames, fps, crf=20, preset="veryfast")
 
 
 def contact_sheet(pictures: list[np.ndarray], labels: list[str] | None = None) -> np.ndarray:

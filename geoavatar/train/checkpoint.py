@@ -24,8 +24,9 @@ loads with `torch.load(weights_only=True)`: a checkpoint from someone else canno
     extent                         scene extent (metres) used by the position lr and densification
     rng                            torch / cuda / numpy / python / trainer generator states
 
-Every write goes to a temporary file in the same folder and is moved into place with os.replace, so
-a killed process leaves either the old or the new file, never a torn one.
+Every write goes through geoavatar.io.atomic (temporary file in the same folder, os.replace), so a
+killed process leaves either the old or the new file, never a torn one; a full disk raises
+DiskFullError naming the file and the last good checkpoint.
 """
 
 from __future__ import annotations
@@ -34,7 +35,6 @@ import dataclasses
 import io
 import json
 import os
-import tempfile
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +44,8 @@ import torch
 
 from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
-from geoavatar.errors import GeoAvatarError
+from geoavatar.errors import DiskFullError, GeoAvatarError, disk_full_error
+from geoavatar.io.atomic import atomic_write_bytes
 
 FORMAT = "geoavatar-checkpoint"
 VERSION = 1
@@ -61,40 +62,33 @@ class RunError(GeoAvatarError, ValueError):
     """A RUN folder or checkpoint is missing or unusable; the message names the path."""
 
 
-# --- atomic writes ----------------------------------------------------------------------------
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write `data` to `path` via a temporary file in the same folder and os.replace."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    return atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def atomic_write_json(path: str | os.PathLike, data: Any) -> Path:
-    return atomic_write_text(path, json.dumps(data, indent=2, sort_keys=False, allow_nan=True) + "\n")
+# --- writing and reading checkpoints -----------------------------------------------------------
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict) -> Path:
-    """torch.save `payload` (plus format/version) atomically."""
+    """torch.save `payload` (plus format/version) atomically.
+
+    On a full disk, DiskFullError names the checkpoint and the last good one, which is intact."""
+    path = Path(path)
     buffer = io.BytesIO()
     torch.save({"format": FORMAT, "version": VERSION, **payload}, buffer)
-    return atomic_write_bytes(path, buffer.getvalue())
+    try:
+        return atomic_write_bytes(path, buffer.getvalue())
+    except DiskFullError as err:
+        raise disk_full_error(path, err, f"{last_good_checkpoint(path)}, which --resume continues from") from err
+
+
+def last_good_checkpoint(failed: str | os.PathLike) -> str:
+    """'last good checkpoint: <path> (step N)' for a run whose write of `failed` did not happen, or says there is none."""
+    failed = Path(failed)
+    for candidate in (failed, failed.with_name(LAST_CHECKPOINT)):  # final.pt failing: last.pt holds the same step
+        if candidate.is_file():
+            try:
+                step = f" (step {int(load_checkpoint(candidate)['step'])})"
+            except (RunError, KeyError, TypeError, ValueError):
+                step = " (unreadable)"
+            return f"last good checkpoint: {candidate}{step}"
+    return "last good checkpoint: none written yet"
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
@@ -286,7 +280,7 @@ def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None 
 
 __all__ = [
     "APS_FILE", "CHECKPOINT_DIR", "CONFIG_FILE", "FINAL_CHECKPOINT", "LAST_CHECKPOINT", "LOG_FILE", "VAL_DIR",
-    "LoadedRun", "RunError", "RunInfo", "atomic_write_bytes", "atomic_write_json", "atomic_write_text", "open_run_dataset",
+    "LoadedRun", "RunError", "RunInfo", "last_good_checkpoint", "open_run_dataset",
     "config_from_json", "config_to_dict", "dataclass_from_dict", "load_checkpoint", "load_head_for", "load_run",
     "run_checkpoint_path", "save_checkpoint",
 ]

@@ -46,6 +46,7 @@ from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError
+from geoavatar.io.atomic import atomic_write_json, atomic_write_png
 from geoavatar.render import RasterizeResult, rasterize
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.frame_params import FrameParams
@@ -444,13 +445,7 @@ def validation_image(data: TrainingData, state: TrainingState) -> tuple[np.ndarr
 
 
 def save_png(path: Path, image: np.ndarray) -> None:
-    import io
-
-    from PIL import Image
-
-    buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="PNG")
-    ckpt.atomic_write_bytes(path, buffer.getvalue())
+    atomic_write_png(path, image)
 
 
 # --- the run ------------------------------------------------------------------------------------
@@ -582,7 +577,7 @@ def train(
         state = restore_state(payload, data, config, str(last_path))
     else:
         state = new_state(data, config, options.seed)
-    ckpt.atomic_write_json(run_dir / ckpt.CONFIG_FILE, {
+    atomic_write_json(run_dir / ckpt.CONFIG_FILE, {
         "preset": options.preset, "config": ckpt.config_to_dict(config), "run": options.to_json(),
         "dataset": data.dataset_record(), "device": str(data.device),
     })
@@ -703,7 +698,7 @@ def write_aps_report(run_dir: Path, aps: APSState, config: TrainConfig) -> None:
     body = {"face_sets": config.model.face_sets, "aps_step": config.aps_step, **aps.to_dict(),
             "report": aps.report() if config.model.face_sets == "aps"
             else f"APS not used: face_sets = '{config.model.face_sets}'"}
-    ckpt.atomic_write_json(run_dir / ckpt.APS_FILE, body)
+    atomic_write_json(run_dir / ckpt.APS_FILE, body)
 
 
 __all__ = [

@@ -42,6 +42,7 @@ from geoavatar.data.synth.motion import Motion, script_motion
 from geoavatar.data.synth.render import ActorRenderer, Camera, frontal_camera
 from geoavatar.data.synth.subjects import get_subject
 from geoavatar.data.synth.tracking import TrackingNoise, apply_tracking_noise
+from geoavatar.errors import OptionError, disk_full_error, is_disk_full
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
 
 log = logging.getLogger(__name__)
@@ -92,19 +93,18 @@ class SynthConfig:
 def check_output_folder(out: Path) -> bool:
     """Refuse to write over anything but an empty folder or an earlier synthetic dataset.
 
-    Returns True when `out` exists and may be replaced. Raises FileExistsError / NotADirectoryError
-    naming --out otherwise.
+    Returns True when `out` exists and may be replaced. Raises OptionError naming --out otherwise.
     """
     out = Path(out)
     if not out.exists():
         return False
     if not out.is_dir():
-        raise NotADirectoryError(f"--out {out} exists and is not a folder; choose another --out")
+        raise OptionError(f"--out {out} exists and is not a folder; choose another --out")
     if not any(out.iterdir()):
         return True
     if is_synth_dataset(out):
         return True
-    raise FileExistsError(
+    raise OptionError(
         f"--out {out} is a non-empty folder that is not a dataset made by `geoavatar synth`; "
         "refusing to overwrite it. Choose an empty or new folder."
     )
@@ -207,11 +207,11 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
     out = Path(out)
     subject = get_subject(config.subject)
     if config.frames < 2:
-        raise ValueError(f"--frames must be at least 2 (training and test frames), got {config.frames}")
+        raise OptionError(f"--frames must be at least 2 (training and test frames), got {config.frames}")
     if config.size < 16:
-        raise ValueError(f"--size must be at least 16 pixels, got {config.size}")
+        raise OptionError(f"--size must be at least 16 pixels, got {config.size}")
     if config.workers < 1:
-        raise ValueError(f"workers must be at least 1, got {config.workers}")
+        raise OptionError(f"workers must be at least 1, got {config.workers}")
     replace = check_output_folder(out)
 
     actor = actor_for_subject(subject.index)
@@ -274,6 +274,11 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
             # A short video holds out its last 25 %: expected here, the motion script is built for it.
             warnings.simplefilter("ignore", ShortVideoWarning)
             writer.finish()
+    except OSError as err:  # the files beside LayoutWriter's (ground truth, preview, meta) on a full disk
+        writer.abort()
+        if is_disk_full(err):
+            raise disk_full_error(out, err, f"{out} is unchanged" if out.exists() else "nothing was written") from err
+        raise
     except BaseException:
         writer.abort()
         raise

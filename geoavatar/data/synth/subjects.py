@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geoavatar.errors import OptionError
+
 NUM_SUBJECTS = 3
 
 
@@ -125,9 +127,9 @@ SUBJECTS: tuple[Subject, ...] = (
 
 
 def get_subject(index: int) -> Subject:
-    """Subject `index` (0..NUM_SUBJECTS-1); ValueError naming --subject otherwise."""
+    """Subject `index` (0..NUM_SUBJECTS-1); OptionError naming --subject otherwise."""
     if not isinstance(index, (int, np.integer)) or not 0 <= int(index) < NUM_SUBJECTS:
-        raise ValueError(f"--subject must be an integer in 0..{NUM_SUBJECTS - 1}, got {index!r}")
+        raise OptionError(f"--subject must be an integer in 0..{NUM_SUBJECTS - 1}, got {index!r}")
     return SUBJECTS[int(index)]
 
 

@@ -24,7 +24,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -35,6 +34,7 @@ from geoavatar.head.openhead.landmarks import embed_landmarks
 from geoavatar.head.openhead.modes import expression_modes, identity_modes
 from geoavatar.head.openhead.rig import HeadLayout, joint_regressor, region_masks, skinning_weights
 from geoavatar.head.openhead.surface import OpenHeadShape, build_skin, eyeball_mesh
+from geoavatar.io.atomic import atomic_write_npz
 
 VERSION = "1"
 _ARRAY_FIELDS = ("v_template", "faces", "shapedirs", "exprdirs", "j_regressor", "lbs_weights",
@@ -149,19 +149,6 @@ def _from_arrays(arrays) -> HeadModelData:
                          metadata=json.loads(str(arrays["metadata_json"])), **fields).validate()
 
 
-def _write_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            np.savez(handle, **arrays)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a cache may be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def build_openhead(cache: bool = True, shape: OpenHeadShape = OpenHeadShape()) -> HeadModelData:
     """OpenHead's arrays; generated on first use and cached (a corrupt cache file is rebuilt)."""
     path = cache_path(shape)
@@ -173,7 +160,7 @@ def build_openhead(cache: bool = True, shape: OpenHeadShape = OpenHeadShape()) -
             pass  # corrupt or from an incompatible writer: rebuild below
     data = generate_openhead(shape)
     if cache:
-        _write_atomic(path, _to_arrays(data))
+        atomic_write_npz(path, **_to_arrays(data))
     return data
 
 

@@ -1,0 +1,116 @@
+"""The one mp4 writer: frames -> H.264 (PyAV, libx264, yuv420p), written atomically.
+
+    with Mp4Writer(path, fps=25) as video:
+        video.write(frame)                   # uint8 RGB [H, W, 3]
+    write_mp4(path, frames, fps=25)          # the same for an iterable of frames
+
+yuv420p needs even sizes: a frame with an odd height or width gets its last row / column repeated
+(nothing is cropped away). Every frame must have the size of the first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from fractions import Fraction
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from geoavatar.errors import OptionError
+from geoavatar.io.atomic import atomic_file
+
+
+def pad_to_even(frame: np.ndarray) -> np.ndarray:
+    """[H, W, 3] -> [H + H % 2, W + W % 2, 3], the edge row / column repeated."""
+    pad = ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0))
+    return np.pad(frame, pad, mode="edge") if pad[0][1] or pad[1][1] else frame
+
+
+class Mp4Writer:
+    """Frames -> H.264 mp4 (PyAV, libx264, yuv420p), written atomically (geoavatar.io.atomic_file).
+
+    Leaving the `with` block normally moves the finished file into place; an exception deletes it, so
+    `path` is either the old file or the complete new one. A full disk raises DiskFullError.
+    """
+
+    def __init__(self, path: str | os.PathLike, fps: float = 25.0, crf: int = 18, preset: str = "medium"):
+        if fps <= 0:
+            raise OptionError(f"--fps must be positive, got {fps}")
+        if not 0 <= crf <= 51:
+            raise OptionError(f"--crf must be in [0, 51], got {crf}")
+        self.path = Path(path)
+        if self.path.suffix.lower() != ".mp4":
+            raise OptionError(f"{self.path}: the video file name must end in .mp4")
+        self.fps, self.crf, self.preset = fps, crf, preset
+        self.frames = 0
+        self._container = self._stream = None
+        self._files: contextlib.ExitStack | None = None
+        self._size: tuple[int, int] | None = None  # (height, width) of the input frames
+
+    def __enter__(self) -> "Mp4Writer":
+        import av
+
+        self._files = contextlib.ExitStack()
+        tmp = self._files.enter_context(atomic_file(self.path, suffix=".tmp.mp4"))
+        try:
+            self._container = av.open(str(tmp), mode="w", format="mp4")
+        except BaseException:
+            if not self._files.__exit__(*sys.exc_info()):
+                raise
+        return self
+
+    def write(self, frame: np.ndarray) -> None:
+        """Append one uint8 RGB frame [H, W, 3]."""
+        import av
+
+        frame = np.asarray(frame)
+        if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+            raise ValueError(f"Mp4Writer: frames must be uint8 [H, W, 3], got {frame.dtype} {frame.shape}")
+        if self._size is None:
+            self._size = frame.shape[:2]
+            height, width = (s + s % 2 for s in self._size)
+            self._stream = self._container.add_stream("libx264", rate=Fraction(self.fps).limit_denominator(1001))
+            self._stream.width, self._stream.height = width, height
+            self._stream.pix_fmt = "yuv420p"
+            self._stream.options = {"crf": str(self.crf), "preset": self.preset}
+        elif frame.shape[:2] != self._size:
+            raise ValueError(f"Mp4Writer: frame {self.frames} has size {frame.shape[1]}x{frame.shape[0]}, the first "
+                             f"{self._size[1]}x{self._size[0]}; every frame of a video needs one size")
+        video_frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(pad_to_even(frame)), format="rgb24")
+        for packet in self._stream.encode(video_frame):
+            self._container.mux(packet)
+        self.frames += 1
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        files, self._files = self._files, None
+        try:
+            try:
+                if exc_type is None:
+                    if self.frames == 0:
+                        raise ValueError(f"{self.path}: no frames to write")
+                    for packet in self._stream.encode():  # flush the encoder
+                        self._container.mux(packet)
+            finally:
+                self._container.close()
+        except BaseException:
+            if exc_type is None:  # finishing failed: atomic_file removes the file (and names a full disk)
+                if not files.__exit__(*sys.exc_info()):
+                    raise
+                return False
+            # the block failed already: its exception is the one to report
+        return bool(files.__exit__(exc_type, exc, tb))
+
+
+def write_mp4(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float = 25.0, crf: int = 18,
+              preset: str = "medium") -> Path:
+    """Encode uint8 RGB frames [H, W, 3] as an mp4 at `path` (Mp4Writer); returns the path."""
+    with Mp4Writer(path, fps, crf, preset) as video:
+        for frame in frames:
+            video.write(frame)
+    return Path(path)
+
+
+__all__ = ["Mp4Writer", "pad_to_even", "write_mp4"]
