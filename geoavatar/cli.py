@@ -21,7 +21,7 @@ COMMANDS: CommandTable = {
     },
     "synth": "geoavatar.apps.synth:synth",
     "prepare": "geoavatar.apps.prepare:prepare",
-    "train": "geoavatar.apps.train:train",
+    "train": "geoavatar.apps.train:main",
     "eval": "geoavatar.apps.eval:eval_runs",
     "render": "geoavatar.apps.render_video:render",
     "reenact": "geoavatar.apps.reenact:reenact",
@@ -91,7 +91,10 @@ def main(argv: list[str] | None = None) -> int:
 
     func = _resolve(entry)
     try:
-        result = tyro.cli(func, args=argv, prog=prog)  # the function's docstring is the description
+        if getattr(func, "parses_argv", False):  # parses its own words (train: the defaults follow --preset)
+            result = func(argv, prog)
+        else:
+            result = tyro.cli(func, args=argv, prog=prog)  # the function's docstring is the description
     except GeoAvatarError as err:
         # the user's input is wrong, not the code: one line, no traceback (any other error keeps it)
         print(f"{prog}: {_one_line(str(err))}", file=sys.stderr)

@@ -126,7 +126,7 @@ def test_rerun_skips_complete_stages(prepared):
 def test_landmark_head_matches_full_model():
     from geoavatar.head import HeadModel, load_head_data
     from geoavatar.head.smooth_offset import smooth_offset
-    from geoavatar.prep.tracking import landmark_forward, landmark_head, offset_rows
+    from geoavatar.prep.tracking import landmark_head, offset_rows
 
     data = load_head_data("openhead")
     full, reduced = HeadModel(data), landmark_head(data)
@@ -136,7 +136,9 @@ def test_landmark_head_matches_full_model():
         params[key] = 0.2 * torch.randn(params[key].shape, generator=generator)
     expected = full.forward_params(params).landmarks
     assert torch.allclose(reduced.forward_params(params).landmarks, expected, atol=1e-6)
-    assert torch.allclose(landmark_forward(reduced, params), expected, atol=1e-6)
+    subset = reduced.landmark_vertex_ids  # the tracker's batched vertex-subset mode
+    assert torch.allclose(reduced.forward_params(params, vertex_ids=subset).landmarks, expected, atol=1e-6)
+    assert torch.allclose(full.forward_params(params, vertex_ids=full.landmark_vertex_ids).landmarks, expected, atol=1e-6)
     assert reduced.num_vertices < full.num_vertices // 10
 
     # With a static offset: the reduced model's rows of the smooth field give the full model's landmarks.
@@ -145,7 +147,8 @@ def test_landmark_head_matches_full_model():
     params["static_offset"] = torch.as_tensor(offsets.extend(theta), dtype=torch.float32)
     expected = full.forward_params(params).landmarks
     reduced_params = dict(params, static_offset=torch.as_tensor(offset_rows(offsets, reduced) @ theta, dtype=torch.float32))
-    assert torch.allclose(landmark_forward(reduced, reduced_params), expected, atol=1e-6)
+    assert torch.allclose(reduced.forward_params(reduced_params, vertex_ids=subset).landmarks, expected, atol=1e-6)
+    assert torch.allclose(full.forward_params(params, vertex_ids=full.landmark_vertex_ids).landmarks, expected, atol=1e-6)
 
 
 def test_crop_boxes_are_smooth_and_inside():

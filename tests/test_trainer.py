@@ -8,6 +8,7 @@ preset E that densifies (clone/split/prune) at every step and runs APS at step 2
 from __future__ import annotations
 
 import os
+import re
 import signal
 import warnings
 from dataclasses import replace
@@ -214,21 +215,21 @@ def test_nan_loss_stops_with_last_good_checkpoint(subject, tmp_path, monkeypatch
 
 
 def test_bad_inputs_fail_clearly(subject, straight_run, tmp_path, capsys):
-    from geoavatar.apps.train import train as cli_train
+    from geoavatar import cli
+
+    def fails(pattern: str, *words) -> None:  # `geoavatar train WORDS`: one line, exit status 2
+        code = cli.main(["train", *map(str, words), "--no-progress"])
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1 and re.search(pattern, err), err
 
     with pytest.raises(DatasetError, match="dataset folder not found"):
         train(options(tmp_path / "missing", tmp_path / "r1"), small_config())
     (tmp_path / "empty").mkdir()
-    with pytest.raises(SystemExit, match="geoavatar train: .*empty: not a dataset"):
-        cli_train(data=tmp_path / "empty", out=tmp_path / "r2", steps=2, progress=False)
-    with pytest.raises(SystemExit, match="--data is required for a new run"):
-        cli_train(out=tmp_path / "r4", steps=2, progress=False)
-    with pytest.raises(SystemExit, match="already holds a run.*--resume"):
-        cli_train(data=subject, out=straight_run, steps=2, progress=False)
-    with pytest.raises(SystemExit, match="nothing to resume"):
-        cli_train(data=subject, out=tmp_path / "r3", resume=True, progress=False)
-    with pytest.raises(SystemExit, match="different one.*steps"):
-        cli_train(data=subject, out=straight_run, resume=True, steps=99, progress=False)
+    fails("geoavatar train: .*empty: not a dataset", "--data", tmp_path / "empty", "--out", tmp_path / "r2", "--steps", 2)
+    fails("--data is required for a new run", "--out", tmp_path / "r4", "--steps", 2)
+    fails("already holds a run.*--resume", "--data", subject, "--out", straight_run, "--steps", 2)
+    fails("nothing to resume", "--data", subject, "--out", tmp_path / "r3", "--resume")
+    fails("different one.*steps.*--extend N", "--data", subject, "--out", straight_run, "--resume", "--steps", 99)
     with pytest.raises(ckpt.RunError, match="not a GeoAvatar run"):
         ckpt.load_run(tmp_path / "empty")
     (tmp_path / "bad" / "checkpoints").mkdir(parents=True)

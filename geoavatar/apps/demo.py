@@ -106,8 +106,9 @@ def demo(
     from geoavatar.apps.reenact import reenact
     from geoavatar.apps.render_video import render
     from geoavatar.apps.synth import synth
-    from geoavatar.apps.train import train
+    from geoavatar.apps.train import TrainArgs, train
     from geoavatar.data.layout import is_layout
+    from geoavatar.train.trainer import RunOptions
 
     if steps <= 0 or frames < 8 or size < 32 or resolution < 32 or driver_frames < 2:
         raise SystemExit("geoavatar demo: need --steps > 0, --frames >= 8, --size >= 32, --resolution >= 32, "
@@ -128,9 +129,10 @@ def demo(
     final_ckpt = run / "checkpoints" / "final.pt"
     resume = (run / "checkpoints" / "last.pt").is_file()
     timer.run("train GeoAvatar (preset E)", final_ckpt.is_file,
-              lambda: _checked(train(data=data, out=run, preset=None if resume else "E", steps=None if resume else steps,
-                                     resolution=resolution, resume=resume, seed=seed, device=device,
-                                     backend=backend, progress=progress), "train"))
+              lambda: _checked(train(TrainArgs(
+                  RunOptions(out=run, data=data, preset=None if resume else "E", resolution=resolution, seed=seed,
+                             device=device, backend=backend, progress=progress),
+                  steps=None if resume else steps, resume=resume)), "train"))
     timer.run("evaluate (test split)", metrics_json.is_file,
               lambda: _checked(eval_runs([run], split="test", device=device, backend=backend, progress=progress), "eval"))
     timer.run("render test re-enactment", videos["render"].is_file,

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 from geoavatar.head.base import JOINT_NAMES, REGION_NAMES, HeadModel, HeadModelData, HeadOutput
+from geoavatar.head.params import SUBJECT_KEYS, HeadParams, npz_frame
 
 HEAD_MODELS = ("openhead", "flame")
 MOUTH_KINDS = ("geoavatar", "gaussianavatars", "none")
@@ -43,5 +44,6 @@ def load_head_model(name: str, mouth: str = "none", **options) -> HeadModel:
 
 __all__ = [
     "HEAD_MODELS", "MOUTH_KINDS", "JOINT_NAMES", "REGION_NAMES", "HeadModel", "HeadModelData", "HeadOutput",
+    "HeadParams", "SUBJECT_KEYS", "npz_frame",
     "load_head_data", "load_head_model",
 ]

@@ -24,8 +24,9 @@ Loss (all terms are means over frames, residuals in units of the per-frame face 
 Coarse to fine: (1) rigid pose from the stable landmarks (eye corners, nose, brows, upper face
 oval) with the neutral head, (2) everything. Adam over all frames at once; MediaPipe's z is not used.
 The model is reduced to the vertices the landmark faces touch plus five virtual vertices that
-carry the joint regressor (linear in the shape and expression coefficients), so the forward pass
-is exact and costs O(landmarks), not O(mesh).
+carry the joint regressor (linear in the shape and expression coefficients), and posed with
+HeadModel's batched vertex-subset mode (`forward(..., vertex_ids=model.landmark_vertex_ids)`), so
+the forward pass is exact and costs O(landmarks), not O(mesh).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from torch import Tensor
 
 from geoavatar.head import landmarks_mediapipe as mpids
 from geoavatar.head.base import HeadModel, HeadModelData
+from geoavatar.head.params import HeadParams
 from geoavatar.head.smooth_offset import SmoothOffset
 from geoavatar.render.camera import project
 
@@ -157,42 +159,9 @@ def landmark_head(data: HeadModelData) -> HeadModel:
     return HeadModel(reduced)
 
 
-def landmark_forward(model: HeadModel, params: dict[str, Tensor]) -> Tensor:
-    """Landmarks [B, L, 3] of `model` (best a `landmark_head`), the same as model.forward_params.
-
-    HeadModel.forward applies the per-vertex transforms with a batched 3x3 matmul, which on CPU costs
-    ~1 us per vertex and frame; here the blended transforms are applied with broadcast products
-    (10-20x faster for the [T x ~400] vertex batches of tracking).
-    """
-    from geoavatar.geometry import axis_angle_to_matrix
-    from geoavatar.head.base import _fit_modes, _rigid_chain
-
-    rotation = params["rotation"]
-    batch, dtype = rotation.shape[0], model.v_template.dtype
-    shape = _fit_modes(params["shape"], model.num_shape, "shape").to(dtype).reshape(-1, model.num_shape)
-    expr = _fit_modes(params["expr"], model.num_expr, "expr").to(dtype)
-    num_v = model.v_template.shape[0]
-    identity = model.v_template + (model.shapedirs @ shape[0]) if shape.shape[0] == 1 else None  # [V, 3]
-    expression = (expr @ model.exprdirs.reshape(num_v * 3, -1).T).reshape(batch, num_v, 3)  # GEMM, [B, V, 3]
-    if identity is None:
-        identity = model.v_template[None] + torch.einsum("bs,vcs->bvc", shape, model.shapedirs)
-    v_shaped = identity + expression  # [B, V, 3]
-    if params.get("static_offset") is not None:  # [V, 3] or [1, V, 3]: vertices and joint carriers
-        v_shaped = v_shaped + params["static_offset"].to(dtype).reshape(1, num_v, 3)
-    joints = torch.einsum("jv,bvc->bjc", model.j_regressor, v_shaped)  # [B, J, 3]
-    pose = torch.cat([rotation, params["neck_pose"], params["jaw_pose"], params["eyes_pose"]], -1).to(dtype)
-    rot_mats = axis_angle_to_matrix(pose.reshape(batch, -1, 3))  # [B, J, 3, 3]
-    if model.posedirs.shape[-1] > 0:
-        eye = torch.eye(3, dtype=dtype, device=pose.device)
-        feature = (rot_mats[:, 1:] - eye).reshape(batch, -1)  # [B, 9*(J-1)]
-        v_shaped = v_shaped + (feature @ model.posedirs.reshape(num_v * 3, -1).T).reshape(batch, num_v, 3)
-    _, transforms = _rigid_chain(rot_mats, joints, model.parents)  # [B, J, 4, 4]
-    num_j = transforms.shape[1]
-    blended = (model.lbs_weights @ transforms[:, :, :3, :].reshape(batch, num_j, 12)).reshape(batch, num_v, 3, 4)
-    vertices = (blended[..., :3] * v_shaped[:, :, None, :]).sum(-1) + blended[..., 3]  # [B, V, 3]
-    vertices = vertices + params["translation"].to(dtype)[:, None, :]
-    tri = vertices[:, model.faces[model.landmark_faces]]  # [B, L, 3, 3]
-    return (tri * model.landmark_bary[None, :, :, None]).sum(2)
+def _rigid_only(params: HeadParams) -> HeadParams:
+    """Only rotation and translation: every other parameter zero (and cut from the graph)."""
+    return params.map(lambda value: value.detach() * 0).replace(rotation=params.rotation, translation=params.translation)
 
 
 def camera_viewmat(distance: float) -> np.ndarray:
@@ -220,12 +189,13 @@ class _Fit(torch.nn.Module):
         self.translation = torch.nn.Parameter(translation.clone().float())
         self.log_focal = torch.nn.Parameter(torch.tensor(math.log(focal), dtype=torch.float32))
 
-    def params(self) -> dict[str, Tensor]:
-        params = {"shape": self.shape, "expr": self.expr, "rotation": self.rotation, "neck_pose": self.neck_pose,
-                  "jaw_pose": self.jaw_pose, "eyes_pose": self.eyes_pose, "translation": self.translation}
+    def params(self) -> HeadParams:
+        static = None
         if self.offset_theta is not None:
-            params["static_offset"] = 0.01 * (self.offset_rows @ self.offset_theta)  # [U + J, 3] metres
-        return params
+            static = (0.01 * (self.offset_rows @ self.offset_theta))[None]  # [1, U + J, 3] metres
+        return HeadParams(shape=self.shape, expr=self.expr, rotation=self.rotation, neck_pose=self.neck_pose,
+                          jaw_pose=self.jaw_pose, eyes_pose=self.eyes_pose, translation=self.translation,
+                          static_offset=static)
 
 
 def _intrinsics(focal: Tensor, principal: Tensor) -> Tensor:
@@ -294,13 +264,12 @@ def track(
         energy = torch.as_tensor(offset_map.energy, dtype=torch.float32)
     fit = _Fit(T, num_shape, num_expr, f0, translation, rows, energy)
 
+    landmark_vertices = model.landmark_vertex_ids  # [K]: the subset of vertices posed in every step
+
     def loss_terms(stage: str) -> dict[str, Tensor]:
         p = fit.params()
-        if stage == "rigid":
-            rigid = {k: (v if k in ("rotation", "translation") else v.detach() * 0) for k, v in p.items()}
-            landmarks = landmark_forward(model, rigid)
-        else:
-            landmarks = landmark_forward(model, p)
+        posed = _rigid_only(p) if stage == "rigid" else p
+        landmarks = model.forward_params(posed, vertex_ids=landmark_vertices).landmarks  # [T, L, 3]
         K = _intrinsics(fit.log_focal.exp(), principal_t)
         pixels, _ = project(landmarks, viewmat, K)  # [T, L, 2]
         residual = (pixels - target).norm(dim=-1) / size[:, None]  # [T, L]
@@ -308,16 +277,16 @@ def track(
         data = (_pseudo_huber(residual, config.huber) * w).sum(1) / w.sum()  # [T]
         terms = {"data": (data * conf).sum() / conf.sum()}
         unit = config.head_size
-        terms["smooth_pose"] = config.w_smooth_pose * (_diff_penalty(p["rotation"]) + _diff_penalty(p["translation"] / unit))
-        terms["accel"] = config.w_accel * (_diff_penalty(p["rotation"], 2) + _diff_penalty(p["translation"] / unit, 2))
+        terms["smooth_pose"] = config.w_smooth_pose * (_diff_penalty(p.rotation) + _diff_penalty(p.translation / unit))
+        terms["accel"] = config.w_accel * (_diff_penalty(p.rotation, 2) + _diff_penalty(p.translation / unit, 2))
         if stage == "rigid":
             return terms
-        jaw = p["jaw_pose"]
-        eyes = p["eyes_pose"]
+        jaw = p.jaw_pose
+        eyes = p.eyes_pose
         terms.update({
-            "shape": config.w_shape * (p["shape"] ** 2).sum(),
-            "expr": config.w_expr * (p["expr"] ** 2).sum(-1).mean(),
-            "neck": config.w_neck * (p["neck_pose"] ** 2).sum(-1).mean(),
+            "shape": config.w_shape * (p.shape ** 2).sum(),
+            "expr": config.w_expr * (p.expr ** 2).sum(-1).mean(),
+            "neck": config.w_neck * (p.neck_pose ** 2).sum(-1).mean(),
             "eyes": config.w_eyes * (eyes ** 2).sum(-1).mean() + config.w_eyes_equal * ((eyes[:, :3] - eyes[:, 3:]) ** 2).sum(-1).mean(),
             "jaw": config.w_jaw_side * (jaw[:, 1:] ** 2).sum(-1).mean()
             + config.w_jaw_range * (torch.relu(-jaw[:, 0]) ** 2 + torch.relu(jaw[:, 0] - config.jaw_max) ** 2).mean(),
@@ -325,8 +294,8 @@ def track(
             "static_offset": config.w_static_offset * (fit.offset_theta ** 2).sum(-1).mean()
             + config.w_static_smooth * (fit.offset_theta * (fit.offset_energy @ fit.offset_theta)).sum()
             if fit.offset_theta is not None else torch.zeros(()),
-            "smooth": config.w_smooth_expr * _diff_penalty(p["expr"]) + config.w_smooth_jaw * _diff_penalty(jaw)
-            + config.w_smooth_eyes * _diff_penalty(eyes) + config.w_smooth_pose * _diff_penalty(p["neck_pose"]),
+            "smooth": config.w_smooth_expr * _diff_penalty(p.expr) + config.w_smooth_jaw * _diff_penalty(jaw)
+            + config.w_smooth_eyes * _diff_penalty(eyes) + config.w_smooth_pose * _diff_penalty(p.neck_pose),
         })
         return terms
 
@@ -358,11 +327,11 @@ def track(
     with torch.no_grad():
         params = fit.params()
         K = _intrinsics(fit.log_focal.exp(), principal_t)
-        pixels, _ = project(landmark_forward(model, params), viewmat, K)  # [T, L, 2]
+        pixels, _ = project(model.forward_params(params, vertex_ids=landmark_vertices).landmarks, viewmat, K)  # [T, L, 2]
         width = np.linalg.norm(landmarks[:, 234, :2] - landmarks[:, 454, :2], axis=-1)  # [T] cheek to cheek
         err = (pixels - target).norm(dim=-1).numpy()  # [T, L]
         errors = np.median(err, axis=1) / np.maximum(width, 1e-6)
-    params = {k: v.detach().numpy().copy() for k, v in params.items()}
+    params = {k: v.detach().numpy().copy() for k, v in params.to_npz().items()}
     if fit.offset_theta is not None:
         params["static_offset"] = offset_map.extend(0.01 * fit.offset_theta.detach().numpy()).astype(np.float32)  # [V, 3]
     return TrackingResult(

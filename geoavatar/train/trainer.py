@@ -27,6 +27,7 @@ statistics, APS decision and face sets, refined per-frame parameters, the step, 
 
 from __future__ import annotations
 
+import json
 import math
 import random
 import signal
@@ -34,7 +35,7 @@ import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
 import torch
@@ -42,7 +43,7 @@ from torch import Tensor
 
 from geoavatar.avatar import APSState, GaussianAvatar, MouthDeformer, gaussian_param_groups, position_lr, posed_head
 from geoavatar.avatar import densify as densify_ops
-from geoavatar.config import TrainConfig
+from geoavatar.config import PresetName, TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError
@@ -62,21 +63,39 @@ class TrainingDiverged(GeoAvatarError, RuntimeError):
 
 @dataclass
 class RunOptions:
-    """How a run is executed (not what is learned: that is TrainConfig)."""
+    """How a run is executed (not what is learned: that is TrainConfig). `geoavatar train` parses these
+    fields as its options (--out, --data, --preset, ...); the comments are their help."""
 
-    data: Path | None  # None only when resuming: the run's recorded dataset
+    # Run folder to create (or to continue with --resume / --extend).
     out: Path
-    seed: int = 0
-    device: str = "auto"  # auto | cpu | cuda | cuda:N
-    backend: str = "auto"  # rasterize backend: auto (gsplat on CUDA, native cpu on CPU, else torch) | cpu | torch | gsplat
+    # Dataset folder (VHAP / GaussianAvatars layout, e.g. from `geoavatar synth`, or INSTA); required for
+    # a new run, with --resume the run's own unless given (a moved dataset).
+    data: Path | None = None
+    # Ablation preset of the paper (Tables 3, 6): A = GaussianAvatars (SH 0) ... E = GeoAvatar; its values
+    # are the defaults of the --config.* options (default E for a new run; with --resume the run's own).
+    preset: PresetName | None = None
+    # Downscale images so that the longer side has this many pixels (default: as stored).
     resolution: int | None = None
+    # Seed of frame order, initialisation and densification samples.
+    seed: int = 0
+    # auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
+    device: str = "auto"
+    # Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu,
+    # torch or gsplat.
+    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
+    # Save a validation image every this many steps (default: 5 % of the run).
+    val_every: int | None = None
+    # Write OUT/checkpoints/last.pt every this many steps (default: 5 % of the run).
+    ckpt_every: int | None = None
+    # Write a loss line to OUT/train.log every this many steps (default: 0.5 % of the run).
+    log_every: int | None = None
+    # Hold out the last N frames as the test set (default: the dataset's split files, else the INSTA rule:
+    # last 350, or the last 25 % of a short video).
     test_frames: int | None = None
-    val_every: int | None = None  # None: every 5 % of the run
-    ckpt_every: int | None = None  # None: every 5 % of the run
-    log_every: int | None = None  # None: every 0.5 % of the run
+    # Folder with your FLAME model files (datasets tracked with FLAME only).
     flame_dir: Path | None = None
+    # Show progress bars.
     progress: bool = True
-    preset: str | None = None  # recorded in config.json for the reader
 
     def to_json(self) -> dict:
         out = asdict(self)
@@ -516,8 +535,11 @@ def _check_resume_config(saved: TrainConfig, requested: TrainConfig | None, wher
     flat_saved, flat_req = _flatten(ckpt.config_to_dict(saved)), _flatten(ckpt.config_to_dict(requested))
     diffs = [f"{k}: run has {flat_saved.get(k)!r}, asked {flat_req.get(k)!r}"
              for k in sorted(set(flat_saved) | set(flat_req)) if flat_saved.get(k) != flat_req.get(k)]
+    longer = ("; to train the run longer, use --extend N instead of --steps"
+              if requested.steps != saved.steps else "")
     raise ckpt.RunError(f"{where}: --resume continues the run's own configuration, but the options ask for a "
-                        f"different one ({'; '.join(diffs[:6])}). Resume without those options, or train into a new --out.")
+                        f"different one ({'; '.join(diffs[:6])}). Resume without those options, or train into a new "
+                        f"--out{longer}.")
 
 
 def _flatten(data: dict, prefix: str = "") -> dict:
@@ -535,21 +557,41 @@ def train(
     config: TrainConfig | None = None,
     resume: bool = False,
     callback: Callable[[int, TrainingState, StepReport], None] | None = None,
+    extend: int = 0,
+    record: dict | None = None,
 ) -> TrainResult:
     """Train (or resume) the run in options.out. Returns a TrainResult; raises TrainingDiverged,
-    DatasetError / RunError / ValueError on bad input. `callback(step, state, report)` runs after each step."""
+    DatasetError / RunError / ValueError on bad input. `callback(step, state, report)` runs after each step.
+
+    extend > 0 (implies resume): train the run `extend` steps longer, `TrainConfig.extended`: a finished run
+    continues from its last step with every milestone where it was (no new densification or APS, the
+    final position learning rate); the extended configuration is saved, so an interrupted extension
+    resumes exactly with plain `resume`. `record`: what RUN/config.json notes besides the configuration
+    (the command-line overrides, how the steps were chosen); kept in the checkpoint across resumes, and
+    every extension is added to its "extensions"."""
     run_dir = Path(options.out)
     last_path = ckpt.run_checkpoint_path(run_dir, "last")
     payload = None
-    if resume:
+    if resume or extend:
         if not last_path.is_file():
+            if extend:
+                raise ckpt.RunError(f"{run_dir}: --extend continues a run, but there is none here "
+                                    f"(no {ckpt.CHECKPOINT_DIR}/{ckpt.LAST_CHECKPOINT})")
             raise ckpt.RunError(f"{run_dir}: nothing to resume (no {ckpt.CHECKPOINT_DIR}/{ckpt.LAST_CHECKPOINT}); "
                                 "start the run without --resume")
         payload = ckpt.load_checkpoint(last_path)
         saved = ckpt.config_from_json(payload["config"], f"{last_path} [config]")
-        _check_resume_config(saved, config, str(last_path))
-        config = saved
-        saved_options = __import__("json").loads(payload.get("run", "{}"))
+        record = {**json.loads(payload.get("record", "{}")), **(record or {})}
+        if extend:
+            if config is not None:
+                raise ValueError("train: extend continues the run's own configuration; pass config=None")
+            config = saved.extended(extend)
+            record["extensions"] = [*record.get("extensions", []), {
+                "at_step": int(payload["step"]), "from_steps": saved.steps, "to_steps": config.steps}]
+        else:
+            _check_resume_config(saved, config, str(last_path))
+            config = saved
+        saved_options = json.loads(payload.get("run", "{}"))
         if options.resolution is None:
             options.resolution = saved_options.get("resolution")
         elif options.resolution != saved_options.get("resolution"):
@@ -569,7 +611,9 @@ def train(
                                 "--resume to continue it, or choose a new --out")
         if config is None:
             raise ValueError("train: a TrainConfig is needed for a new run")
+        record = dict(record or {})
     config = config.validate()
+    record.setdefault("overrides", {})
 
     data = open_training_data(options, config)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -578,7 +622,7 @@ def train(
     else:
         state = new_state(data, config, options.seed)
     atomic_write_json(run_dir / ckpt.CONFIG_FILE, {
-        "preset": options.preset, "config": ckpt.config_to_dict(config), "run": options.to_json(),
+        "preset": options.preset, "config": ckpt.config_to_dict(config), **record, "run": options.to_json(),
         "dataset": data.dataset_record(), "device": str(data.device),
     })
 
@@ -594,10 +638,18 @@ def train(
     log.line(f"{'resume' if payload is not None else 'start'} at step {state.step}/{steps}: data {data.subject.root} "
              f"({len(data.train_set)} training frames), head {data.subject.head_model} + mouth {config.model.mouth}, "
              f"preset {options.preset}, device {data.device}, extent {data.extent:.3f}, seed {options.seed}")
+    if record["overrides"]:
+        log.line("overrides: " + ", ".join(f"{k}={v!r}" for k, v in record["overrides"].items()))
+    if record.get("schedule"):
+        log.line(f"schedule: {json.dumps(record['schedule'])}")
+    if extend:
+        log.line(f"extend: {config.steps - extend} -> {config.steps} steps; milestones stay (densify.stop "
+                 f"{config.densify.stop}, aps_step {config.aps_step}, lr.position_decay_steps "
+                 f"{config.lr.position_decay_steps})", echo=True)
 
     def save(final: bool = False) -> None:
         _assert_finite(state, f"step {state.step}")
-        body = state_payload(state, data, config, options)
+        body = {**state_payload(state, data, config, options), "record": json.dumps(record)}
         ckpt.save_checkpoint(last_path, body)
         if final:
             ckpt.save_checkpoint(ckpt.run_checkpoint_path(run_dir, "final"), body)
