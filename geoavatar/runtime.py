@@ -1,4 +1,5 @@
-"""Process-wide runtime settings applied once by the CLI entry point (and the test suite).
+"""Process-wide runtime settings applied once by the CLI entry point (and the test suite), and the
+`--device` option's meaning (`resolve_device`), shared by every command.
 
 glibc hands large blocks back to the OS and zero-fills them again on the next allocation; PyTorch on
 CPU then runs 2-5x slower and noisily (measured on our 2-core machines, see DESIGN.md). Turning off
@@ -56,6 +57,23 @@ def configure_threads() -> int:
             threads = os.cpu_count() or 1
     torch.set_num_threads(threads)
     return threads
+
+
+def resolve_device(name: str):
+    """The torch.device for a --device option: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
+
+    ValueError (naming the option) for a malformed name or CUDA asked for where there is none."""
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(f"--device: {err}") from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: CUDA is not available on this machine (use --device cpu or auto)")
+    return device
 
 
 def setup_process() -> None:

@@ -117,24 +117,43 @@ def test_eval_several_runs_writes_one_comparison(run_e, run_a, tmp_path, capsys)
 
 def test_test_frames_use_tracking_and_t0_training_frames_their_own(run_e, monkeypatch):
     calls = []
-    real = evaluate_module.render_frame
+    real = evaluate_module.render_avatar
 
-    def spy(head, avatar, deformer, params, timestep, *args):
+    def spy(avatar, head, params, camera, timestep, *args):
         calls.append((params, timestep))
-        return real(head, avatar, deformer, params, timestep, *args)
+        return real(avatar, head, params, camera, timestep, *args)
 
-    monkeypatch.setattr(evaluate_module, "render_frame", spy)
+    monkeypatch.setattr(evaluate_module, "render_avatar", spy)
     run = ckpt.load_run(run_e)
     test_set, train_set = open_run_dataset(run, "test"), open_run_dataset(run, "train")
     next(render_run_frames(run, test_set, [0]))
     frame = next(render_run_frames(run, train_set, [1]))
     (test_params, test_t), (train_params, train_t) = calls
     assert test_t is None and train_t == frame.item["timestep"]
-    assert torch.equal(test_params["expr"], test_set[0]["params"]["expr"])  # tracked, never refined
+    assert torch.equal(test_params.expr, test_set[0]["params"]["expr"])  # tracked, never refined
     refined = run.info.frame_params["expr"][frame.item["row"]]
-    assert torch.equal(train_params["expr"][0], refined)
+    assert torch.equal(train_params.expr[0], refined)
+
     next(render_run_frames(run, train_set, [1], timestep_mode="zero"))
     assert calls[-1][1] is None
+
+
+def test_each_frame_poses_the_head_once(run_e, monkeypatch):
+    import geoavatar.avatar.render as avatar_render
+
+    posings = []
+    real = avatar_render.posed_head
+
+    def counting(*args, **kwargs):
+        out = real(*args, **kwargs)
+        posings.append(out.vertices)
+        return out
+
+    monkeypatch.setattr(avatar_render, "posed_head", counting)
+    run = ckpt.load_run(run_e)
+    frames = list(render_run_frames(run, open_run_dataset(run, "test"), [0, 1]))
+    assert len(posings) == 2  # the mouth mask uses the vertices the render was posed with
+    assert all(torch.equal(frame.vertices, posed[0]) for frame, posed in zip(frames, posings))
 
 
 def test_mouth_mask_and_crop_box(run_e):

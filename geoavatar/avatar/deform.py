@@ -24,7 +24,7 @@ Adam's step size on the last layer gives sub-millimetre moves.
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from typing import Container, Literal, Mapping
 
 import numpy as np
 import torch
@@ -32,6 +32,7 @@ from torch import Tensor, nn
 
 from geoavatar.config import MouthDeformConfig
 from geoavatar.head.base import HeadModel, HeadOutput
+from geoavatar.head.params import HeadParams, as_head_params
 
 POSE_DIM = 12  # neck 3 + jaw 3 + eyes 6
 PART_NAMES = ("upper", "lower")
@@ -131,17 +132,35 @@ class MouthDeformer(nn.Module):
         return offsets
 
 
+TimestepMode = Literal["auto", "zero", "frame"]
+
+
+def frame_timestep(timestep: int, trained: Container[int], mode: TimestepMode = "auto") -> int | None:
+    """The T rule: the deformer's time input for rendering `timestep` of a run.
+
+    auto: a training timestep (in `trained`) uses its own T, the code gamma(T) the run learned for it,
+    which reproduces what training saw; any other frame (test frames, a driver's frames, edited
+    parameters) uses None, i.e. T = 0, the paper's inference setting, since gamma(T) was never
+    trained there. zero: always None; frame: always the frame's own T."""
+    if mode == "zero" or (mode == "auto" and timestep not in trained):
+        return None
+    if mode not in ("auto", "frame"):
+        raise ValueError(f"timestep mode must be auto, zero or frame, got {mode!r}")
+    return int(timestep)
+
+
 def posed_head(
     head: HeadModel,
-    params: Mapping[str, Tensor],  # FLAME npz layout, batched [B, ...] (shape [S] or [B, S])
+    params: HeadParams | Mapping[str, Tensor],  # batched [B, ...] (shape [S] or [B, S]); a dict in the npz layout
     deformer: MouthDeformer | None = None,
     timestep: Tensor | int | None = None,  # frame index T; None = inference (T = 0)
 ) -> HeadOutput:
     """The head model posed by `params`, with the part-wise mouth deformation when `deformer` is given."""
-    static = params.get("static_offset")
+    params = as_head_params(params)
+    static = params.static_offset
     if deformer is not None:
-        pose = pose_vector(params["neck_pose"], params["jaw_pose"], params["eyes_pose"])
-        mouth = deformer(params["expr"], pose, timestep)  # [B, V, 3]
+        pose = pose_vector(params.neck_pose, params.jaw_pose, params.eyes_pose)
+        mouth = deformer(params.expr, pose, timestep)  # [B, V, 3]
         if static is not None:
             if static.dim() == 2:
                 static = static[None]
@@ -151,5 +170,4 @@ def posed_head(
             static = torch.cat([static, static.new_zeros(*static.shape[:-2], pad, 3)], dim=-2) if pad else static
             mouth = mouth + static.to(mouth)
         static = mouth
-    return head(params["shape"], params["expr"], params["rotation"], params["neck_pose"], params["jaw_pose"],
-                params["eyes_pose"], params["translation"], static)
+    return head.forward_params(params.replace(static_offset=static))

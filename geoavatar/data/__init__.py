@@ -13,11 +13,12 @@ from geoavatar.data.dataset import DataConfig, HeadAvatarDataset, check_head_mod
 from geoavatar.data.errors import DatasetError
 from geoavatar.data.insta import read_insta
 from geoavatar.data.layout import LayoutWriter, read_layout
-from geoavatar.data.splits import ShortVideoWarning, Split, SplitConfig, split_timesteps
+from geoavatar.data.splits import ShortVideoWarning, Split, SplitConfig, evenly_spaced, split_timesteps
 from geoavatar.data.subject import FrameRecord, Subject, SubjectInfo
 
 __all__ = [
     "DataConfig", "DatasetError", "FrameRecord", "HeadAvatarDataset", "LayoutWriter", "ShortVideoWarning", "Split",
-    "SplitConfig", "Subject", "SubjectInfo", "check_head_model", "open_dataset", "open_subject", "read_insta",
+    "SplitConfig", "Subject", "SubjectInfo", "check_head_model", "evenly_spaced", "open_dataset", "open_subject",
+    "read_insta",
     "read_layout", "split_timesteps",
 ]

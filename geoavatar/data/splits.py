@@ -29,6 +29,8 @@ import warnings
 from dataclasses import dataclass
 from typing import Literal, Sequence
 
+import numpy as np
+
 from geoavatar.data.errors import DatasetError
 
 SplitName = Literal["train", "val", "test", "all"]
@@ -159,7 +161,18 @@ def _spread(timesteps: tuple[int, ...], count: int) -> tuple[int, ...]:
     return tuple(timesteps[i] for i in picks)
 
 
+def evenly_spaced(count: int, limit: int | None) -> list[int]:
+    """`limit` indices spread evenly over range(count) (all of them when limit is None or >= count):
+    the frames of a split that `--max-frames` keeps (eval and the rendering commands)."""
+    if limit is not None and limit <= 0:
+        raise ValueError(f"--max-frames must be positive, got {limit}")
+    if limit is None or limit >= count:
+        return list(range(count))
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, limit)})
+
+
 __all__ = [
+    "evenly_spaced",
     "DEFAULT_TEST_FRAMES", "SPLIT_NAMES", "ExplicitSplit", "ShortVideoWarning", "Split", "SplitConfig",
     "split_timesteps",
 ]

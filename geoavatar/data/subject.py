@@ -29,11 +29,11 @@ from torch import Tensor
 
 from geoavatar.data.errors import DatasetError
 from geoavatar.data.splits import ExplicitSplit, Split, SplitConfig, split_timesteps
+from geoavatar.head.params import SUBJECT_KEYS, npz_frame  # SUBJECT_KEYS: shape, static_offset (every timestep)
 
 # Per-timestep keys with a fixed size: name -> number of values (stored as [1, n]).
 POSE_SIZES: dict[str, int] = {"translation": 3, "rotation": 3, "neck_pose": 3, "jaw_pose": 3, "eyes_pose": 6}
 REQUIRED_FRAME_KEYS: tuple[str, ...] = (*POSE_SIZES, "expr", "shape")
-SUBJECT_KEYS: tuple[str, ...] = ("shape", "static_offset")  # the same for every timestep
 OPTIONAL_FRAME_KEYS: tuple[str, ...] = ("static_offset", "dynamic_offset", "eyelids")
 
 
@@ -88,7 +88,7 @@ class Subject:
 
     def frame_params(self, row: int) -> dict[str, Tensor]:
         """Parameters of one timestep in the npz layout: per-frame keys [1, ...], shape [S]."""
-        return {key: (value if key in SUBJECT_KEYS else value[row : row + 1]) for key, value in self.params.items()}
+        return npz_frame(self.params, row)
 
     def split(self, config: SplitConfig | None = None) -> Split:
         return split_timesteps(self.timesteps, config, self.explicit_split, source=str(self.root))
@@ -187,6 +187,6 @@ def stack_params(
 
 
 __all__ = [
-    "FrameRecord", "OPTIONAL_FRAME_KEYS", "POSE_SIZES", "REQUIRED_FRAME_KEYS", "SUBJECT_KEYS", "Subject",
+    "FrameRecord", "OPTIONAL_FRAME_KEYS", "POSE_SIZES", "REQUIRED_FRAME_KEYS", "Subject",
     "SubjectInfo", "normalize_frame_params", "stack_params",
 ]

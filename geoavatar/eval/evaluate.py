@@ -7,7 +7,7 @@ Protocol (what the paper's Table 1 measures, as GaussianAvatars and INSTA evalua
 
 - pred   the render on the dataset's background colour (the rasterizer composites it), clamped to [0, 1];
 - gt     image * mask + background * (1 - mask): pixels outside the foreground mask become the
-         background colour, exactly the training target (train.trainer.composite_target);
+         background colour, exactly the training target (render.composite_target);
 - MSE, PSNR, SSIM, LPIPS per frame on (pred, gt) over the whole image; the summary is the mean and
   the (population, ddof 0) standard deviation over frames, PSNR averaged in dB per frame as 3DGS does.
 
@@ -18,7 +18,7 @@ Head parameters and the deformer's time input (render_run_frames):
   as the paper does at inference ("T = 0 at inference");
 - train / val frames (val frames are training frames) use the run's refined parameters and their own T,
   which reproduces what training saw.
-`timestep_mode` ("auto", "zero", "frame") overrides the T rule.
+The T rule is avatar.frame_timestep; `timestep_mode` ("auto", "zero", "frame") overrides it.
 
 Mouth region (per frame): the posed head mesh (with the mouth structure) is z-buffered with the mesh
 rasterizer, and a pixel belongs to the region when its visible face is a mouth-structure face
@@ -35,15 +35,15 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterator, Literal, NamedTuple, Sequence
+from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from geoavatar.avatar import posed_head
-from geoavatar.data import HeadAvatarDataset
+from geoavatar.avatar import TimestepMode, frame_timestep, render_avatar
+from geoavatar.data import HeadAvatarDataset, evenly_spaced
 from geoavatar.errors import OptionError
 from geoavatar.eval import metrics
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
@@ -51,10 +51,10 @@ from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import rasterize_mesh
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
 from geoavatar.train.frame_params import FrameParams
-from geoavatar.train.trainer import composite_target, render_frame
+from geoavatar.head.params import HeadParams
+from geoavatar.render import Camera, composite_target
 
 SPLITS = ("test", "val", "train")
-TimestepMode = Literal["auto", "zero", "frame"]
 METRIC_NAMES = ("mse", "psnr", "ssim", "lpips", "mouth_psnr", "mouth_lpips")
 
 
@@ -137,13 +137,6 @@ class RenderedFrame(NamedTuple):
 # --- opening the data of a run -------------------------------------------------------------------
 
 
-def evenly_spaced(count: int, limit: int | None) -> list[int]:
-    """`limit` indices spread evenly over range(count) (all of them when limit is None or >= count)."""
-    if limit is None or limit >= count:
-        return list(range(count))
-    return sorted({int(round(i)) for i in np.linspace(0, count - 1, limit)})
-
-
 # --- rendering the frames of a run ---------------------------------------------------------------
 
 
@@ -171,17 +164,13 @@ def render_run_frames(
     for index in (range(len(dataset)) if indices is None else indices):
         item = _item_to(dataset[index], device)
         seen = item["timestep"] in train_timesteps
-        params = refined(item["row"]) if seen else item["params"]
-        if timestep_mode == "zero" or (timestep_mode == "auto" and not seen):
-            timestep = None  # T = 0: the paper's inference setting
-        else:
-            timestep = item["timestep"]
-        result, _ = render_frame(run.head, run.avatar, run.deformer, params, timestep, item["viewmat"], item["K"],
-                                 item["width"], item["height"], item["background"], backend)
-        vertices = posed_head(run.head, params, run.deformer, timestep).vertices[0]  # [V, 3]
-        pred = result.rgb.clamp(0.0, 1.0)
+        params = refined(item["row"]) if seen else HeadParams.from_npz(item["params"])
+        timestep = frame_timestep(item["timestep"], train_timesteps, timestep_mode)
+        camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+        frame = render_avatar(run.avatar, run.head, params, camera, timestep, run.deformer, item["background"], backend)
+        pred = frame.result.rgb.clamp(0.0, 1.0)
         target = composite_target(item["image"], item["mask"], item["background"])
-        yield RenderedFrame(index, item, pred, target, vertices)
+        yield RenderedFrame(index, item, pred, target, frame.vertices)
 
 
 # --- mouth region --------------------------------------------------------------------------------
@@ -355,6 +344,6 @@ def frame_dicts(result: EvalResult) -> list[dict]:
 
 __all__ = [
     "EvalConfig", "EvalResult", "FrameMetrics", "METRIC_NAMES", "RenderedFrame", "SPLITS", "crop_box",
-    "evaluate_run", "evenly_spaced", "frame_dicts", "mouth_face_mask", "mouth_mask", "open_run_dataset",
+    "evaluate_run", "frame_dicts", "mouth_face_mask", "mouth_mask", "open_run_dataset",
     "render_run_frames", "run_label", "summarize",
 ]

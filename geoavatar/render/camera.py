@@ -15,13 +15,32 @@ device/dtype of its inputs.
 from __future__ import annotations
 
 import math
-from typing import Literal, Sequence
+from typing import Literal, NamedTuple, Sequence
 
 import torch
 from torch import Tensor
 
 # Flipping y and z turns OpenGL camera axes into OpenCV ones (and back: it is its own inverse).
 _GL_TO_CV_DIAG = (1.0, -1.0, -1.0, 1.0)
+
+
+class Camera(NamedTuple):
+    """One pinhole camera and the image it takes: what rasterize needs besides the Gaussians."""
+
+    viewmat: Tensor  # [4, 4] world-to-camera, OpenCV axes
+    K: Tensor  # [3, 3] pixels, pixel centres at +0.5
+    width: int
+    height: int
+
+    def to(self, device: torch.device | str) -> "Camera":
+        return Camera(self.viewmat.to(device), self.K.to(device), self.width, self.height)
+
+    def resized(self, longer_side: int) -> "Camera":
+        """The same camera for an image whose longer side is `longer_side` pixels (K scaled)."""
+        scale = longer_side / max(self.width, self.height)
+        width, height = max(1, round(self.width * scale)), max(1, round(self.height * scale))
+        factors = torch.tensor([width / self.width, height / self.height, 1.0], dtype=self.K.dtype, device=self.K.device)
+        return Camera(self.viewmat, self.K * factors[:, None], width, height)
 
 
 def _as_tensor(x: Tensor | Sequence[float], like: Tensor | None = None) -> Tensor:
@@ -159,6 +178,6 @@ def _homogeneous(matrix: Tensor, name: str) -> Tensor:
 
 
 __all__ = [
-    "look_at", "intrinsics_from_fov", "fov_from_intrinsics", "world_to_camera", "project",
+    "Camera", "look_at", "intrinsics_from_fov", "fov_from_intrinsics", "world_to_camera", "project",
     "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse",
 ]

@@ -2,7 +2,7 @@
 fine-tuning: expression, pose and translation of every timestep are learnable tensors).
 
     frames = FrameParams(subject.params, refine=True)
-    params = frames(row)            # FLAME npz layout, per-frame keys [1, ...], shape [S]
+    params = frames(row)            # HeadParams: per-frame keys [1, ...], shape [S]
 
 Only the rows of training frames ever receive a gradient (the trainer only renders training frames),
 so test frames keep their tracked values: Adam leaves a parameter row whose gradient has always been
@@ -17,13 +17,14 @@ from typing import Mapping
 
 from torch import Tensor, nn
 
+from geoavatar.head.params import HeadParams
+
 # Refined per-timestep keys, grouped by the learning rate they take (config.LearningRates.tracking_*).
 REFINED_KEYS: dict[str, tuple[str, ...]] = {
     "expr": ("expr",),
     "pose": ("rotation", "neck_pose", "jaw_pose", "eyes_pose"),
     "translation": ("translation",),
 }
-SUBJECT_KEYS = ("shape", "static_offset")  # the same for every timestep: never refined
 
 
 class FrameParams(nn.Module):
@@ -53,15 +54,12 @@ class FrameParams(nn.Module):
     def num_rows(self) -> int:
         return int(self.values["expr"].shape[0])
 
-    def forward(self, row: int) -> dict[str, Tensor]:
-        """Parameters of one timestep: per-frame keys [1, ...], shape [S], static_offset [1, V, 3]."""
+    def forward(self, row: int) -> HeadParams:
+        """Parameters of one timestep: per-frame keys [1, ...], shape [S], static_offset [1, V, 3] or None."""
         if not 0 <= row < self.num_rows:
             raise IndexError(f"FrameParams: row {row} outside [0, {self.num_rows})")
-        out = {key: value[row : row + 1] for key, value in self.values.items()}
-        out["shape"] = self.shape
-        if self.static_offset is not None:
-            out["static_offset"] = self.static_offset
-        return out
+        return HeadParams(shape=self.shape, static_offset=self.static_offset,
+                          **{key: value[row : row + 1] for key, value in self.values.items()})
 
     def as_dict(self) -> dict[str, Tensor]:
         """Every key as a detached tensor, per-frame keys [T, ...] (FrameParams(as_dict()) rebuilds it)."""
