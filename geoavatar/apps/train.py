@@ -1,105 +1,215 @@
-"""`geoavatar train`: train an avatar on a tracked monocular video (VHAP layout or INSTA)."""
+"""`geoavatar train`: train an avatar on a tracked monocular video (VHAP layout or INSTA).
+
+The command's options are one dataclass, TrainArgs, which tyro parses: the run options (the fields of
+RunOptions, flattened: --out, --data, --preset, --resolution, ...), the length of the run (--steps or
+--minutes, --extend, --resume) and the whole TrainConfig under --config.*, whose defaults are the
+values of the chosen --preset (`geoavatar train --preset A --help` shows A's).
+
+Steps and the schedule: the presets hold the paper's 200k-step schedule and `TrainConfig.scaled_to`
+scales every step-based milestone to the run's --steps. A milestone set on the command line
+(--config.aps-step, --config.densify.start/stop/every/reset-opacity-every,
+--config.lr.position-decay-steps) is a step of this run and is not scaled.
+"""
 
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
-from typing import Literal, Optional
+from dataclasses import dataclass, field, fields, replace
+from typing import Annotated, Optional, Sequence
 
-from geoavatar.config import ABLATIONS, DEFAULT_PRESET, PAPER_STEPS, preset as make_preset
-from geoavatar.data import DatasetError
+import tyro
+
+from geoavatar.config import (ABLATIONS, DEFAULT_PRESET, PAPER_STEPS, STEP_FIELDS, TrainConfig, config_values,
+                              preset as make_preset, with_values)
 from geoavatar.data.splits import ShortVideoWarning
-from geoavatar.train.checkpoint import RunError
-from geoavatar.train.trainer import RunOptions, TrainingDiverged, train as run_training
-
-PresetName = Literal["A", "B", "C", "D", "E", "F", "G", "H", "I", "E-no-mouth", "E-no-deform"]
-assert set(PresetName.__args__) == set(ABLATIONS), "PresetName must list every preset of geoavatar.config"
+from geoavatar.errors import GeoAvatarError, OptionError
+from geoavatar.train.trainer import RunOptions, train as run_training
 
 
-def train(
-    out: Path,
-    data: Optional[Path] = None,
-    preset: Optional[PresetName] = None,
-    steps: Optional[int] = None,
-    resolution: Optional[int] = None,
-    resume: bool = False,
-    seed: int = 0,
-    device: str = "auto",
-    val_every: Optional[int] = None,
-    ckpt_every: Optional[int] = None,
-    log_every: Optional[int] = None,
-    test_frames: Optional[int] = None,
-    flame_dir: Optional[Path] = None,
-    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
-    progress: bool = True,
-) -> int:
+@dataclass
+class CommandLineConfig(TrainConfig):
+    """Defaults: the --preset's values (the paper's, on its 200k-step schedule). Step-based fields set
+    here are steps of this run and do not scale with --steps; those left alone scale."""
+
+    steps: Annotated[int, tyro.conf.Suppress] = PAPER_STEPS  # set by --steps / --minutes
+
+
+@dataclass
+class TrainArgs:
     """Train a GeoAvatar avatar from a tracked video into the folder OUT.
 
-    Writes OUT/config.json, OUT/checkpoints/last.pt (every --ckpt-every steps, on Ctrl-C and at the
-    end) and final.pt, OUT/aps.json, OUT/train.log and OUT/val/step_XXXXXX.png (ground truth |
-    render). Ctrl-C stops after the current step and saves; `--resume` continues exactly where the
-    run stopped. Every step-based milestone (APS at half of the run, densification, opacity resets,
-    learning-rate decay) scales with --steps, so short CPU runs keep the paper's proportions.
-
-    Args:
-        out: Run folder to create (or to continue with --resume).
-        data: Dataset folder (VHAP / GaussianAvatars layout, e.g. from `geoavatar synth`, or INSTA);
-            required for a new run, with --resume the run's own unless given (a moved dataset).
-        preset: Ablation preset of the paper (Tables 3, 6): A = GaussianAvatars (SH 0) ... E = GeoAvatar
-            (default E for a new run; with --resume the run's own).
-        steps: Training steps (default: the paper's 200000 for a new run; with --resume the run's own).
-        resolution: Downscale images so that the longer side has this many pixels (default: as stored).
-        resume: Continue the run in OUT from OUT/checkpoints/last.pt.
-        seed: Seed of frame order, initialisation and densification samples.
-        device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
-        val_every: Save a validation image every this many steps (default: 5 % of the run).
-        ckpt_every: Write OUT/checkpoints/last.pt every this many steps (default: 5 % of the run).
-        log_every: Write a loss line to OUT/train.log every this many steps (default: 0.5 % of the run).
-        test_frames: Hold out the last N frames as the test set (default: the dataset's split files,
-            else the INSTA rule: last 350, or the last 25 % of a short video).
-        flame_dir: Folder with your FLAME model files (datasets tracked with FLAME only).
-        backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
-        progress: Show progress bars.
+    Writes OUT/config.json (the full configuration, the options given on the command line and how the
+    steps were chosen), OUT/checkpoints/last.pt (every --ckpt-every steps, on Ctrl-C and at the end) and
+    final.pt, OUT/aps.json, OUT/train.log and OUT/val/step_XXXXXX.png (ground truth | render). Ctrl-C
+    stops after the current step and saves; --resume continues exactly where the run stopped; --extend N
+    trains a finished run N steps longer. Every step-based milestone (APS at half of the run,
+    densification, opacity resets, learning-rate decay) scales with --steps, so short CPU runs keep the
+    paper's proportions; a milestone set with --config.* is a step of this run and stays put.
     """
-    if steps is not None and steps <= 0:
-        raise SystemExit(f"geoavatar train: --steps must be positive, got {steps}")
-    for name, value in (("--val-every", val_every), ("--ckpt-every", ckpt_every), ("--log-every", log_every)):
-        if value is not None and value <= 0:
-            raise SystemExit(f"geoavatar train: {name} must be positive, got {value}")
-    if data is None and not resume:
-        raise SystemExit("geoavatar train: --data is required for a new run (only --resume finds the run's own)")
-    if resume:
-        # The run's own configuration governs; explicit --preset/--steps must agree with it.
-        config = None
-        if preset is not None or steps is not None:
-            from geoavatar.train.checkpoint import config_from_json, load_checkpoint, run_checkpoint_path
 
-            try:
-                saved = config_from_json(load_checkpoint(run_checkpoint_path(out, "last"))["config"])
-            except RunError as err:
-                raise SystemExit(f"geoavatar train: {err}") from None
-            config = make_preset(preset or DEFAULT_PRESET, steps or saved.steps) if preset else saved.scaled_to(steps)
+    run: Annotated[RunOptions, tyro.conf.arg(name="", prefix_name=False)]
+    # Training steps (default: the paper's 200000 for a new run; with --resume the run's own).
+    steps: Optional[int] = None
+    # Time budget of a new run, instead of --steps: a warm-up on a throwaway copy times a few steps at the
+    # initial Gaussian count and at 4x it; assuming the count grows to 6x over densification (as in our
+    # runs), the steps that fit are chosen, printed with the estimated end time and recorded in
+    # config.json. The run equals --steps with that number.
+    minutes: Optional[float] = None
+    # Train the run in OUT this many steps longer (no --resume needed): it continues from its last step
+    # with every milestone where it was, so the added steps run at the final learning rates with no new
+    # densification, opacity reset or APS. An interrupted extension continues with --resume.
+    extend: Optional[int] = None
+    # Continue the run in OUT from OUT/checkpoints/last.pt, exactly (its own configuration).
+    resume: bool = False
+    # The whole training configuration, e.g. --config.loss.lambda-angle 0.02. Defaults: the --preset's
+    # values on the paper's 200k-step schedule. Step-based fields (aps-step, densify.start/stop/every/
+    # reset-opacity-every, lr.position-decay-steps) scale with --steps unless set here: a value set here is
+    # a step of this run.
+    config: CommandLineConfig = field(default_factory=CommandLineConfig)
+    # Dotted names of the `config` fields given on the command line (parse_args fills it): only those
+    # are taken from `config`, every other field from the preset (or from the run, with --resume).
+    overrides: Annotated[tuple[str, ...], tyro.conf.Suppress] = ()
+
+
+def parse_args(argv: Sequence[str], prog: str = "geoavatar train") -> TrainArgs:
+    """TrainArgs from command-line words; the --config.* defaults are those of the --preset given."""
+    argv = list(argv)
+    name = _option_value(argv, "--preset")
+    defaults = make_preset(name if name in ABLATIONS else DEFAULT_PRESET)
+    default = TrainArgs(run=RunOptions(out=tyro.MISSING),
+                        config=CommandLineConfig(**{f.name: getattr(defaults, f.name) for f in fields(TrainConfig)}))
+    args = tyro.cli(TrainArgs, args=argv, prog=prog, default=default)
+    args.overrides = config_options_given(argv)
+    return args
+
+
+def main(argv: Sequence[str], prog: str = "geoavatar train") -> int:
+    """`geoavatar train ...`: parse the words and train."""
+    return train(parse_args(argv, prog))
+
+
+main.parses_argv = True  # geoavatar.cli hands it the words instead of building a parser from its signature
+
+
+def _option_value(argv: list[str], option: str) -> str | None:
+    """The value of the last `option VALUE` / `option=VALUE` among the words, else None."""
+    value = None
+    for i, word in enumerate(argv):
+        if word == option and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif word.startswith(option + "="):
+            value = word.split("=", 1)[1]
+    return value
+
+
+def config_options_given(argv: Sequence[str]) -> tuple[str, ...]:
+    """Dotted TrainConfig field names of the --config.* options among the words (tyro spells a field
+    with '-' or '_'; a flag's negation is --config.a.no-b)."""
+    names = set(config_values(TrainConfig())) - {"steps"}
+    given: list[str] = []
+    for word in argv:
+        if not word.startswith("--config."):
+            continue
+        name = word[len("--config."):].split("=", 1)[0].replace("-", "_")
+        if name not in names:
+            head, _, last = name.rpartition(".")
+            name = f"{head}.{last[3:]}".lstrip(".") if last.startswith("no_") else name
+        if name in names and name not in given:
+            given.append(name)
+    return tuple(given)
+
+
+def train(args: TrainArgs) -> int:
+    """Run `geoavatar train` for parsed arguments; 0 when the run finished, 130 when interrupted."""
+    options = replace(args.run)  # the trainer fills in a resumed run's own values
+    _check_options(args, options)
+    values = config_values(args.config)
+    overrides = {name: values[name] for name in args.overrides}
+    record = None
+    config = None
+    plan = None
+    resume = args.resume or args.extend is not None
+    if resume:
+        if args.extend is None and (args.steps is not None or options.preset is not None or overrides):
+            config = _requested_on_resume(options, args.steps, overrides)
     else:
-        config = make_preset(preset or DEFAULT_PRESET, steps or PAPER_STEPS)
-    options = RunOptions(
-        data=data, out=out, seed=seed, device=device, backend=backend, resolution=resolution,
-        test_frames=test_frames, val_every=val_every, ckpt_every=ckpt_every, log_every=log_every,
-        flame_dir=flame_dir, progress=progress, preset=preset or (None if resume else DEFAULT_PRESET),
-    )
+        name = options.preset or DEFAULT_PRESET
+        options.preset = name
+        keep = [n for n in overrides if n in STEP_FIELDS]
+        try:
+            base = with_values(make_preset(name), overrides)
+        except ValueError as err:
+            raise OptionError(f"--config: {err}") from None
+        if args.minutes is not None:
+            from geoavatar.train.budget import plan_budget
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ShortVideoWarning)  # the run itself warns
+                plan = plan_budget(options, base, args.minutes, keep)
+            print(plan.summary(), flush=True)
+        steps = plan.steps if plan is not None else (args.steps or PAPER_STEPS)
+        config = base.scaled_to(steps, keep)
+        try:
+            config.validate()
+        except ValueError as err:
+            raise OptionError(f"--config: {err}") from None
+        chosen_by = "--minutes" if plan is not None else "--steps" if args.steps is not None else "default (paper)"
+        record = {"overrides": overrides, "schedule": {
+            "steps": steps, "chosen_by": chosen_by, "scaled_from": PAPER_STEPS, "not_scaled": keep,
+            "budget": plan.to_json() if plan is not None else None}}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("once", ShortVideoWarning)
-            result = run_training(options, config, resume=resume)
-    except (DatasetError, RunError, TrainingDiverged) as err:
-        raise SystemExit(f"geoavatar train: {err}") from None
-    except ValueError as err:  # bad option values (device, resolution, configuration)
-        raise SystemExit(f"geoavatar train: {err}") from None
+            result = run_training(options, config, resume=resume, extend=args.extend or 0, record=record)
+    except ValueError as err:  # bad option values (device, resolution): one line, like a GeoAvatarError
+        if isinstance(err, GeoAvatarError):
+            raise
+        raise OptionError(str(err)) from None
     last = result.last
     summary = f"{result.status} at step {result.step}/{result.steps} ({result.steps_per_second:.2f} steps/s)"
     if last is not None:
         summary += f": loss {last.losses['total']:.4f}, PSNR {last.psnr:.2f} dB, {last.num_gaussians} Gaussians"
+    if plan is not None:
+        summary += f"; {result.seconds / 60:.1f} of the {plan.minutes:g} minutes after the warm-up"
     print(f"{summary}\nrun: {result.run_dir}")
     return 0 if result.status == "finished" else 130
 
 
-__all__ = ["train"]
+def _check_options(args: TrainArgs, options: RunOptions) -> None:
+    """One-line errors naming the option, before anything is opened."""
+    for name, value in (("--steps", args.steps), ("--extend", args.extend), ("--minutes", args.minutes),
+                        ("--val-every", options.val_every), ("--ckpt-every", options.ckpt_every),
+                        ("--log-every", options.log_every)):
+        if value is not None and not value > 0:
+            raise OptionError(f"{name} must be positive, got {value}")
+    if args.minutes is not None and args.steps is not None:
+        raise OptionError("--minutes and --steps together: give one (--minutes chooses the steps)")
+    if args.extend is not None:
+        given = [o for o, v in (("--steps", args.steps), ("--minutes", args.minutes), ("--preset", options.preset))
+                 if v is not None] + [f"--config.{n.replace('_', '-')}" for n in args.overrides]
+        if given:
+            raise OptionError(f"--extend continues the run's own configuration; drop {', '.join(given)}")
+    elif args.minutes is not None and args.resume:
+        raise OptionError("--minutes chooses the steps of a new run; --resume continues the run's own schedule "
+                          "(to train a finished run longer: --extend N)")
+    if options.data is None and not (args.resume or args.extend is not None):
+        raise OptionError("--data is required for a new run (only --resume finds the run's own)")
+
+
+def _requested_on_resume(options: RunOptions, steps: int | None, overrides: dict) -> TrainConfig:
+    """The configuration --preset/--steps/--config.* ask for on --resume; the trainer refuses it (naming the
+    differences) unless it is the run's own."""
+    from geoavatar.train.checkpoint import config_from_json, load_checkpoint, run_checkpoint_path
+
+    saved = config_from_json(load_checkpoint(run_checkpoint_path(options.out, "last"))["config"])
+    if options.preset is not None:
+        requested = make_preset(options.preset, steps or saved.steps)
+    else:
+        requested = saved.scaled_to(steps) if steps is not None else saved
+    try:
+        return with_values(requested, overrides)
+    except ValueError as err:
+        raise OptionError(f"--config: {err}") from None
+
+
+__all__ = ["CommandLineConfig", "TrainArgs", "config_options_given", "main", "parse_args", "train"]
