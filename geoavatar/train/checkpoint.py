@@ -2,7 +2,10 @@
 
 RUN layout (what later commands — eval, render, reenact, export — read):
 
-    RUN/config.json              the resolved TrainConfig + the run options (JSON)
+    RUN/config.json              the resolved TrainConfig (every field) + the run options (JSON); the
+                                 options set on the command line ("overrides"), how the steps were
+                                 chosen ("schedule": --steps / --minutes with its measurements) and
+                                 the --extend history ("extensions")
     RUN/checkpoints/last.pt      newest checkpoint (rewritten every --ckpt-every steps, on Ctrl-C, at the end)
     RUN/checkpoints/final.pt     the checkpoint of the finished run (same content as last.pt then)
     RUN/aps.json                 the APS decision: Distance(k) per part, tau_part, rigid/flexible
@@ -14,6 +17,7 @@ loads with `torch.load(weights_only=True)`: a checkpoint from someone else canno
 
     format, version, step          "geoavatar-checkpoint", 1, the number of finished steps
     config, run                    JSON strings: TrainConfig, run options (data dir, seed, device, ...)
+    record                         JSON string: overrides / schedule / extensions of config.json (kept on resume)
     dataset                        dict: root, head_model, background, resolution, timesteps of the splits
     avatar                         GaussianAvatar.state_dict() (params.*, binding [N], faces [F, 3])
     deformer, num_frames           MouthDeformer.state_dict() or None; the num_frames it was built for
