@@ -21,7 +21,7 @@ COMMANDS: CommandTable = {
     },
     "synth": "geoavatar.apps.synth:synth",
     "prepare": "geoavatar.apps.prepare:prepare",
-    "train": "geoavatar.apps.train:main",
+    "train": "geoavatar.apps.train:train",
     "eval": "geoavatar.apps.eval:eval_runs",
     "render": "geoavatar.apps.render_video:render",
     "reenact": "geoavatar.apps.reenact:reenact",
@@ -91,8 +91,9 @@ def main(argv: list[str] | None = None) -> int:
 
     func = _resolve(entry)
     try:
-        if getattr(func, "parses_argv", False):  # parses its own words (train: the defaults follow --preset)
-            result = func(argv, prog)
+        parse_argv = getattr(func, "parse_argv", None)  # a command with its own parser (train: defaults follow --preset)
+        if parse_argv is not None:
+            result = func(parse_argv(argv, prog))
         else:
             result = tyro.cli(func, args=argv, prog=prog)  # the function's docstring is the description
     except GeoAvatarError as err:

@@ -83,14 +83,6 @@ def parse_args(argv: Sequence[str], prog: str = "geoavatar train") -> TrainArgs:
     return args
 
 
-def main(argv: Sequence[str], prog: str = "geoavatar train") -> int:
-    """`geoavatar train ...`: parse the words and train."""
-    return train(parse_args(argv, prog))
-
-
-main.parses_argv = True  # geoavatar.cli hands it the words instead of building a parser from its signature
-
-
 def _option_value(argv: list[str], option: str) -> str | None:
     """The value of the last `option VALUE` / `option=VALUE` among the words, else None."""
     value = None
@@ -175,6 +167,9 @@ def train(args: TrainArgs) -> int:
     return 0 if result.status == "finished" else 130
 
 
+train.parse_argv = parse_args  # geoavatar.cli parses the words with it (not from train's signature)
+
+
 def _check_options(args: TrainArgs, options: RunOptions) -> None:
     """One-line errors naming the option, before anything is opened."""
     for name, value in (("--steps", args.steps), ("--extend", args.extend), ("--minutes", args.minutes),
@@ -212,4 +207,4 @@ def _requested_on_resume(options: RunOptions, steps: int | None, overrides: dict
         raise OptionError(f"--config: {err}") from None
 
 
-__all__ = ["CommandLineConfig", "TrainArgs", "config_options_given", "main", "parse_args", "train"]
+__all__ = ["CommandLineConfig", "TrainArgs", "config_options_given", "parse_args", "train"]
