@@ -56,7 +56,8 @@ def evaluate(run_dir: Path, split: str) -> dict:
     from geoavatar.train.checkpoint import load_run
     from geoavatar.train.frame_params import FrameParams
     from geoavatar.train.losses import ssim
-    from geoavatar.train.trainer import composite_target, render_frame
+    from geoavatar.avatar import render_avatar
+    from geoavatar.render import Camera, composite_target
 
     config, head, avatar, deformer, info = load_run(run_dir)
     with warnings.catch_warnings():
@@ -75,8 +76,8 @@ def evaluate(run_dir: Path, split: str) -> dict:
             params = frames(item["row"])
             target = composite_target(item["image"], item["mask"], item["background"])
             timestep = item["timestep"] if split in ("train", "val") else None
-            result, _ = render_frame(head, avatar, deformer, params, timestep, item["viewmat"], item["K"],
-                                     item["width"], item["height"], item["background"])
+            camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+            result = render_avatar(avatar, head, params, camera, timestep, deformer, item["background"]).result
             rgb = result.rgb.clamp(0, 1)
             err = (rgb - target) ** 2  # [H, W, 3]
             sq_all += float(err.sum())

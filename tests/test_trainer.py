@@ -18,11 +18,13 @@ import pytest
 import torch
 
 from geoavatar.config import preset
+from geoavatar.avatar import render_avatar
 from geoavatar.data import DatasetError
 from geoavatar.data.splits import ShortVideoWarning
+from geoavatar.render import composite_target
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train import trainer as trainer_module
-from geoavatar.train.trainer import RunOptions, TrainingDiverged, new_state, open_training_data, render_frame, train
+from geoavatar.train.trainer import RunOptions, TrainingDiverged, item_camera, new_state, open_training_data, train
 
 STEPS = 4
 
@@ -111,9 +113,9 @@ def mean_l1(subject: Path, head, avatar, deformer, frames) -> float:
     with torch.no_grad():
         for i in range(len(data)):
             item = data[i]
-            target = trainer_module.composite_target(item["image"], item["mask"], item["background"])
-            result, _ = render_frame(head, avatar, deformer, frames(item["row"]), item["timestep"], item["viewmat"],
-                                     item["K"], item["width"], item["height"], item["background"])
+            target = composite_target(item["image"], item["mask"], item["background"])
+            result = render_avatar(avatar, head, frames(item["row"]), item_camera(item), item["timestep"], deformer,
+                                   item["background"]).result
             total += float((result.rgb - target).abs().mean())
     return total / len(data)
 

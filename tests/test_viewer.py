@@ -94,9 +94,9 @@ def test_head_turn_edit_turns_the_head_about_its_centre(run):
     assert torch.allclose(after, (before - centre) @ turn.T + centre, atol=1e-5)
     assert float((after - before).norm(dim=-1).max()) > 0.01
     same = view_app.edited_params(run.head, params, [0.0, 0.0], 0.0, 0.0, 0.0, centre)
-    assert all(torch.equal(same[k], params[k]) for k in params)
+    assert all(torch.equal(same.to_npz()[k], v) for k, v in params.to_npz().items())
     smiling = view_app.edited_params(run.head, params, [0.5], 0.0, 0.0, 0.0, centre)
-    assert float(smiling["expr"][0, 0] - params["expr"][0, 0]) == pytest.approx(0.5)
+    assert float(smiling.expr[0, 0] - params.expr[0, 0]) == pytest.approx(0.5)
 
 
 def test_view_command_starts_and_stops(run, capsys):

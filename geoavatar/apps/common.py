@@ -2,11 +2,12 @@
 
     run = open_run(run_dir, device)                 # LoadedRun; RunError names the folder
     frames = RunFrames(run)                          # per-timestep parameters + the dataset's cameras
-    params, T = frames.params(timestep)              # the head parameters of a frame and its T rule
-    result = render_params(run, params, camera, T)   # posed head -> mouth deformer -> avatar -> rasterize
+    params, T = frames.params(timestep)              # HeadParams of a frame and its T (avatar.frame_timestep)
+    rgb = render_params(run, params, camera, T)      # avatar.render_avatar on the run's background, clamped
     with Mp4Writer(path, fps=25) as video: video.write(frame_uint8)   # geoavatar.io.video: the one mp4 writer
 
-The T rule (the mouth deformer's time input gamma(T)), the same as `geoavatar eval`: a training
+The T rule (the mouth deformer's time input gamma(T), `avatar.frame_timestep`, which `geoavatar eval`
+uses too): a training
 timestep renders with its own T and the run's refined parameters, which reproduces what training
 saw; any other timestep (test frames, a driver's frames, edited parameters) renders with T = 0, the
 paper's inference setting, and the parameters as tracked (the trainer never refines test rows).
@@ -25,20 +26,21 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Iterable, NamedTuple
+from typing import Annotated, Iterable
 
 import numpy as np
 import torch
 import tyro
 from torch import Tensor
 
-from geoavatar.avatar import GlobalGaussians, posed_head
-from geoavatar.data import DatasetError
-from geoavatar.data.subject import SUBJECT_KEYS, Subject
+from geoavatar.avatar import GlobalGaussians, frame_timestep, pose_avatar, posed_head, rasterize_gaussians, render_avatar
+from geoavatar.data import DatasetError, evenly_spaced
+from geoavatar.data.subject import Subject
 from geoavatar.errors import OptionError
-from geoavatar.render import RasterizeResult, rasterize
+from geoavatar.head.params import SUBJECT_KEYS, HeadParams
+from geoavatar.render.camera import Camera
+from geoavatar.runtime import resolve_device
 from geoavatar.train.checkpoint import LoadedRun, RunError, load_run, open_run_dataset
-from geoavatar.train.trainer import resolve_device
 
 # The RUN folder: the first, positional argument of every command (`geoavatar render RUN`).
 RunPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
@@ -75,23 +77,6 @@ def run_device(run: LoadedRun) -> torch.device:
 # --- cameras and per-frame parameters ---------------------------------------------------------------
 
 
-class Camera(NamedTuple):
-    viewmat: Tensor  # [4, 4] world-to-camera, OpenCV axes
-    K: Tensor  # [3, 3] pixels, pixel centres at +0.5
-    width: int
-    height: int
-
-    def to(self, device: torch.device) -> "Camera":
-        return Camera(self.viewmat.to(device), self.K.to(device), self.width, self.height)
-
-    def resized(self, longer_side: int) -> "Camera":
-        """The same camera for an image whose longer side is `longer_side` pixels (K scaled)."""
-        scale = longer_side / max(self.width, self.height)
-        width, height = max(1, round(self.width * scale)), max(1, round(self.height * scale))
-        factors = torch.tensor([width / self.width, height / self.height, 1.0], dtype=self.K.dtype, device=self.K.device)
-        return Camera(self.viewmat, self.K * factors[:, None], width, height)
-
-
 def record_camera(subject: Subject, timestep: int, resolution: int | None) -> Camera:
     """The camera of `timestep` in a subject (its first camera), at `resolution` (longer side; None: stored)."""
     frames = subject.frames_of([timestep])
@@ -113,8 +98,8 @@ class RunFrames:
         self.timesteps: list[int] = list(run.info.timesteps["all"])
         self._row = {t: i for i, t in enumerate(self.timesteps)}
         self._train = set(run.info.timesteps.get("train", []))
-        self.values = {k: v.to(self.device) for k, v in run.info.frame_params.items()}  # [T, ...]; shape [S]
-        rows = int(self.values["expr"].shape[0])
+        self.values = HeadParams.from_npz(run.info.frame_params).to(self.device)  # [T, ...]; shape [S]
+        rows = self.values.batch
         if rows != len(self.timesteps):
             raise RunError(f"{run.info.checkpoint}: parameters of {rows} frames for {len(self.timesteps)} timesteps")
 
@@ -130,48 +115,44 @@ class RunFrames:
             raise OptionError(f"--frame {timestep}: not a timestep of the run's dataset ({len(self)} frames, {lo}..{hi})")
         return int(timestep)
 
-    def params(self, timestep: int) -> tuple[dict[str, Tensor], int | None]:
-        """(parameters in the npz layout with per-frame keys [1, ...], T or None) of a timestep."""
-        row = self._row[self.resolve(timestep)]
-        params = {k: (v if k in SUBJECT_KEYS else v[row:row + 1]) for k, v in self.values.items()}
-        return params, (timestep if timestep in self._train else None)
+    def params(self, timestep: int) -> tuple[HeadParams, int | None]:
+        """(HeadParams of a timestep, per-frame keys [1, ...]; its T, None = T = 0, by avatar.frame_timestep)."""
+        timestep = self.resolve(timestep)
+        return self.values.frame(self._row[timestep]), frame_timestep(timestep, self._train)
 
     def identity(self) -> dict[str, Tensor]:
         """The subject keys (shape [S], static_offset [1, V, 3] when present): the avatar's identity."""
-        return {k: v for k, v in self.values.items() if k in SUBJECT_KEYS}
+        return {k: v for k, v in self.values.to_npz().items() if k in SUBJECT_KEYS}
 
 
 # --- the animation path ----------------------------------------------------------------------------
 
 
-def posed_head_vertices(run: LoadedRun, params: dict[str, Tensor], timestep: int | None = None) -> Tensor:
+def posed_head_vertices(run: LoadedRun, params: HeadParams, timestep: int | None = None) -> Tensor:
     """[V, 3] the run's head model posed by `params`, with the mouth deformer's offsets."""
     return posed_head(run.head, params, run.deformer, timestep).vertices[0]
 
 
-def pose_gaussians(run: LoadedRun, params: dict[str, Tensor], timestep: int | None = None) -> GlobalGaussians:
+def pose_gaussians(run: LoadedRun, params: HeadParams, timestep: int | None = None) -> GlobalGaussians:
     """Head model (with the mouth deformer) posed by `params`, then the avatar's local -> global."""
-    return run.avatar(posed_head_vertices(run, params, timestep))
+    return pose_avatar(run.avatar, run.head, params, timestep, run.deformer).gaussians
 
 
-def rasterize_gaussians(g: GlobalGaussians, camera: Camera, background: Tensor, backend: str = "auto") -> RasterizeResult:
-    return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.viewmat, camera.K,
-                     camera.width, camera.height, background, backend=backend)
+def run_background(run: LoadedRun) -> Tensor:
+    """[3] the background colour the run was trained on."""
+    return torch.tensor(run.info.background, dtype=torch.float32)
 
 
 @torch.no_grad()
-def render_params(run: LoadedRun, params: dict[str, Tensor], camera: Camera, timestep: int | None = None,
+def render_params(run: LoadedRun, params: HeadParams, camera: Camera, timestep: int | None = None,
                   background: Tensor | None = None, backend: str = "auto") -> Tensor:
     """The avatar posed by `params`, seen by `camera`: rgb [H, W, 3] in [0, 1] on the run's background."""
-    device = run_device(run)
-    if background is None:
-        background = torch.tensor(run.info.background, dtype=torch.float32)
-    g = pose_gaussians(run, params, timestep)
-    result = rasterize_gaussians(g, camera.to(device), background.to(device), backend)
-    return result.rgb.clamp(0.0, 1.0)
+    background = run_background(run) if background is None else background
+    frame = render_avatar(run.avatar, run.head, params, camera, timestep, run.deformer, background, backend)
+    return frame.result.rgb.clamp(0.0, 1.0)
 
 
-def head_centre(run: LoadedRun, params: dict[str, Tensor]) -> Tensor:
+def head_centre(run: LoadedRun, params: HeadParams) -> Tensor:
     """[3] centre of the posed head: the bounding-box centre of the skin without the neck.
 
     The neck and the mouth structure are left out so that an orbit turns about the middle of the
@@ -276,18 +257,10 @@ class Timer:
         self.seconds = time.perf_counter() - self._start
 
 
-def even_frames(count: int, limit: int | None) -> list[int]:
-    """`limit` indices spread evenly over range(count) (all of them when limit is None or >= count)."""
-    if limit is not None and limit <= 0:
-        raise OptionError(f"--max-frames must be positive, got {limit}")
-    if limit is None or limit >= count:
-        return list(range(count))
-    return sorted({int(round(i)) for i in np.linspace(0, count - 1, limit)})
-
-
 __all__ = [
     "Camera", "EXPORT_DIR", "RunFrames", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut",
-    "default_output", "error_map", "even_frames", "fit_height", "head_centre", "open_run", "open_run_dataset",
-    "pose_gaussians", "posed_head_vertices", "progress", "rasterize_gaussians", "record_camera", "render_params", "run_device",
+    "default_output", "error_map", "evenly_spaced", "fit_height", "head_centre", "open_run", "open_run_dataset",
+    "pose_gaussians", "posed_head_vertices", "progress", "rasterize_gaussians", "record_camera", "render_params",
+    "run_background", "run_device",
     "side_by_side", "synchronize", "to_uint8",
 ]

@@ -64,7 +64,7 @@ def eval_runs(
     from geoavatar.eval.evaluate import EvalConfig, evaluate_run
     from geoavatar.eval.report import comparison_markdown, metric_table, write_comparison, write_run_report
     from geoavatar.train.checkpoint import load_run
-    from geoavatar.train.trainer import resolve_device
+    from geoavatar.runtime import resolve_device
 
     if not runs:
         raise SystemExit("geoavatar eval: give at least one RUN folder")

@@ -40,15 +40,16 @@ from typing import Literal, Optional
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, even_frames, fit_height,
+from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, evenly_spaced, fit_height,
                                    open_run, progress, record_camera, render_params, side_by_side, to_uint8)
 from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
-from geoavatar.data.subject import SUBJECT_KEYS, Subject
+from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from geoavatar.io.video import Mp4Writer
+from geoavatar.head.params import SUBJECT_KEYS, HeadParams
+from geoavatar.render import composite_target
 from geoavatar.train.checkpoint import LoadedRun, RunError
-from geoavatar.train.trainer import composite_target
 
 ROTATION_KEYS = ("rotation", "neck_pose", "jaw_pose", "eyes_pose")  # axis-angle, 3 numbers per joint
 TRANSFERRED_KEYS = ("expr", *ROTATION_KEYS, "translation")
@@ -120,8 +121,8 @@ def driven_params(
     return out
 
 
-def frame_of(params: dict[str, Tensor], row: int) -> dict[str, Tensor]:
-    return {k: (v if k in SUBJECT_KEYS else v[row:row + 1]) for k, v in params.items()}
+def frame_of(params: dict[str, Tensor], row: int) -> HeadParams:
+    return HeadParams.from_npz(params).frame(row)
 
 
 def open_driver(driver: Path, run: LoadedRun) -> Subject:
@@ -162,7 +163,7 @@ def reenact_video(
     driver_values = {k: v.to(device) for k, v in subject.params.items()}
     driver_timesteps = list(subject.timesteps)
     driver_ref = reference_frame(driver_values, driver_timesteps, driver_neutral, what="--driver-neutral")
-    avatar_ref = reference_frame(frames.values, frames.timesteps, avatar_neutral,
+    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, avatar_neutral,
                                  mean_over=run.info.timesteps.get("train"), what="--avatar-neutral")
     params = driven_params(frames.identity(), avatar_ref, driver_values, driver_ref, relative,
                            driver_translation=camera_mode == "driver")
@@ -181,7 +182,7 @@ def reenact_video(
     background = torch.tensor(run.info.background, dtype=torch.float32, device=device)
     row_of = {t: i for i, t in enumerate(driver_timesteps)}
     with Mp4Writer(out, fps=fps, crf=crf) as video:
-        for index in progress(even_frames(len(driver_set), max_frames), enabled=show_progress, desc="reenact"):
+        for index in progress(evenly_spaced(len(driver_set), max_frames), enabled=show_progress, desc="reenact"):
             item = driver_set[index]
             if camera_mode == "avatar":
                 camera = fixed_camera

@@ -14,12 +14,12 @@ from typing import Literal, Optional
 
 import torch
 
-from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, error_map, even_frames,
+from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, error_map, evenly_spaced,
                                    open_run, open_run_dataset, progress, render_params, side_by_side, to_uint8)
 from geoavatar.errors import OptionError
 from geoavatar.io.video import Mp4Writer
+from geoavatar.render import composite_target
 from geoavatar.train.checkpoint import LoadedRun
-from geoavatar.train.trainer import composite_target
 
 Split = Literal["test", "val", "train", "all"]
 
@@ -44,7 +44,7 @@ def render_split_video(
         raise OptionError(f"--split {split}: the run's dataset has no frames in this split")
     frames = RunFrames(run)
     device = frames.device
-    indices = even_frames(len(dataset), max_frames)
+    indices = evenly_spaced(len(dataset), max_frames)
     with Mp4Writer(out, fps=fps, crf=crf) as video:
         for index in progress(indices, enabled=show_progress, desc=f"render {split}"):
             item = dataset[index]

@@ -41,6 +41,7 @@ from geoavatar.avatar import GlobalGaussians
 from geoavatar.data import DatasetError, open_subject
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle, quaternion_to_matrix
+from geoavatar.head.params import HeadParams
 from geoavatar.train.checkpoint import LoadedRun
 
 EXPR_RANGE = 3.0  # expression offsets in units of the basis (FLAME's coefficients are ~N(0, 1))
@@ -54,32 +55,32 @@ def covariances(g: GlobalGaussians) -> Tensor:
     return (rot * g.scales[:, None, :] ** 2) @ rot.transpose(-1, -2)
 
 
-def edited_params(head, params: dict[str, Tensor], expr_offsets: list[float], jaw: float, yaw_deg: float,
-                  pitch_deg: float, centre: Tensor) -> dict[str, Tensor]:
+def edited_params(head, params: HeadParams, expr_offsets: list[float], jaw: float, yaw_deg: float,
+                  pitch_deg: float, centre: Tensor) -> HeadParams:
     """`params` (per-frame keys [1, ...]) with the viewer's edits applied (see the module docstring).
 
     The head turn is a world rotation T (yaw about +y after pitch about +x) about `centre` [3]: every
     posed point x' becomes T (x' - c) + c. The head model poses x' = R (x - J0) + J0 + t about its root
     joint J0, so the edit sets R' = T R and t' = T (J0 + t - c) + c - J0."""
-    out = dict(params)
+    out = params
     if any(expr_offsets):
-        expr = params["expr"].clone()
+        expr = params.expr.clone()
         count = min(len(expr_offsets), expr.shape[-1])
         expr[0, :count] += torch.tensor(expr_offsets[:count], dtype=expr.dtype, device=expr.device)
-        out["expr"] = expr
+        out = out.replace(expr=expr)
     if jaw:
-        jaw_pose = params["jaw_pose"].clone()
+        jaw_pose = params.jaw_pose.clone()
         jaw_pose[0, 0] += jaw
-        out["jaw_pose"] = jaw_pose
+        out = out.replace(jaw_pose=jaw_pose)
     if yaw_deg or pitch_deg:
-        rotation, translation = params["rotation"], params["translation"]
+        rotation, translation = params.rotation, params.translation
         axis = torch.tensor([[0.0, math.radians(yaw_deg), 0.0], [math.radians(pitch_deg), 0.0, 0.0]],
                             dtype=rotation.dtype, device=rotation.device)
         turn_yaw, turn_pitch = axis_angle_to_matrix(axis)  # [3, 3] each
         turn = turn_yaw @ turn_pitch
         root = head.forward_params(out).joints[0, 0] - translation[0]  # [3] J0, rest pose (with the edits)
-        out["rotation"] = matrix_to_axis_angle(turn @ axis_angle_to_matrix(rotation[0]))[None]
-        out["translation"] = (turn @ (root + translation[0] - centre) + centre - root)[None]
+        out = out.replace(rotation=matrix_to_axis_angle(turn @ axis_angle_to_matrix(rotation[0]))[None],
+                          translation=(turn @ (root + translation[0] - centre) + centre - root)[None])
     return out
 
 
@@ -137,7 +138,7 @@ class Viewer:
         host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
         return f"http://{host}:{self.port}/"
 
-    def current_params(self) -> tuple[dict[str, Tensor], int | None]:
+    def current_params(self) -> tuple[HeadParams, int | None]:
         """The shown frame's parameters with the edits applied, and its T (None when edited)."""
         timestep = self.frames.timesteps[min(int(self.frame.value), len(self.frames) - 1)]
         params, t = self.frames.params(timestep)

@@ -32,6 +32,7 @@ from typing import Literal, Sequence
 import numpy as np
 
 from geoavatar.data.errors import DatasetError
+from geoavatar.errors import OptionError
 
 SplitName = Literal["train", "val", "test", "all"]
 SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test", "all")
@@ -165,7 +166,7 @@ def evenly_spaced(count: int, limit: int | None) -> list[int]:
     """`limit` indices spread evenly over range(count) (all of them when limit is None or >= count):
     the frames of a split that `--max-frames` keeps (eval and the rendering commands)."""
     if limit is not None and limit <= 0:
-        raise ValueError(f"--max-frames must be positive, got {limit}")
+        raise OptionError(f"--max-frames must be positive, got {limit}")
     if limit is None or limit >= count:
         return list(range(count))
     return sorted({int(round(i)) for i in np.linspace(0, count - 1, limit)})

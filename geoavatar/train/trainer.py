@@ -5,12 +5,15 @@ One step (GaussianAvatars' loop with GeoAvatar's additions; steps are numbered 1
     frame       the next frame of a seeded random permutation of the training frames (one per epoch)
     params      its tracked head parameters; with refine_tracking the per-timestep expression, pose and
                 translation are learnable tensors (FrameParams), as GaussianAvatars fine-tunes them
-    vertices    posed_head(head, params, MouthDeformer, T)  (the deformer only when the preset enables it)
-    gaussians   avatar(vertices): local -> global through the face frames
-    render      rasterize(...) on the dataset's background colour (torch on CPU, gsplat on CUDA)
+    render      avatar.render_avatar: posed_head(head, params, MouthDeformer, T) (the deformer only when
+                the preset enables it) -> avatar(vertices): local -> global -> rasterize
+                on the dataset's background colour (native cpu kernel on CPU, gsplat on CUDA)
     target      image * mask + background * (1 - mask): pixels outside the foreground mask become the
                 background colour, as GaussianAvatars does, so the avatar never learns clothing/backdrop
     loss        avatar_loss: L_rgb + L_reg (+ L_angle, + GaussianAvatars' scale loss); NaN/Inf stops the run
+                (the terms are read back in one transfer per step; value checks that wait for the device,
+                rasterize's inputs and NaN/Inf in the learned tensors, run every VALUE_CHECK_EVERY steps,
+                on log steps and before every checkpoint)
     backward    then Adam steps (position lr decays log-linearly), then densification statistics from
                 means2d.grad and densify/prune/opacity reset on the (scaled) schedule, then APS at aps_step
                 (3DGS densifies before the Adam step and so skips that step's update; see train_step)
@@ -41,20 +44,24 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geoavatar.avatar import APSState, GaussianAvatar, MouthDeformer, gaussian_param_groups, position_lr, posed_head
+from geoavatar.avatar import APSState, GaussianAvatar, MouthDeformer, gaussian_param_groups, position_lr, render_avatar
 from geoavatar.avatar import densify as densify_ops
 from geoavatar.config import PresetName, TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png
-from geoavatar.render import RasterizeResult, rasterize
+from geoavatar.render import Camera, composite_target
+from geoavatar.runtime import resolve_device
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.frame_params import FrameParams
 from geoavatar.train.losses import avatar_loss
 
 OPTIMIZER_NAMES = ("gaussians", "tracking", "deformer")
 MLP_ADAM_EPS = 1e-8  # the mouth MLPs use Adam's usual eps; GaussianAvatars' 1e-15 is for the Gaussians
+# Steps between the value checks that wait for the device (rasterize's inputs, NaN/Inf in the learned
+# tensors); they also run on a run's first step and before every checkpoint. The loss is checked every step.
+VALUE_CHECK_EVERY = 50
 
 
 class TrainingDiverged(GeoAvatarError, RuntimeError):
@@ -171,18 +178,6 @@ class TrainResult:
 
 
 # --- set-up -----------------------------------------------------------------------------------
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError as err:
-        raise ValueError(f"--device: {err}") from err
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: CUDA is not available on this machine (use --device cpu or auto)")
-    return device
 
 
 def camera_centres(dataset: HeadAvatarDataset) -> Tensor:
@@ -350,32 +345,6 @@ def restore_state(payload: dict, data: TrainingData, config: TrainConfig, where:
 # --- one frame ----------------------------------------------------------------------------------
 
 
-def composite_target(image: Tensor, mask: Tensor, background: Tensor) -> Tensor:
-    """image [H,W,3] * mask [H,W,1] + background [3] * (1 - mask): the training target."""
-    return image * mask + background.view(1, 1, 3) * (1.0 - mask)
-
-
-def render_frame(
-    head: torch.nn.Module,
-    avatar: GaussianAvatar,
-    deformer: MouthDeformer | None,
-    params: dict[str, Tensor],  # FLAME npz layout, per-frame keys [1, ...]
-    timestep: int | None,  # T for gamma(T); None at inference (T = 0)
-    viewmat: Tensor,  # [4, 4]
-    K: Tensor,  # [3, 3]
-    width: int,
-    height: int,
-    background: Tensor,  # [3]
-    backend: str = "auto",
-) -> tuple[RasterizeResult, object]:
-    """Pose the head, place the Gaussians, rasterize: (RasterizeResult, GlobalGaussians)."""
-    vertices = posed_head(head, params, deformer, timestep).vertices[0]  # [V, 3]
-    g = avatar(vertices)
-    result = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat, K, width, height,
-                       background, backend=backend)
-    return result, g
-
-
 def frame_index(step: int, count: int, seed: int) -> int:
     """Training frame of `step` (1-based): a seeded permutation per epoch, stateless for resuming."""
     epoch, position = divmod(step - 1, count)
@@ -391,19 +360,37 @@ def _item_to(item: dict, device: torch.device) -> dict:
     return {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in item.items()}
 
 
-def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, step: int, seed: int) -> StepReport:
-    """One optimisation step (numbered `step`, 1-based). Raises TrainingDiverged on a NaN/Inf loss."""
+def item_camera(item: dict) -> Camera:
+    """The camera of a dataset item (viewmat [4, 4], K [3, 3], image size)."""
+    return Camera(item["viewmat"], item["K"], item["width"], item["height"])
+
+
+def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, step: int, seed: int,
+               check_values: bool | None = None) -> StepReport:
+    """One optimisation step (numbered `step`, 1-based). Raises TrainingDiverged on a NaN/Inf loss.
+
+    The step waits for the device once, to read the loss terms back (and stop on a NaN/Inf total
+    before it reaches the parameters); `check_values` (default: every VALUE_CHECK_EVERY steps) adds
+    rasterize's input value checks and the NaN/Inf check of the learned tensors."""
+    if check_values is None:
+        check_values = step % VALUE_CHECK_EVERY == 0
     item = _item_to(data.train_set[frame_index(step, len(data.train_set), seed)], data.device)
     target = composite_target(item["image"], item["mask"], item["background"])
     params = state.frames(item["row"])
-    result, g = render_frame(data.head, state.avatar, state.deformer, params, item["timestep"], item["viewmat"],
-                             item["K"], item["width"], item["height"], item["background"], data.backend)
+    frame = render_avatar(state.avatar, data.head, params, item_camera(item), item["timestep"], state.deformer,
+                          item["background"], data.backend, check_values=check_values)
+    result, g = frame.result, frame.gaussians
     p = state.avatar.params
     losses = avatar_loss(result.rgb, target, p["means"], p["scales"], state.avatar.binding, state.face_sets,
                          config.loss, visible=result.visible)
     total = losses["total"]
-    if not bool(torch.isfinite(total)):
-        terms = ", ".join(f"{k}={float(v.detach()):.4g}" for k, v in losses.items())
+    with torch.no_grad():
+        mse = ((result.rgb.detach() - target) ** 2).mean()
+    # The one read-back of the step: every loss term and the MSE for the PSNR, in one transfer.
+    values = torch.stack([v.detach().reshape(()) for v in losses.values()] + [mse.reshape(())]).tolist()
+    reported, mse_value = dict(zip(losses, values[:-1])), values[-1]
+    if not math.isfinite(reported["total"]):
+        terms = ", ".join(f"{k}={v:.4g}" for k, v in reported.items())
         raise TrainingDiverged(f"step {step}: the loss is not finite ({terms})")
 
     for opt in state.optimizers.values():
@@ -427,7 +414,8 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
         item["width"], item["height"], state.generator,
     )
     state.avatar.binding = binding
-    _assert_finite(state, f"step {step}: after the optimizer step")
+    if check_values:
+        _assert_finite(state, f"step {step}: after the optimizer step")
 
     aps_ran = False
     if config.model.face_sets == "aps" and not state.aps.done and step >= config.aps_step:
@@ -436,10 +424,7 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
         aps_ran = True
     state.step = step
 
-    with torch.no_grad():
-        mse = float(((result.rgb.detach() - target) ** 2).mean())
-    reported = {k: float(v.detach()) for k, v in losses.items()}
-    return StepReport(reported, psnr_of(mse), state.avatar.num_gaussians, densified, aps_ran)
+    return StepReport(reported, psnr_of(mse_value), state.avatar.num_gaussians, densified, aps_ran)
 
 
 @torch.no_grad()
@@ -451,9 +436,8 @@ def validation_image(data: TrainingData, state: TrainingState) -> tuple[np.ndarr
     for index in range(len(data.val_set)):
         item = _item_to(data.val_set[index], data.device)
         target = composite_target(item["image"], item["mask"], item["background"])
-        result, _ = render_frame(data.head, state.avatar, state.deformer, state.frames(item["row"]), item["timestep"],
-                                 item["viewmat"], item["K"], item["width"], item["height"], item["background"],
-                                 data.backend)
+        result = render_avatar(state.avatar, data.head, state.frames(item["row"]), item_camera(item), item["timestep"],
+                               state.deformer, item["background"], data.backend).result
         rgb = result.rgb.clamp(0.0, 1.0)
         psnrs.append(psnr_of(float(((rgb - target) ** 2).mean())))
         rows.append(torch.cat([target, rgb], dim=1))  # [H, 2W, 3]
@@ -672,7 +656,8 @@ def train(
         with _InterruptFlag() as interrupt:
             for step in range(state.step + 1, steps + 1):
                 try:
-                    report = train_step(data, state, config, step, options.seed)
+                    sampled = step == start_step + 1 or step % VALUE_CHECK_EVERY == 0 or step % log_every == 0
+                    report = train_step(data, state, config, step, options.seed, check_values=sampled)
                 except TrainingDiverged as err:
                     saved_at = _saved_step(last_path)
                     log.line(f"STOPPED: {err}", echo=True)
@@ -739,10 +724,12 @@ def _assert_finite(state: TrainingState, where: str) -> None:
     modules = [("avatar", state.avatar), ("frame parameters", state.frames)]
     if state.deformer is not None:
         modules.append(("mouth deformer", state.deformer))
-    for name, module in modules:
-        for pname, value in module.named_parameters():
-            if not bool(torch.isfinite(value).all()):
-                raise TrainingDiverged(f"{where}: {name} parameter '{pname}' holds NaN/Inf")
+    named = [(name, pname, value) for name, module in modules for pname, value in module.named_parameters()]
+    with torch.no_grad():  # one flag per tensor, read back in one transfer
+        finite = torch.stack([torch.isfinite(value).all() for _, _, value in named]).tolist()
+    for (name, pname, _), ok in zip(named, finite):
+        if not ok:
+            raise TrainingDiverged(f"{where}: {name} parameter '{pname}' holds NaN/Inf")
 
 
 def write_aps_report(run_dir: Path, aps: APSState, config: TrainConfig) -> None:
@@ -755,6 +742,6 @@ def write_aps_report(run_dir: Path, aps: APSState, config: TrainConfig) -> None:
 
 __all__ = [
     "RunOptions", "StepReport", "TrainResult", "TrainingData", "TrainingDiverged", "TrainingState",
-    "build_optimizers", "composite_target", "frame_index", "new_state", "open_training_data", "render_frame",
-    "restore_state", "resolve_device", "state_payload", "train", "train_step", "validation_image",
+    "VALUE_CHECK_EVERY", "build_optimizers", "frame_index", "item_camera", "new_state", "open_training_data",
+    "restore_state", "state_payload", "train", "train_step", "validation_image",
 ]
