@@ -433,7 +433,7 @@ def overlay_frames(config: PrepareConfig, work: Path, rows=None):
     """Yield (row, overlay picture) for the rows (dataset timesteps) asked for (all by default)."""
     import torch
 
-    from geoavatar.head import HeadModel
+    from geoavatar.head import HeadModel, npz_frame
     from geoavatar.prep.overlay import overlay_frame
 
     marks = np.load(work / "landmarks.npz")
@@ -445,7 +445,7 @@ def overlay_frames(config: PrepareConfig, work: Path, rows=None):
     params = {k[len("param_"):]: torch.as_tensor(fit[k]) for k in fit.files if k.startswith("param_")}
     viewmat = torch.as_tensor(fit["viewmat"], dtype=torch.float32)
     for row in rows if rows is not None else range(len(keep)):
-        frame_params = {k: (v if k in ("shape", "static_offset") else v[row:row + 1]) for k, v in params.items()}
+        frame_params = npz_frame(params, row)
         with torch.no_grad():
             vertices = head.forward_params(frame_params).vertices[0]
         image = _read_png(work / "frames" / f"{keep[row]:05d}.png")
