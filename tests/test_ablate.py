@@ -19,7 +19,7 @@ from apps_fixtures import make_subject
 
 from geoavatar.apps.ablate import ablate
 from geoavatar.cli import main
-from geoavatar.eval.ablation import JobSpec, RunMismatch, eval_argv, metrics_path, run_state, train_argv
+from geoavatar.eval.ablation import JobSpec, RunMismatch, eval_argv, metrics_path, run_job, run_state, train_argv
 
 STEPS = 6
 
@@ -127,3 +127,22 @@ def test_missing_dataset_is_a_one_line_error(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err == f"geoavatar ablate: --data {missing}: dataset folder not found"
     assert not (tmp_path / "out").exists()
+
+
+def test_a_failing_job_reports_one_line_and_does_not_raise(subject, tmp_path):
+    """run_job in this process (as a Ray worker runs it): a command's error comes back as the record's message."""
+    import torch
+
+    threads = torch.get_num_threads()
+    spec = JobSpec(data=str(subject), name="tiny", preset="E", steps=2, resolution=48, seed=0,
+                   run_dir=str(tmp_path / "tiny" / "E"), log=str(tmp_path / "logs" / "tiny__E.log"), threads=1,
+                   device="cpu", backend="gsplat")  # gsplat needs CUDA tensors: the trainer refuses on the CPU
+    try:
+        record = run_job(spec)
+    finally:
+        torch.set_num_threads(threads)
+    assert record["status"] == "failed" and record["state"] == "new"
+    assert record["message"].startswith("train: geoavatar train: ") and "gsplat" in record["message"]
+    assert "\n" not in record["message"]
+    log = Path(spec.log).read_text()
+    assert "$ geoavatar train --data" in log and "gsplat" in log

@@ -18,7 +18,9 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Literal, Optional
@@ -105,8 +107,10 @@ def ablate(
     states = _plan(specs, redo)
     pending = [s for s in specs if states[s] != "done"]
     total = len(specs)
+    counts = {state: sum(1 for s in specs if states[s] == state) for state in ("resume", "eval")}
     print(f"ablate: {len(names)} dataset(s) x {len(presets)} preset(s) = {total} runs, {steps} steps each; "
-          f"{total - len(pending)} finished, {len(pending)} to run -> {out}", flush=True)
+          f"{total - len(pending)} finished, {len(pending)} to run ({counts['resume']} to resume, {counts['eval']} "
+          f"to evaluate only) -> {out}", flush=True)
     for n, spec in enumerate(s for s in specs if states[s] == "done"):
         print(f"[{n + 1}/{total}] {spec.label}: finished earlier, skipped "
               f"(PSNR {_psnr(read_summary(spec.run_dir))})", flush=True)
@@ -230,6 +234,9 @@ def _run_on_ray(pending: list[JobSpec], states: dict, address: str | None, threa
     ray, owned = _start_ray(address, threads)
     failed: list[dict] = []
     interrupted = False
+    previous = None
+    if threading.current_thread() is threading.main_thread():  # `kill PID` stops the jobs like Ctrl-C does
+        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         nodes = [n for n in ray.nodes() if n.get("Alive")]
         largest = max((n.get("Resources", {}).get("CPU", 0) for n in nodes), default=0)
@@ -269,12 +276,25 @@ def _run_on_ray(pending: list[JobSpec], states: dict, address: str | None, threa
             print(f"ablate: interrupted; stopping {len(remaining)} job(s) (each saves its checkpoint)", file=sys.stderr,
                   flush=True)
             for ref in remaining:
-                ray.cancel(ref)  # a KeyboardInterrupt in the task: the trainer saves last.pt and stops
-            ray.wait(remaining, num_returns=len(remaining), timeout=120)
+                ray.cancel(ref)  # a running task gets a KeyboardInterrupt: the trainer saves last.pt and stops
+            stopped, _ = ray.wait(remaining, num_returns=len(remaining), timeout=120)
+            for ref in stopped:
+                try:
+                    record = ray.get(ref)
+                except ray.exceptions.RayError:  # cancelled before it started
+                    continue
+                finished += 1
+                print(_job_line(record, states[refs[ref]], finished, total), flush=True)
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         if owned:
             ray.shutdown()
     return failed, interrupted
+
+
+def _terminate(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def _job_line(record: dict, state: str, finished: int, total: int) -> str:

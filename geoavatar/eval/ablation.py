@@ -156,6 +156,8 @@ def _call_cli(argv: list[str], log) -> tuple[int, str]:
     log.write(text)
     log.flush()
     lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if code == 130:  # the trainer's "interrupted at step S: saved ...", not the run folder printed after it
+        lines = [line for line in lines if line.startswith("interrupted")] or lines
     return code, (lines[-1] if lines else "")
 
 
