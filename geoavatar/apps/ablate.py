@@ -85,8 +85,8 @@ def ablate(
         address: Ray cluster to run on: auto (the cluster this machine is part of), HOST:PORT, or
             ray://HOST:10001 (Ray Client); default: start a local Ray instance for this command.
         threads: CPU threads of each job, the CPUs its Ray task reserves (default: every core of this machine).
-        gpus_per_job: GPUs each job reserves (default: 1 when this machine has CUDA, else 0); jobs with 0 all
-            see every GPU.
+        gpus_per_job: GPUs each job reserves (default: 1 when this machine has CUDA and --device is not cpu,
+            else 0); jobs with 0 all see every GPU.
         max_frames: Evaluate only this many test frames per run, spread evenly (default: all).
         mouth_frames: Rows of the mouth crops: the test frames with the widest jaw opening.
         redo: Delete and train again the run folders whose checkpoints hold other settings than asked.
@@ -117,6 +117,10 @@ def ablate(
     failed: list[dict] = []
     interrupted = False
     if pending:
+        if gpus_per_job is None:  # a GPU each when jobs will run on CUDA here
+            import torch
+
+            gpus_per_job = 1.0 if device != "cpu" and torch.cuda.is_available() else 0.0
         failed, interrupted = _run_on_ray(pending, states, address, threads, gpus_per_job, total - len(pending), total)
     summaries = {}
     for spec in specs:
@@ -228,7 +232,7 @@ def _start_ray(address: str | None, threads: int):
     return ray, True
 
 
-def _run_on_ray(pending: list[JobSpec], states: dict, address: str | None, threads: int, gpus: float | None,
+def _run_on_ray(pending: list[JobSpec], states: dict, address: str | None, threads: int, gpus: float,
                 done_before: int, total: int) -> tuple[list[dict], bool]:
     """Submit every pending job as a Ray task and print a line as each ends; (failed jobs, interrupted)."""
     ray, owned = _start_ray(address, threads)
@@ -242,10 +246,6 @@ def _run_on_ray(pending: list[JobSpec], states: dict, address: str | None, threa
         largest = max((n.get("Resources", {}).get("CPU", 0) for n in nodes), default=0)
         if threads > largest:
             raise OptionError(f"--threads {threads}: no Ray node has that many CPUs (the largest has {largest:g})")
-        if gpus is None:
-            import torch
-
-            gpus = 1.0 if torch.cuda.is_available() else 0.0
         if gpus > 0 and not any(n.get("Resources", {}).get("GPU", 0) >= gpus for n in nodes):
             raise OptionError(f"--gpus-per-job {gpus:g}: no Ray node has that many GPUs (pass --gpus-per-job 0)")
         task = ray.remote(run_job).options(num_cpus=threads, num_gpus=gpus, max_retries=0)
