@@ -6,7 +6,7 @@ hand-written backward), its naive variant ("naive": per-pixel pairs + plain auto
 CPU backend ("cpu": C++/OpenMP kernels, cpu_backend.py) side by side, the forward+backward speed-up of
 "cpu" over "tiles", plus the forward-only frames per second at 512²/50k. --threads takes several
 counts (e.g. 1 2) to report the scaling. --simd takes several float32 compositing paths of "cpu"
-(GEOAVATAR_CPU_SIMD: auto, avx512, avx2, scalar), e.g. `--simd auto scalar` for the SIMD kernel
+(GEOAVATAR_CPU_SIMD: auto, avx512, avx2, vector, scalar), e.g. `--simd auto scalar` for the SIMD kernel
 against the previous per-pixel one; the path each run took is printed. Each configuration runs in a fresh subprocess so that
 its peak RSS is its own. Timings are the best of --repeats runs after one warm-up: wall-clock
 seconds, and the CPU seconds of the process (all threads), which a machine shared with other jobs
@@ -138,7 +138,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[2])
     parser.add_argument("--tile-size", type=int, default=4)
     parser.add_argument("--simd", nargs="+", default=["auto"],
-                        help="float32 compositing paths of method cpu (auto, avx512, avx2, scalar)")
+                        help="float32 compositing paths of method cpu (auto, avx512, avx2, vector, scalar)")
     parser.add_argument("--one", nargs=3, metavar=("METHOD", "SIZE", "COUNT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:

@@ -8,9 +8,10 @@ backward). Both run in csrc/rasterize_cpu.cpp on OpenMP threads (torch.get_num_t
 dynamic over tiles). Projection is native because in PyTorch its many small ops cost as much as the
 kernel itself (measured: 44 ms of 119 ms forward+backward at 256²/50k on one thread); when viewmat or
 K need gradients, the differentiable torch projection is used instead. means2d.grad (densification)
-is the gradient the kernel returns for the screen-space means. For float32 inputs the compositing
-runs a Gaussian over a row of 16 pixels per step with AVX-512 or AVX2 when the CPU has it (picked at
-run time, see SIMD_ENV and simd_path()); float64 inputs and other CPUs take the per-pixel loop.
+is the gradient the kernel returns for the screen-space means. For float32 inputs forward and backward
+composite a Gaussian over several pixels of a row per step (GCC/Clang vector types, one source compiled
+for AVX-512, AVX2 and the baseline ISA, "vector": NEON on ARM; picked at run time, see SIMD_ENV and
+simd_path()); float64 inputs take the per-pixel loop.
 
 The extension is built on first use with torch.utils.cpp_extension (g++ and ninja; about 40 s on
 our machines) into $GEOAVATAR_EXT_CACHE/<key>, else $GEOAVATAR_CACHE/ext/<key>, else
@@ -46,9 +47,10 @@ SOURCE = Path(__file__).with_name("csrc") / "rasterize_cpu.cpp"
 CFLAGS = ["-O3", "-fopenmp", "-std=c++17", "-ffp-contract=off", "-fno-trapping-math"]
 LDFLAGS = ["-fopenmp"]
 DEFAULT_TILE_SIZE = 16
-# Selects the float32 compositing path: "auto" (the fastest this CPU runs), "avx512", "avx2" (a row of
-# 16 pixels per step, float32 state) or "scalar" (the per-pixel loop with libm's exp and double state,
-# the kernel before the SIMD paths; CPUs without AVX2 and float64 inputs always use it).
+# Selects the float32 compositing path: "auto" (the fastest this CPU runs), "avx512", "avx2", "vector"
+# (lanes of a row per step, float32 state; "vector" is the build's baseline ISA: NEON on aarch64, SSE2 on
+# x86-64, where it is selectable for testing) or "scalar" (the per-pixel loop with libm's exp and double
+# state, the kernel before the SIMD paths; float64 inputs always use it).
 SIMD_ENV = "GEOAVATAR_CPU_SIMD"
 
 _lock = threading.Lock()
@@ -165,7 +167,7 @@ def cpu_backend_available() -> bool:
 
 def simd_path() -> str:
     """The float32 compositing path in use: $GEOAVATAR_CPU_SIMD when set (and not "auto"), else the
-    fastest one this CPU runs ("avx512", "avx2" or "scalar")."""
+    fastest one this CPU runs ("avx512", "avx2", "vector" or "scalar")."""
     ext = load_extension()
     if ext is None:
         raise RuntimeError(f"rasterize: backend 'cpu' is unavailable: {cpu_backend_error()}")

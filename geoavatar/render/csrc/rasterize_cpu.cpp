@@ -15,9 +15,10 @@
 // Two implementations of forward and backward, chosen per call (cpu_backend.simd_path()):
 //   scalar         - pixel by pixel with libm's exp, per-pixel state (T, colour sums, the running sums
 //                    of backward) in double; float64 inputs always take it (gradcheck).
-//   avx512 / avx2  - float32 only: a Gaussian over a row of 16 pixels of its tile per step (see "float32
-//                    lanes" below), compiled for each instruction set and picked at run time; the
-//                    forward state is float32, the backward's double.
+//   avx512 / avx2 / vector - float32 only: a Gaussian over W pixels of a row span of its tile per step
+//                    (see "float32 lanes" below), one source with GCC/Clang vector types compiled for
+//                    AVX-512, AVX2 and the baseline ISA (NEON on aarch64, SSE2 on x86-64), picked at
+//                    run time; forward and backward state is float32.
 // Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels count.
 
 #include <torch/extension.h>
@@ -239,48 +240,234 @@ void forward_tiles_scalar(const std::vector<Splat<scalar_t>>& splats, const std:
   }
 }
 
+// Gradient record of one (tile, Gaussian) entry: means2d (2), conic (3), opacity, colour (3).
+constexpr int kEntryGrads = 9;
+
+// Backward of the scalar path (float32 and float64).
+template <typename scalar_t>
+void backward_tiles(const std::vector<Splat<scalar_t>>& splats, const int64_t* offsets, const int32_t* ids,
+                    const int32_t* last_in, const double* t_final, const scalar_t* grad_rgb,
+                    const scalar_t* grad_alpha, const double* background, const Grid& grid,
+                    std::vector<double>& entry_grads) {
+  const int64_t t = grid.tile, tp = t * t;
+#pragma omp parallel num_threads(threads_for_torch())
+  {
+    std::vector<double> trans(tp), behind(tp), g(3 * tp);
+    std::vector<int32_t> last(tp);
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
+      const int64_t begin = offsets[tile], end = offsets[tile + 1];
+      if (begin == end) continue;
+      const TileRect r = grid.rect(tile);
+      const int64_t tx0 = r.x0, ty0 = r.y0, tw = r.w, th = r.h;
+      int32_t max_last = 0;
+      for (int64_t y = 0; y < th; ++y) {
+        for (int64_t x = 0; x < tw; ++x) {
+          const int64_t p = y * t + x, pix = (ty0 + y) * grid.width + (tx0 + x);
+          double dot_bg = 0.0;
+          for (int ch = 0; ch < 3; ++ch) {
+            g[3 * p + ch] = static_cast<double>(grad_rgb[3 * pix + ch]);
+            dot_bg += g[3 * p + ch] * background[ch];
+          }
+          trans[p] = t_final[pix];
+          // T_final times d loss / d T_final (rgb gains T_final * background, alpha = 1 - T_final)
+          behind[p] = t_final[pix] * (dot_bg - static_cast<double>(grad_alpha[pix]));
+          last[p] = last_in[pix];
+          max_last = std::max(max_last, last[p]);
+        }
+      }
+      for (int64_t k = begin + max_last - 1; k >= begin; --k) {
+        const Splat<scalar_t>& s = splats[ids[k]];
+        const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
+        const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
+        const int32_t position = static_cast<int32_t>(k - begin);
+        double gm_x = 0, gm_y = 0, gc_a = 0, gc_b = 0, gc_c = 0, g_op = 0, gr = 0, gg = 0, gb = 0;
+        const double a = s.a, b = s.b, c = s.c;
+        for (int64_t y = y0; y <= y1; ++y) {
+          const scalar_t dy = s.my - (static_cast<scalar_t>(y) + scalar_t(0.5));
+          for (int64_t x = x0; x <= x1; ++x) {
+            const int64_t p = (y - ty0) * t + (x - tx0);
+            if (position >= last[p]) continue;
+            const scalar_t dx = s.mx - (static_cast<scalar_t>(x) + scalar_t(0.5));
+            const scalar_t sigma = scalar_t(0.5) * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
+            if (sigma > s.sigma_cut) continue;
+            const scalar_t alpha_raw = s.opacity * std::exp(-sigma);
+            if (alpha_raw < static_cast<scalar_t>(kAlphaMin)) continue;
+            const double alpha = std::min(static_cast<double>(alpha_raw), kAlphaMax);
+            const double keep = 1.0 - alpha;
+            const double t_before = trans[p] / keep;
+            trans[p] = t_before;
+            const double gr_p = g[3 * p], gg_p = g[3 * p + 1], gb_p = g[3 * p + 2];
+            const double color_dot = gr_p * s.r + gg_p * s.g + gb_p * s.bl;
+            const double grad_alpha_pair = t_before * color_dot - behind[p] / keep;
+            const double w = alpha * t_before;
+            behind[p] += color_dot * w;
+            gr += w * gr_p;
+            gg += w * gg_p;
+            gb += w * gb_p;
+            if (alpha < kAlphaMax) {  // a capped alpha does not depend on sigma or opacity
+              const double g_sigma = -alpha * grad_alpha_pair;
+              const double ddx = dx, ddy = dy;
+              gm_x += g_sigma * (a * ddx + b * ddy);
+              gm_y += g_sigma * (b * ddx + c * ddy);
+              gc_a += 0.5 * g_sigma * ddx * ddx;
+              gc_b += g_sigma * ddx * ddy;
+              gc_c += 0.5 * g_sigma * ddy * ddy;
+              g_op += alpha / static_cast<double>(s.opacity) * grad_alpha_pair;
+            }
+          }
+        }
+        double* out = entry_grads.data() + kEntryGrads * k;
+        out[0] = gm_x, out[1] = gm_y, out[2] = gc_a, out[3] = gc_b, out[4] = gc_c, out[5] = g_op;
+        out[6] = gr, out[7] = gg, out[8] = gb;
+      }
+    }
+  }
+}
+
+
 // ----------------------------------------------------------------------------- float32 lanes
-// For float32 inputs the forward evaluates one Gaussian over a row of kLanes pixels of a tile at once,
-// branch-free, so the compiler vectorises it (one AVX-512 register of floats per row); an inlined
-// polynomial exp replaces the libm call that kept the per-pixel loop scalar. The body is compiled for
-// AVX-512 and for AVX2 (no -march: builds are shared across machines) and picked at run time; other
-// CPUs keep the scalar per-pixel loop (on SSE2 the lane code measured 3x slower than it). Per-pixel
-// state (T, colour sums) is float32 on this path: measured at 512^2 / 50k it moves no pixel further
-// from the torch backend than the double state did. The backward of this path uses the same exp
-// (exp_lane), so both passes take identical alpha decisions.
+// For float32 inputs, forward and backward evaluate one Gaussian over W adjacent pixels of a tile row
+// per step, written once with GCC/Clang vector types (Vec<W>) and compiled per instruction set:
+// AVX-512 and AVX2 (target attributes, no -march: builds are shared across machines, the path is
+// picked at run time) and the baseline ISA ("vector": NEON on aarch64, SSE2 on x86-64, where it is
+// selectable so that the code ARM runs is tested). Per pixel these are the scalar kernel's expressions
+// in its order with an inlined polynomial exp (exp_lanes) instead of libm's; per-pixel state (T, colour
+// sums; the backward's running sums) is float32, one register per value. No FMA contraction
+// (-ffp-contract=off), so every lane path computes the same alpha, image and T bit for bit, whatever W.
+// A step covers only the part of a row where the Gaussian can reach alpha >= 1/255 (RowSpan: the
+// ellipse sigma <= sigma_cut solved per row, widened for rounding), not its whole box, whose corners
+// lie outside the ellipse: at 256^2 a box row is often 8-12 pixels and its span 3-6.
 
-enum class Simd { kScalar, kAvx2, kAvx512 };
-
-constexpr int kLanes = 16;
-constexpr float kAlphaMinF = static_cast<float>(kAlphaMin);
-constexpr float kAlphaMaxF = static_cast<float>(kAlphaMax);
-constexpr float kTransmittanceMinF = static_cast<float>(kTransmittanceMin);
+enum class Simd { kScalar, kVector, kAvx2, kAvx512 };
 
 #define GEOAVATAR_INLINE inline __attribute__((always_inline))
 
-// exp(x) in float without a libm call: Cephes' expf (x = n ln 2 + r with ln 2 in two parts, a degree-6
-// polynomial in r), within 2 ulp of expf. x is clamped to [-80, 88]: o exp(x) is then far below 1/255
-// or capped at 0.999 anyway, and results stay clear of denormals (each costs a microcode assist, and
-// most lanes of a row lie far outside the ellipse).
-GEOAVATAR_INLINE float exp_lane(float x) {
-  x = std::min(std::max(x, -80.0f), 88.0f);  // both compares unconditional: a nested ?: would branch
-  const float n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;  // round to nearest (1.5 * 2^23)
-  const float r = (x - n * 0.693359375f) - n * -2.12194440e-4f;
-  float p = 1.9875691500e-4f;
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  p = p * r * r + r + 1.0f;
-  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;  // 2^n
-  float scale;
-  std::memcpy(&scale, &bits, sizeof scale);
-  return p * scale;
+constexpr float kAlphaMinF = static_cast<float>(kAlphaMin);
+constexpr float kAlphaMaxF = static_cast<float>(kAlphaMax);
+constexpr float kTransmittanceMinF = static_cast<float>(kTransmittanceMin);
+// Lanes per step of each path (forward, backward): one native register of floats (forward) or of
+// doubles (backward, whose state is double). Wider vectors than the ISA's registers are split by the
+// compiler, and GCC then selects lane by lane (measured: 16 lanes on AVX-512 or 8 doubles on AVX2 ran
+// slower than the scalar kernel).
+constexpr int kMaxLanes = 16;
+#ifndef GEOAVATAR_LANES_AVX512_FWD
+#define GEOAVATAR_LANES_AVX512_FWD 8   // ymm with AVX-512VL: at 256^2 a row span is rarely over 8 pixels
+#define GEOAVATAR_LANES_AVX512_BWD 8
+#define GEOAVATAR_LANES_AVX2_FWD 8     // ymm
+#define GEOAVATAR_LANES_AVX2_BWD 8
+#define GEOAVATAR_LANES_VECTOR_FWD 4   // 128-bit: NEON q, SSE2 xmm
+#define GEOAVATAR_LANES_VECTOR_BWD 4
+#endif
+
+// Pixel rows of the tile planes on the lane paths: a step may start at any column of the tile, so
+// rows are padded by kMaxLanes columns that its masked lanes can read and write back unchanged.
+inline int64_t lane_stride(int64_t tile) { return tile + kMaxLanes; }
+
+// The columns of one pixel row where sigma <= cut can hold: sigma is a quadratic in dx = mx - (x + 0.5)
+// (0.5 a dx^2 + b dy dx + 0.5 c dy^2), solved in double. cut is sigma_cut (already 1e-3 above where
+// o exp(-sigma) = 1/255) plus 1e-3 for the float evaluation of sigma, and the span is widened by
+// 0.01 px for the float rounding of dx (one ulp of a pixel coordinate, 5e-4 px at x = 4096); it is
+// then cut to the box. A conic that is not positive definite (never from the projection) keeps the box.
+struct RowSpan {
+  double mx, a, b, c, cut;
+  bool solve;
+  explicit RowSpan(const Splat<float>& s)
+      : mx(s.mx), a(s.a), b(s.b), c(s.c), cut(static_cast<double>(s.sigma_cut) + 1e-3) {
+    solve = a > 0 && a * c - b * b > 0 && std::isfinite(cut) && std::isfinite(mx);
+  }
+  // [xa, xb] within the box columns [x0, x1] (image columns); false when the row has none.
+  GEOAVATAR_INLINE bool columns(float dy, int64_t x0, int64_t x1, int64_t& xa, int64_t& xb) const {
+    xa = x0, xb = x1;
+    if (!solve) return true;
+    if (cut < 0) return false;  // sigma >= 0 everywhere
+    const double ddy = dy;
+    const double disc = (b * b - a * c) * ddy * ddy + 2.0 * a * cut;
+    if (disc < 0) return false;
+    const double root = std::sqrt(disc), centre = -b * ddy;
+    const double dx_lo = (centre - root) / a, dx_hi = (centre + root) / a;
+    // x + 0.5 = mx - dx: columns from mx - dx_hi to mx - dx_lo
+    const double lo = std::ceil(mx - dx_hi - 0.5 - 0.01), hi = std::floor(mx - dx_lo - 0.5 + 0.01);
+    if (lo > static_cast<double>(xa)) xa = lo > static_cast<double>(x1) ? x1 + 1 : static_cast<int64_t>(lo);
+    if (hi < static_cast<double>(xb)) xb = hi < static_cast<double>(x0) ? x0 - 1 : static_cast<int64_t>(hi);
+    return xa <= xb;
+  }
+};
+
+#if defined(__GNUC__)  // GCC and Clang vector extensions
+#pragma GCC diagnostic ignored "-Wpsabi"  // vectors passed between always-inlined helpers only
+
+// W lanes of float / int32 and of double / int64 (a comparison of F gives I, of D gives L).
+template <int W>
+struct Vec {
+  typedef float F __attribute__((vector_size(4 * W)));
+  typedef int32_t I __attribute__((vector_size(4 * W)));
+  typedef double D __attribute__((vector_size(8 * W)));
+  typedef int64_t L __attribute__((vector_size(8 * W)));
+};
+
+template <typename V, typename T>
+GEOAVATAR_INLINE V splat(T value) {
+  return V{} + value;  // a scalar operand is broadcast to every lane
 }
 
-// One tile of the lane path: geometry, its entries and per-thread scratch planes whose rows are padded
-// to whole lane groups (stride), so masked lanes past the tile edge stay inside the buffers.
+template <typename V, typename T>
+GEOAVATAR_INLINE V load(const T* p) {
+  V v;
+  std::memcpy(&v, p, sizeof v);
+  return v;
+}
+
+template <typename V, typename T>
+GEOAVATAR_INLINE void store(T* p, const V& v) {
+  std::memcpy(p, &v, sizeof v);
+}
+
+template <typename I>
+GEOAVATAR_INLINE I lane_index() {
+  I v;
+  for (size_t l = 0; l < sizeof(I) / sizeof(v[0]); ++l) v[l] = static_cast<int32_t>(l);
+  return v;
+}
+
+// exp(x) per lane without a libm call: Cephes' expf (x = n ln 2 + r with ln 2 in two parts, a degree-6
+// polynomial in r), within 2 ulp of expf. x is clamped to [-80, 88]: o exp(x) is then far below 1/255
+// or capped at 0.999 anyway, and results stay clear of denormals (each costs a microcode assist, and
+// masked lanes may lie far outside the ellipse).
+template <typename F, typename I>
+GEOAVATAR_INLINE F exp_lanes(F x) {
+  const F lo = splat<F>(-80.0f), hi = splat<F>(88.0f);
+  x = x < lo ? lo : x;  // std::max(x, -80), then std::min(x, 88)
+  x = hi < x ? hi : x;
+  const F round = splat<F>(12582912.0f);  // 1.5 * 2^23: adding it rounds to an integer
+  const F n = (x * splat<F>(1.44269504088896341f) + round) - round;
+  const F r = (x - n * splat<F>(0.693359375f)) - n * splat<F>(-2.12194440e-4f);
+  F p = splat<F>(1.9875691500e-4f);
+  p = p * r + splat<F>(1.3981999507e-3f);
+  p = p * r + splat<F>(8.3334519073e-3f);
+  p = p * r + splat<F>(4.1665795894e-2f);
+  p = p * r + splat<F>(1.6666665459e-1f);
+  p = p * r + splat<F>(5.0000001201e-1f);
+  p = p * r * r + r + splat<F>(1.0f);
+  const I bits = (__builtin_convertvector(n, I) + 127) << 23;  // 2^n
+  return p * reinterpret_cast<const F&>(bits);
+}
+
+// Sum of the W lanes of an int32 vector, by halves (vector adds, not W extractions).
+template <int W>
+GEOAVATAR_INLINE int32_t sum_lanes(typename Vec<W>::I v) {
+  if constexpr (W == 2) {
+    return v[0] + v[1];
+  } else {
+    typename Vec<W / 2>::I lo, hi;
+    std::memcpy(&lo, &v, sizeof lo);
+    std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
+    return sum_lanes<W / 2>(lo + hi);
+  }
+}
+#endif
+
+// One tile of the lane forward: geometry, its entries and per-thread scratch planes (lane_stride).
 struct LaneTile {
   const Splat<float>* splats;
   const int32_t* ids;
@@ -289,48 +476,11 @@ struct LaneTile {
   int32_t *last, *done, *row_done;
 };
 
-// Boxes at most this many pixels wide (in the tile) go pixel by pixel in forward and backward: a step
-// of kLanes lanes costs about as much as 5-6 scalar pixels (tried 4, 6, 8 at 256^2 and 512^2, where
-// many boxes, or their slivers cut off by tile edges, are that narrow).
-constexpr int64_t kNarrowBox = 6;
-
-// A narrow box pixel by pixel, with the lane loop's expressions (the same bits per pixel); returns the
-// number of pixels that stopped. sigma_cut only skips pixels whose alpha is surely below 1/255.
-GEOAVATAR_INLINE int64_t composite_narrow_box(const Splat<float>& s, const LaneTile& tile, int64_t x0, int64_t x1,
-                                              int64_t y0, int64_t y1, int32_t position) {
-  int64_t n_stopped = 0;
-  for (int64_t y = y0; y <= y1; ++y) {
-    const int64_t row = y - tile.ty0;
-    const float dy = s.my - (static_cast<float>(y) + 0.5f);
-    for (int64_t x = x0; x <= x1; ++x) {
-      const int64_t p = row * tile.stride + x;
-      if (tile.done[p]) continue;
-      const float dx = s.mx - (static_cast<float>(tile.tx0 + x) + 0.5f);
-      const float sigma = 0.5f * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
-      if (sigma > s.sigma_cut) continue;
-      const float alpha_raw = s.opacity * exp_lane(-sigma);
-      if (!(alpha_raw >= kAlphaMinF)) continue;
-      const float alpha = alpha_raw < kAlphaMaxF ? alpha_raw : kAlphaMaxF;
-      const float t_here = tile.trans[p];
-      const float next_t = t_here * (1.0f - alpha);
-      if (next_t <= kTransmittanceMinF) {
-        tile.done[p] = 1;
-        ++tile.row_done[row];
-        ++n_stopped;
-        continue;
-      }
-      const float w = alpha * t_here;
-      tile.red[p] = tile.red[p] + w * s.r;
-      tile.green[p] = tile.green[p] + w * s.g;
-      tile.blue[p] = tile.blue[p] + w * s.bl;
-      tile.trans[p] = next_t;
-      tile.last[p] = position;
-    }
-  }
-  return n_stopped;
-}
-
-GEOAVATAR_INLINE void composite_tile_lanes(const LaneTile& tile) {
+#if defined(__GNUC__)
+template <int W>
+GEOAVATAR_INLINE void composite_tile_vec(const LaneTile& tile) {
+  using F = typename Vec<W>::F;
+  using I = typename Vec<W>::I;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ red = tile.red;
   float* __restrict__ green = tile.green;
@@ -338,52 +488,48 @@ GEOAVATAR_INLINE void composite_tile_lanes(const LaneTile& tile) {
   int32_t* __restrict__ last = tile.last;
   int32_t* __restrict__ done = tile.done;
   const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
+  const I lane = lane_index<I>(), zero_i = splat<I>(0), one_i = splat<I>(1);
+  const F half = splat<F>(0.5f), one = splat<F>(1.0f), alpha_min = splat<F>(kAlphaMinF);
+  const F alpha_max = splat<F>(kAlphaMaxF), t_min = splat<F>(kTransmittanceMinF);
   int64_t n_done = 0;
   for (int64_t k = tile.begin; k < tile.end && n_done < tw * th; ++k) {
     const Splat<float>& s = tile.splats[tile.ids[k]];
-    const int64_t x0 = std::max<int64_t>(s.x0, tx0) - tx0, x1 = std::min<int64_t>(s.x1, tx0 + tw - 1) - tx0;
+    const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
     const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
-    const int32_t position = static_cast<int32_t>(k - tile.begin + 1);
-    if (x1 - x0 < kNarrowBox) {
-      n_done += composite_narrow_box(s, tile, x0, x1, y0, y1, position);
-      continue;
-    }
+    const I position = splat<I>(static_cast<int32_t>(k - tile.begin + 1));
+    const RowSpan span(s);
+    const F mx = splat<F>(s.mx), a = splat<F>(s.a), b = splat<F>(s.b), opacity = splat<F>(s.opacity);
+    const F r = splat<F>(s.r), g = splat<F>(s.g), bl = splat<F>(s.bl);
     for (int64_t y = y0; y <= y1; ++y) {
       const int64_t row = y - ty0;
       if (tile.row_done[row] == tw) continue;
       const float dy = s.my - (static_cast<float>(y) + 0.5f);
-      for (int64_t group = x0 - x0 % kLanes; group <= x1; group += kLanes) {
-        const int64_t base = row * tile.stride + group;
-        const int32_t lane_x0 = static_cast<int32_t>(x0 - group), lane_x1 = static_cast<int32_t>(x1 - group);
-        const int32_t x_first = static_cast<int32_t>(tx0 + group);
-        int32_t stopped = 0;
-#pragma omp simd reduction(+ : stopped)
-        for (int32_t l = 0; l < kLanes; ++l) {
-          // the scalar kernel's expressions, in its order: the same float sigma bit for bit
-          const float dx = s.mx - (static_cast<float>(x_first + l) + 0.5f);
-          const float sigma = 0.5f * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
-          const float alpha_raw = s.opacity * exp_lane(-sigma);
-          // non-short-circuit & and unconditional loads: branch-free, so the loop if-converts
-          const int32_t done_here = done[base + l];
-          const bool accept = (l >= lane_x0) & (l <= lane_x1) & (done_here == 0) & (alpha_raw >= kAlphaMinF);
-          const float alpha = alpha_raw < kAlphaMaxF ? alpha_raw : kAlphaMaxF;
-          const float t_here = trans[base + l];
-          const float next_t = t_here * (1.0f - alpha);
-          const bool stop = accept & (next_t <= kTransmittanceMinF);
-          const bool add = accept & !stop;
-          const float w = alpha * t_here;
-          // sums computed unconditionally, then selected: a conditional FP add would keep a branch
-          const float red_here = red[base + l], green_here = green[base + l], blue_here = blue[base + l];
-          const float red_new = red_here + w * s.r, green_new = green_here + w * s.g, blue_new = blue_here + w * s.bl;
-          const int32_t last_here = last[base + l];
-          red[base + l] = add ? red_new : red_here;
-          green[base + l] = add ? green_new : green_here;
-          blue[base + l] = add ? blue_new : blue_here;
-          trans[base + l] = add ? next_t : t_here;
-          last[base + l] = add ? position : last_here;
-          done[base + l] = stop ? 1 : done_here;
-          stopped += stop ? 1 : 0;
-        }
+      int64_t xa, xb;
+      if (!span.columns(dy, x0, x1, xa, xb)) continue;
+      const F dy_v = splat<F>(dy), c_dy_dy = splat<F>(s.c * dy * dy);
+      for (int64_t x = xa; x <= xb; x += W) {
+        const int64_t base = row * tile.stride + (x - tx0);
+        // the scalar kernel's expressions, in its order: the same float sigma bit for bit
+        const F dx = mx - (__builtin_convertvector(splat<I>(static_cast<int32_t>(x)) + lane, F) + half);
+        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
+        const F alpha_raw = opacity * exp_lanes<F, I>(-sigma);
+        const I done_here = load<I>(done + base);
+        const I accept = (lane <= splat<I>(static_cast<int32_t>(xb - x))) & (done_here == zero_i) &
+                         (alpha_raw >= alpha_min);
+        const F alpha = alpha_raw < alpha_max ? alpha_raw : alpha_max;
+        const F t_here = load<F>(trans + base);
+        const F next_t = t_here * (one - alpha);
+        const I stop = accept & (next_t <= t_min);
+        const I add = accept & ~stop;
+        const F w = alpha * t_here;
+        const F red_here = load<F>(red + base), green_here = load<F>(green + base), blue_here = load<F>(blue + base);
+        store(red + base, add ? red_here + w * r : red_here);
+        store(green + base, add ? green_here + w * g : green_here);
+        store(blue + base, add ? blue_here + w * bl : blue_here);
+        store(trans + base, add ? next_t : t_here);
+        store(last + base, add ? position : load<I>(last + base));
+        store(done + base, stop ? one_i : done_here);
+        const int32_t stopped = -sum_lanes<W>(stop);  // -1 per stopped lane
         tile.row_done[row] += stopped;
         n_done += stopped;
       }
@@ -391,11 +537,20 @@ GEOAVATAR_INLINE void composite_tile_lanes(const LaneTile& tile) {
   }
 }
 
+// Compiled for the baseline ISA of the build (SSE2 on x86-64, NEON on aarch64).
+void composite_tile_vector(const LaneTile& tile) { composite_tile_vec<GEOAVATAR_LANES_VECTOR_FWD>(tile); }
+#endif
+
 #if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
 #define GEOAVATAR_X86_DISPATCH 1
-__attribute__((target("avx512f,avx512dq,avx512vl,avx512bw,prefer-vector-width=512")))
-void composite_tile_avx512(const LaneTile& tile) { composite_tile_lanes(tile); }
-__attribute__((target("avx2,fma"))) void composite_tile_avx2(const LaneTile& tile) { composite_tile_lanes(tile); }
+#define GEOAVATAR_TARGET_AVX512 __attribute__((target("avx512f,avx512dq,avx512vl,avx512bw,prefer-vector-width=512")))
+#define GEOAVATAR_TARGET_AVX2 __attribute__((target("avx2,fma")))
+GEOAVATAR_TARGET_AVX512 void composite_tile_avx512(const LaneTile& tile) {
+  composite_tile_vec<GEOAVATAR_LANES_AVX512_FWD>(tile);
+}
+GEOAVATAR_TARGET_AVX2 void composite_tile_avx2(const LaneTile& tile) {
+  composite_tile_vec<GEOAVATAR_LANES_AVX2_FWD>(tile);
+}
 #endif
 
 bool simd_supported(Simd simd) {
@@ -408,21 +563,27 @@ bool simd_supported(Simd simd) {
 #else
   if (simd == Simd::kAvx512 || simd == Simd::kAvx2) return false;
 #endif
+#if !defined(__GNUC__)
+  if (simd == Simd::kVector) return false;
+#endif
   return true;
 }
 
-constexpr Simd kAllSimd[] = {Simd::kAvx512, Simd::kAvx2, Simd::kScalar};
+// Fastest first; "auto" takes the first this CPU runs.
+constexpr Simd kAllSimd[] = {Simd::kAvx512, Simd::kAvx2, Simd::kVector, Simd::kScalar};
 
 const char* simd_name(Simd simd) {
   switch (simd) {
     case Simd::kAvx512: return "avx512";
     case Simd::kAvx2: return "avx2";
+    case Simd::kVector: return "vector";
     default: return "scalar";
   }
 }
 
-// The float32 paths this CPU runs, fastest first: "avx512", "avx2", "scalar" (the per-pixel loop with
-// libm's exp and double state: the kernel before the lane path).
+// The float32 paths this CPU runs, fastest first: "avx512", "avx2", "vector" (the lane code on the
+// build's baseline ISA), "scalar" (the per-pixel loop with libm's exp and double state: the kernel
+// before the lane paths).
 std::vector<std::string> simd_paths() {
   std::vector<std::string> names;
   for (Simd simd : kAllSimd)
@@ -444,11 +605,15 @@ void forward_tiles_lanes(const std::vector<Splat<float>>& splats, const std::vec
                          const std::vector<int32_t>& ids, const double* background, const Grid& grid, Simd simd,
                          float* out_rgb, float* out_alpha, int32_t* out_last, double* out_t_final) {
   void (*composite)(const LaneTile&) = nullptr;
+#if defined(__GNUC__)
+  if (simd == Simd::kVector) composite = composite_tile_vector;
+#endif
 #ifdef GEOAVATAR_X86_DISPATCH
-  composite = simd == Simd::kAvx512 ? composite_tile_avx512 : composite_tile_avx2;
+  if (simd == Simd::kAvx512) composite = composite_tile_avx512;
+  if (simd == Simd::kAvx2) composite = composite_tile_avx2;
 #endif
   TORCH_CHECK(composite != nullptr, "rasterize_cpu: no SIMD compositing on this CPU");
-  const int64_t t = grid.tile, stride = (t + kLanes - 1) / kLanes * kLanes, plane = t * stride;
+  const int64_t t = grid.tile, stride = lane_stride(t), plane = t * stride;
 #pragma omp parallel num_threads(threads_for_torch())
   {
     std::vector<float> trans(plane), red(plane), green(plane), blue(plane);
@@ -499,235 +664,105 @@ void forward_tiles(const std::vector<Splat<float>>& splats, const std::vector<in
     forward_tiles_lanes(splats, offsets, ids, background, grid, simd, out_rgb, out_alpha, out_last, out_t_final);
 }
 
-// Gradient record of one (tile, Gaussian) entry: means2d (2), conic (3), opacity, colour (3).
-constexpr int kEntryGrads = 9;
-
-// kLaneExp: the forward ran on a SIMD path, so alpha must come from the same exp_lane.
-template <typename scalar_t, bool kLaneExp>
-void backward_tiles(const std::vector<Splat<scalar_t>>& splats, const int64_t* offsets, const int32_t* ids,
-                    const int32_t* last_in, const double* t_final, const scalar_t* grad_rgb,
-                    const scalar_t* grad_alpha, const double* background, const Grid& grid,
-                    std::vector<double>& entry_grads) {
-  const int64_t t = grid.tile, tp = t * t;
-#pragma omp parallel num_threads(threads_for_torch())
-  {
-    std::vector<double> trans(tp), behind(tp), g(3 * tp);
-    std::vector<int32_t> last(tp);
-#pragma omp for schedule(dynamic, 1)
-    for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
-      const int64_t begin = offsets[tile], end = offsets[tile + 1];
-      if (begin == end) continue;
-      const TileRect r = grid.rect(tile);
-      const int64_t tx0 = r.x0, ty0 = r.y0, tw = r.w, th = r.h;
-      int32_t max_last = 0;
-      for (int64_t y = 0; y < th; ++y) {
-        for (int64_t x = 0; x < tw; ++x) {
-          const int64_t p = y * t + x, pix = (ty0 + y) * grid.width + (tx0 + x);
-          double dot_bg = 0.0;
-          for (int ch = 0; ch < 3; ++ch) {
-            g[3 * p + ch] = static_cast<double>(grad_rgb[3 * pix + ch]);
-            dot_bg += g[3 * p + ch] * background[ch];
-          }
-          trans[p] = t_final[pix];
-          // T_final times d loss / d T_final (rgb gains T_final * background, alpha = 1 - T_final)
-          behind[p] = t_final[pix] * (dot_bg - static_cast<double>(grad_alpha[pix]));
-          last[p] = last_in[pix];
-          max_last = std::max(max_last, last[p]);
-        }
-      }
-      for (int64_t k = begin + max_last - 1; k >= begin; --k) {
-        const Splat<scalar_t>& s = splats[ids[k]];
-        const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
-        const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
-        const int32_t position = static_cast<int32_t>(k - begin);
-        double gm_x = 0, gm_y = 0, gc_a = 0, gc_b = 0, gc_c = 0, g_op = 0, gr = 0, gg = 0, gb = 0;
-        const double a = s.a, b = s.b, c = s.c;
-        for (int64_t y = y0; y <= y1; ++y) {
-          const scalar_t dy = s.my - (static_cast<scalar_t>(y) + scalar_t(0.5));
-          for (int64_t x = x0; x <= x1; ++x) {
-            const int64_t p = (y - ty0) * t + (x - tx0);
-            if (position >= last[p]) continue;
-            const scalar_t dx = s.mx - (static_cast<scalar_t>(x) + scalar_t(0.5));
-            const scalar_t sigma = scalar_t(0.5) * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
-            if (sigma > s.sigma_cut) continue;
-            scalar_t alpha_raw;
-            if constexpr (kLaneExp) alpha_raw = s.opacity * exp_lane(-sigma);
-            else alpha_raw = s.opacity * std::exp(-sigma);
-            if (alpha_raw < static_cast<scalar_t>(kAlphaMin)) continue;
-            const double alpha = std::min(static_cast<double>(alpha_raw), kAlphaMax);
-            const double keep = 1.0 - alpha;
-            const double t_before = trans[p] / keep;
-            trans[p] = t_before;
-            const double gr_p = g[3 * p], gg_p = g[3 * p + 1], gb_p = g[3 * p + 2];
-            const double color_dot = gr_p * s.r + gg_p * s.g + gb_p * s.bl;
-            const double grad_alpha_pair = t_before * color_dot - behind[p] / keep;
-            const double w = alpha * t_before;
-            behind[p] += color_dot * w;
-            gr += w * gr_p;
-            gg += w * gg_p;
-            gb += w * gb_p;
-            if (alpha < kAlphaMax) {  // a capped alpha does not depend on sigma or opacity
-              const double g_sigma = -alpha * grad_alpha_pair;
-              const double ddx = dx, ddy = dy;
-              gm_x += g_sigma * (a * ddx + b * ddy);
-              gm_y += g_sigma * (b * ddx + c * ddy);
-              gc_a += 0.5 * g_sigma * ddx * ddx;
-              gc_b += g_sigma * ddx * ddy;
-              gc_c += 0.5 * g_sigma * ddy * ddy;
-              g_op += alpha / static_cast<double>(s.opacity) * grad_alpha_pair;
-            }
-          }
-        }
-        double* out = entry_grads.data() + kEntryGrads * k;
-        out[0] = gm_x, out[1] = gm_y, out[2] = gc_a, out[3] = gc_b, out[4] = gc_c, out[5] = g_op;
-        out[6] = gr, out[7] = gg, out[8] = gb;
-      }
-    }
-  }
-}
-
-// Backward of the AVX-512 path: one Gaussian over a row of kLanes pixels per step, with the running
-// state (T, what lies behind, d loss / d rgb) in double as in the scalar backward; alpha is the
-// forward's, bit for bit. Each gradient sum is kept per lane and the lanes are added in a fixed order at
-// the end of the entry, so results do not depend on the thread count. On AVX2 the same code spills
-// registers (16 lanes of double) and measured 1.3x slower than the scalar backward, so the AVX2 path
-// takes the scalar backward with exp_lane instead.
+// Backward of the lane paths: back to front over the entries of a tile, one Gaussian over W pixels of
+// a row span per step; alpha is the lane forward's, bit for bit. The running state (T recovered by
+// division, what lies behind, d loss / d rgb) is float32 like the forward's, so a step is one register
+// per value (double state needs two per value on AVX2 and measured no faster than the scalar kernel).
+// Each gradient sum is kept per lane over the entry's pixels, then the lanes are added in double in a
+// fixed order, so results do not depend on the thread count. Against the double-state backward this
+// moves gradients by a few float ulps of their terms (tests: within the lane-vs-scalar tolerances).
 struct LaneBackTile {
   const Splat<float>* splats;
   const int32_t* ids;
   int64_t begin, end, tx0, ty0, tw, th, stride;
   int32_t max_last;
-  double *trans, *behind, *grad_r, *grad_g, *grad_b;
+  float *trans, *behind, *grad_r, *grad_g, *grad_b;
   const int32_t* last;
   double* entry_grads;
 };
 
-// A narrow box pixel by pixel, with the lane loop's expressions per pixel; writes the entry's sums.
-GEOAVATAR_INLINE void backward_narrow_box(const Splat<float>& s, const LaneBackTile& tile, int64_t x0, int64_t x1,
-                                          int64_t y0, int64_t y1, int32_t position, double* out) {
-  double sums[kEntryGrads] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-  const double a = s.a, b = s.b, c = s.c, inv_opacity = 1.0 / static_cast<double>(s.opacity);
-  for (int64_t y = y0; y <= y1; ++y) {
-    const int64_t row = y - tile.ty0;
-    const float dy = s.my - (static_cast<float>(y) + 0.5f);
-    const double ddy = dy;
-    for (int64_t x = x0; x <= x1; ++x) {
-      const int64_t p = row * tile.stride + x;
-      if (position >= tile.last[p]) continue;
-      const float dx = s.mx - (static_cast<float>(tile.tx0 + x) + 0.5f);
-      const float sigma = 0.5f * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
-      if (sigma > s.sigma_cut) continue;
-      const float alpha_raw = s.opacity * exp_lane(-sigma);
-      if (!(alpha_raw >= kAlphaMinF)) continue;
-      const double alpha_wide = static_cast<double>(alpha_raw);
-      const double alpha = alpha_wide < kAlphaMax ? alpha_wide : kAlphaMax;
-      const double keep = 1.0 - alpha;
-      const double t_before = tile.trans[p] / keep;
-      const double gr = tile.grad_r[p], gg = tile.grad_g[p], gb = tile.grad_b[p];
-      const double color_dot = gr * s.r + gg * s.g + gb * s.bl;
-      const double grad_alpha_pair = t_before * color_dot - tile.behind[p] / keep;
-      const double w = alpha * t_before;
-      tile.trans[p] = t_before;
-      tile.behind[p] = tile.behind[p] + color_dot * w;
-      sums[6] += w * gr;
-      sums[7] += w * gg;
-      sums[8] += w * gb;
-      if (alpha_raw < kAlphaMaxF) {
-        const double g_sigma = -alpha * grad_alpha_pair;
-        const double ddx = dx;
-        sums[0] += g_sigma * (a * ddx + b * ddy);
-        sums[1] += g_sigma * (b * ddx + c * ddy);
-        sums[2] += 0.5 * g_sigma * ddx * ddx;
-        sums[3] += g_sigma * ddx * ddy;
-        sums[4] += 0.5 * g_sigma * ddy * ddy;
-        sums[5] += alpha * inv_opacity * grad_alpha_pair;
-      }
-    }
-  }
-  std::copy(sums, sums + kEntryGrads, out);
-}
-
-GEOAVATAR_INLINE void backward_tile_lanes(const LaneBackTile& tile) {
-  double* __restrict__ trans = tile.trans;
-  double* __restrict__ behind = tile.behind;
-  const double* __restrict__ grad_r = tile.grad_r;
-  const double* __restrict__ grad_g = tile.grad_g;
-  const double* __restrict__ grad_b = tile.grad_b;
+#if defined(__GNUC__)
+template <int W>
+GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
+  using F = typename Vec<W>::F;
+  using I = typename Vec<W>::I;
+  float* __restrict__ trans = tile.trans;
+  float* __restrict__ behind = tile.behind;
+  const float* __restrict__ grad_r = tile.grad_r;
+  const float* __restrict__ grad_g = tile.grad_g;
+  const float* __restrict__ grad_b = tile.grad_b;
   const int32_t* __restrict__ last = tile.last;
   const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
-  alignas(64) double sums[kEntryGrads][kLanes];
+  const I lane = lane_index<I>();
+  const F zero = splat<F>(0.0f), one = splat<F>(1.0f), half = splat<F>(0.5f);
+  const F alpha_min = splat<F>(kAlphaMinF), alpha_max = splat<F>(kAlphaMaxF);
   for (int64_t k = tile.begin + tile.max_last - 1; k >= tile.begin; --k) {
     const Splat<float>& s = tile.splats[tile.ids[k]];
-    const int64_t x0 = std::max<int64_t>(s.x0, tx0) - tx0, x1 = std::min<int64_t>(s.x1, tx0 + tw - 1) - tx0;
+    const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
     const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
-    const int32_t position = static_cast<int32_t>(k - tile.begin);
-    if (x1 - x0 < kNarrowBox) {
-      backward_narrow_box(s, tile, x0, x1, y0, y1, position, tile.entry_grads + kEntryGrads * k);
-      continue;
-    }
-    const double a = s.a, b = s.b, c = s.c, inv_opacity = 1.0 / static_cast<double>(s.opacity);
-    const double red = s.r, green = s.g, blue = s.bl;
-    for (auto& lanes : sums) std::fill(lanes, lanes + kLanes, 0.0);
+    const I position = splat<I>(static_cast<int32_t>(k - tile.begin));
+    const RowSpan span(s);
+    const F mx = splat<F>(s.mx), a = splat<F>(s.a), b = splat<F>(s.b), c = splat<F>(s.c);
+    const F opacity = splat<F>(s.opacity), inv_opacity = splat<F>(1.0f / s.opacity);
+    const F red = splat<F>(s.r), green = splat<F>(s.g), blue = splat<F>(s.bl);
+    F sums[kEntryGrads];
+    for (F& sum : sums) sum = zero;
     for (int64_t y = y0; y <= y1; ++y) {
       const int64_t row = y - ty0;
       const float dy = s.my - (static_cast<float>(y) + 0.5f);
-      const double ddy = dy;
-      for (int64_t group = x0 - x0 % kLanes; group <= x1; group += kLanes) {
-        const int64_t base = row * tile.stride + group;
-        const int32_t lane_x0 = static_cast<int32_t>(x0 - group), lane_x1 = static_cast<int32_t>(x1 - group);
-        const int32_t x_first = static_cast<int32_t>(tx0 + group);
-#pragma omp simd
-        for (int32_t l = 0; l < kLanes; ++l) {
-          // alpha exactly as the lane forward computed it
-          const float dx = s.mx - (static_cast<float>(x_first + l) + 0.5f);
-          const float sigma = 0.5f * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
-          const float alpha_raw = s.opacity * exp_lane(-sigma);
-          const int32_t last_here = last[base + l];
-          const bool in = (l >= lane_x0) & (l <= lane_x1) & (position < last_here) & (alpha_raw >= kAlphaMinF);
-          const double alpha_wide = static_cast<double>(alpha_raw);
-          const double alpha = alpha_wide < kAlphaMax ? alpha_wide : kAlphaMax;
-          const double keep = 1.0 - alpha;
-          const double t_after = trans[base + l], behind_here = behind[base + l];
-          const double t_before = t_after / keep;
-          const double gr = grad_r[base + l], gg = grad_g[base + l], gb = grad_b[base + l];
-          const double color_dot = gr * red + gg * green + gb * blue;
-          const double grad_alpha_pair = t_before * color_dot - behind_here / keep;
-          const double w = alpha * t_before;
-          trans[base + l] = in ? t_before : t_after;
-          const double behind_new = behind_here + color_dot * w;
-          behind[base + l] = in ? behind_new : behind_here;
-          // a capped alpha does not depend on sigma or opacity. Compared in float (a mask of the lanes'
-          // width, which GCC vectorises): no float lies in [0.999, float(0.999)), so this is alpha < 0.999.
-          const bool uncapped = in & (alpha_raw < kAlphaMaxF);
-          const double g_sigma = -alpha * grad_alpha_pair;
-          const double ddx = dx;
-          const double gm_x = g_sigma * (a * ddx + b * ddy), gm_y = g_sigma * (b * ddx + c * ddy);
-          const double gc_a = 0.5 * g_sigma * ddx * ddx, gc_b = g_sigma * ddx * ddy, gc_c = 0.5 * g_sigma * ddy * ddy;
-          const double g_op = alpha * inv_opacity * grad_alpha_pair;
-          sums[0][l] += uncapped ? gm_x : 0.0;
-          sums[1][l] += uncapped ? gm_y : 0.0;
-          sums[2][l] += uncapped ? gc_a : 0.0;
-          sums[3][l] += uncapped ? gc_b : 0.0;
-          sums[4][l] += uncapped ? gc_c : 0.0;
-          sums[5][l] += uncapped ? g_op : 0.0;
-          sums[6][l] += in ? w * gr : 0.0;
-          sums[7][l] += in ? w * gg : 0.0;
-          sums[8][l] += in ? w * gb : 0.0;
-        }
+      int64_t xa, xb;
+      if (!span.columns(dy, x0, x1, xa, xb)) continue;
+      const F dy_v = splat<F>(dy), c_dy_dy = splat<F>(s.c * dy * dy);
+      for (int64_t x = xa; x <= xb; x += W) {
+        const int64_t base = row * tile.stride + (x - tx0);
+        // alpha exactly as the lane forward computed it
+        const F dx = mx - (__builtin_convertvector(splat<I>(static_cast<int32_t>(x)) + lane, F) + half);
+        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
+        const F alpha_raw = opacity * exp_lanes<F, I>(-sigma);
+        const I in = (lane <= splat<I>(static_cast<int32_t>(xb - x))) & (position < load<I>(last + base)) &
+                     (alpha_raw >= alpha_min);
+        const I uncapped = in & (alpha_raw < alpha_max);  // a capped alpha depends on neither sigma nor opacity
+        const F alpha = alpha_raw < alpha_max ? alpha_raw : alpha_max;  // the forward's float alpha
+        const F keep = one - alpha;
+        const F t_after = load<F>(trans + base), behind_here = load<F>(behind + base);
+        const F t_before = t_after / keep;
+        const F gr = load<F>(grad_r + base), gg = load<F>(grad_g + base), gb = load<F>(grad_b + base);
+        const F color_dot = gr * red + gg * green + gb * blue;
+        const F grad_alpha_pair = t_before * color_dot - behind_here / keep;
+        const F w = alpha * t_before;
+        store(trans + base, in ? t_before : t_after);
+        store(behind + base, in ? behind_here + color_dot * w : behind_here);
+        const F g_sigma = -alpha * grad_alpha_pair;
+        sums[0] += uncapped ? g_sigma * (a * dx + b * dy_v) : zero;
+        sums[1] += uncapped ? g_sigma * (b * dx + c * dy_v) : zero;
+        sums[2] += uncapped ? half * g_sigma * dx * dx : zero;
+        sums[3] += uncapped ? g_sigma * dx * dy_v : zero;
+        sums[4] += uncapped ? half * g_sigma * dy_v * dy_v : zero;
+        sums[5] += uncapped ? alpha * inv_opacity * grad_alpha_pair : zero;
+        sums[6] += in ? w * gr : zero;
+        sums[7] += in ? w * gg : zero;
+        sums[8] += in ? w * gb : zero;
       }
     }
     double* out = tile.entry_grads + kEntryGrads * k;
     for (int j = 0; j < kEntryGrads; ++j) {
       double total = 0.0;
-      for (int l = 0; l < kLanes; ++l) total += sums[j][l];
+      for (int l = 0; l < W; ++l) total += static_cast<double>(sums[j][l]);
       out[j] = total;
     }
   }
 }
 
+void backward_tile_vector(const LaneBackTile& tile) { backward_tile_vec<GEOAVATAR_LANES_VECTOR_BWD>(tile); }
+#endif
+
 #ifdef GEOAVATAR_X86_DISPATCH
-__attribute__((target("avx512f,avx512dq,avx512vl,avx512bw,prefer-vector-width=512")))
-void backward_tile_avx512(const LaneBackTile& tile) { backward_tile_lanes(tile); }
+GEOAVATAR_TARGET_AVX512 void backward_tile_avx512(const LaneBackTile& tile) {
+  backward_tile_vec<GEOAVATAR_LANES_AVX512_BWD>(tile);
+}
+GEOAVATAR_TARGET_AVX2 void backward_tile_avx2(const LaneBackTile& tile) {
+  backward_tile_vec<GEOAVATAR_LANES_AVX2_BWD>(tile);
+}
 #endif
 
 void backward_tiles_lanes(const std::vector<Splat<float>>& splats, const int64_t* offsets, const int32_t* ids,
@@ -735,16 +770,21 @@ void backward_tiles_lanes(const std::vector<Splat<float>>& splats, const int64_t
                           const float* grad_alpha, const double* background, const Grid& grid, Simd simd,
                           std::vector<double>& entry_grads) {
   void (*backward_tile)(const LaneBackTile&) = nullptr;
+#if defined(__GNUC__)
+  if (simd == Simd::kVector) backward_tile = backward_tile_vector;
+#endif
 #ifdef GEOAVATAR_X86_DISPATCH
   if (simd == Simd::kAvx512) backward_tile = backward_tile_avx512;
+  if (simd == Simd::kAvx2) backward_tile = backward_tile_avx2;
 #endif
-  TORCH_CHECK(backward_tile != nullptr, "rasterize_cpu: no AVX-512 backward on this CPU");
-  const int64_t t = grid.tile, stride = (t + kLanes - 1) / kLanes * kLanes, plane = t * stride;
+  TORCH_CHECK(backward_tile != nullptr, "rasterize_cpu: no SIMD backward on this CPU");
+  const int64_t t = grid.tile, stride = lane_stride(t), plane = t * stride;
 #pragma omp parallel num_threads(threads_for_torch())
   {
-    // padding lanes keep finite values (T = 1, zeros): their results are computed, then masked off
-    std::vector<double> trans(plane, 1.0), behind(plane, 0.0), grad_r(plane, 0.0), grad_g(plane, 0.0),
-        grad_b(plane, 0.0);
+    // lanes outside a tile's pixels keep finite values (T = 1, zeros, or an earlier tile's): their
+    // results are computed, then masked off
+    std::vector<float> trans(plane, 1.0f), behind(plane, 0.0f), grad_r(plane, 0.0f), grad_g(plane, 0.0f),
+        grad_b(plane, 0.0f);
     std::vector<int32_t> last(plane, 0);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < grid.n_tiles(); ++tile) {
@@ -757,10 +797,12 @@ void backward_tiles_lanes(const std::vector<Splat<float>>& splats, const int64_t
         for (int64_t x = 0; x < tw; ++x) {
           const int64_t p = y * stride + x, pix = (ty0 + y) * grid.width + (tx0 + x);
           grad_r[p] = grad_rgb[3 * pix], grad_g[p] = grad_rgb[3 * pix + 1], grad_b[p] = grad_rgb[3 * pix + 2];
-          const double dot_bg = grad_r[p] * background[0] + grad_g[p] * background[1] + grad_b[p] * background[2];
-          trans[p] = t_final[pix];
+          const double dot_bg = static_cast<double>(grad_r[p]) * background[0] +
+                                static_cast<double>(grad_g[p]) * background[1] +
+                                static_cast<double>(grad_b[p]) * background[2];
+          trans[p] = static_cast<float>(t_final[pix]);  // exact: the lane forward's float T
           // T_final times d loss / d T_final (rgb gains T_final * background, alpha = 1 - T_final)
-          behind[p] = t_final[pix] * (dot_bg - static_cast<double>(grad_alpha[pix]));
+          behind[p] = static_cast<float>(t_final[pix] * (dot_bg - static_cast<double>(grad_alpha[pix])));
           last[p] = last_in[pix];
           max_last = std::max(max_last, last[p]);
         }
@@ -777,19 +819,14 @@ void backward_tiles_for(Simd, const std::vector<Splat<scalar_t>>& splats, const 
                         const int32_t* last, const double* t_final, const scalar_t* grad_rgb,
                         const scalar_t* grad_alpha, const double* background, const Grid& grid,
                         std::vector<double>& entry_grads) {
-  backward_tiles<scalar_t, false>(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid,
-                                  entry_grads);
+  backward_tiles<scalar_t>(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid, entry_grads);
 }
 
 void backward_tiles_for(Simd simd, const std::vector<Splat<float>>& splats, const int64_t* offsets, const int32_t* ids,
                         const int32_t* last, const double* t_final, const float* grad_rgb, const float* grad_alpha,
                         const double* background, const Grid& grid, std::vector<double>& entry_grads) {
   if (simd == Simd::kScalar)
-    backward_tiles<float, false>(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid,
-                                 entry_grads);
-  else if (simd == Simd::kAvx2)
-    backward_tiles<float, true>(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid,
-                                entry_grads);
+    backward_tiles<float>(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid, entry_grads);
   else
     backward_tiles_lanes(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid, simd,
                          entry_grads);
