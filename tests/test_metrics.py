@@ -245,3 +245,37 @@ def test_lpips_weights_never_run_pickled_code(tmp_path):
     assert weights_path("vgg").name == "vgg16.ckpt"
     with pytest.raises(ValueError, match="one of vgg, alex"):
         weights_path("squeeze")
+
+
+def _ssim_2d_reference(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """3DGS's SSIM as first written: one 11x11 2D Gaussian window (outer product), zero padding 5."""
+    x, y = image.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]  # [1, C, H, W]
+    coords = torch.arange(11, dtype=torch.float64) - 5.0
+    g = torch.exp(-(coords**2) / (2 * 1.5**2))
+    g = (g / g.sum()).float()
+    window = (g[:, None] @ g[None, :]).expand(3, 1, 11, 11).contiguous()  # [C, 1, 11, 11]
+
+    def blur(t):
+        return torch.nn.functional.conv2d(t, window, padding=5, groups=3)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sigma_x, sigma_y, sigma_xy = blur(x * x) - mu_x**2, blur(y * y) - mu_y**2, blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    return (((2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2))).mean()
+
+
+def test_separable_ssim_matches_the_2d_window_and_its_gradient():
+    """The shared SSIM (geoavatar.train.losses.ssim: 1x11 then 11x1 convolutions) equals the 11x11 2D
+    window within float tolerance, in value and in the gradient the training loss uses."""
+    from geoavatar.train.losses import ssim as separable_ssim
+
+    a, b = _ssim_pair(37, 52, border=4)
+    pred = torch.from_numpy(a).float() + 0.02 * torch.rand(37, 52, 3, generator=torch.Generator().manual_seed(0))
+    target = torch.from_numpy(b).float()
+    p1, p2 = pred.clone().requires_grad_(True), pred.clone().requires_grad_(True)
+    ours, reference = separable_ssim(p1, target), _ssim_2d_reference(p2, target)
+    assert float(ours) == pytest.approx(float(reference), abs=1e-6)
+    assert metrics.ssim(pred, target) == pytest.approx(float(reference), abs=1e-6)
+    ours.backward()
+    reference.backward()
+    torch.testing.assert_close(p1.grad, p2.grad, atol=1e-7, rtol=1e-4)
