@@ -121,6 +121,7 @@ class TrackingResult:
     landmark_ids: np.ndarray  # [L] MediaPipe ids of the embedded landmarks
     errors: np.ndarray  # [T] median over landmarks of the 2D error / face width
     log: list[str] = field(default_factory=list)
+    model_static_offset: np.ndarray | None = None  # [U + J, 3] the static offset of the fitted (landmark) model's vertices
 
 
 def landmark_head(data: HeadModelData) -> HeadModel:
@@ -215,6 +216,45 @@ def _diff_penalty(x: Tensor, order: int = 1) -> Tensor:
     return (x ** 2).sum(-1).mean() if x.shape[0] > 0 else x.new_zeros(())
 
 
+def _data_term(model: HeadModel, params: HeadParams, viewmat: Tensor, K: Tensor, target: Tensor, size: Tensor,
+               weights: Tensor, conf: Tensor, huber: float) -> Tensor:
+    """Confidence-weighted mean over frames of the per-landmark-weighted pseudo-Huber 2D reprojection error.
+
+    target [T, L, 2] pixels, size [T] face sizes (pixels), weights [L], conf [T], K [T, 3, 3]."""
+    landmarks = model.forward_params(params, vertex_ids=model.landmark_vertex_ids).landmarks  # [T, L, 3]
+    pixels, _ = project(landmarks, viewmat, K)  # [T, L, 2]
+    residual = (pixels - target).norm(dim=-1) / size[:, None]  # [T, L]
+    data = (_pseudo_huber(residual, huber) * weights).sum(1) / weights.sum()  # [T]
+    return (data * conf).sum() / conf.sum()
+
+
+def _pose_smoothness(p: HeadParams, config: TrackingConfig) -> dict[str, Tensor]:
+    """First and second differences of the head's rotation and translation over the frames of `p`."""
+    unit = config.head_size
+    return {
+        "smooth_pose": config.w_smooth_pose * (_diff_penalty(p.rotation) + _diff_penalty(p.translation / unit)),
+        "accel": config.w_accel * (_diff_penalty(p.rotation, 2) + _diff_penalty(p.translation / unit, 2)),
+    }
+
+
+def _frame_priors(p: HeadParams, config: TrackingConfig) -> dict[str, Tensor]:
+    """Per-frame priors (means over frames): expression, neck, eyes (and alike), jaw (sideways, opening range)."""
+    jaw, eyes = p.jaw_pose, p.eyes_pose
+    return {
+        "expr": config.w_expr * (p.expr ** 2).sum(-1).mean(),
+        "neck": config.w_neck * (p.neck_pose ** 2).sum(-1).mean(),
+        "eyes": config.w_eyes * (eyes ** 2).sum(-1).mean() + config.w_eyes_equal * ((eyes[:, :3] - eyes[:, 3:]) ** 2).sum(-1).mean(),
+        "jaw": config.w_jaw_side * (jaw[:, 1:] ** 2).sum(-1).mean()
+        + config.w_jaw_range * (torch.relu(-jaw[:, 0]) ** 2 + torch.relu(jaw[:, 0] - config.jaw_max) ** 2).mean(),
+    }
+
+
+def _motion_smoothness(p: HeadParams, config: TrackingConfig) -> Tensor:
+    """First differences of expression, jaw, eyes and neck over the frames of `p`."""
+    return (config.w_smooth_expr * _diff_penalty(p.expr) + config.w_smooth_jaw * _diff_penalty(p.jaw_pose)
+            + config.w_smooth_eyes * _diff_penalty(p.eyes_pose) + config.w_smooth_pose * _diff_penalty(p.neck_pose))
+
+
 def track(
     model: HeadModel,
     landmarks: np.ndarray,  # [T, 478, >=2] detected landmarks, crop pixels
@@ -269,33 +309,20 @@ def track(
     def loss_terms(stage: str) -> dict[str, Tensor]:
         p = fit.params()
         posed = _rigid_only(p) if stage == "rigid" else p
-        landmarks = model.forward_params(posed, vertex_ids=landmark_vertices).landmarks  # [T, L, 3]
         K = _intrinsics(fit.log_focal.exp(), principal_t)
-        pixels, _ = project(landmarks, viewmat, K)  # [T, L, 2]
-        residual = (pixels - target).norm(dim=-1) / size[:, None]  # [T, L]
         w = weights * (rigid_mask if stage == "rigid" else 1.0)
-        data = (_pseudo_huber(residual, config.huber) * w).sum(1) / w.sum()  # [T]
-        terms = {"data": (data * conf).sum() / conf.sum()}
-        unit = config.head_size
-        terms["smooth_pose"] = config.w_smooth_pose * (_diff_penalty(p.rotation) + _diff_penalty(p.translation / unit))
-        terms["accel"] = config.w_accel * (_diff_penalty(p.rotation, 2) + _diff_penalty(p.translation / unit, 2))
+        terms = {"data": _data_term(model, posed, viewmat, K, target, size, w, conf, config.huber)}
+        terms.update(_pose_smoothness(p, config))
         if stage == "rigid":
             return terms
-        jaw = p.jaw_pose
-        eyes = p.eyes_pose
         terms.update({
             "shape": config.w_shape * (p.shape ** 2).sum(),
-            "expr": config.w_expr * (p.expr ** 2).sum(-1).mean(),
-            "neck": config.w_neck * (p.neck_pose ** 2).sum(-1).mean(),
-            "eyes": config.w_eyes * (eyes ** 2).sum(-1).mean() + config.w_eyes_equal * ((eyes[:, :3] - eyes[:, 3:]) ** 2).sum(-1).mean(),
-            "jaw": config.w_jaw_side * (jaw[:, 1:] ** 2).sum(-1).mean()
-            + config.w_jaw_range * (torch.relu(-jaw[:, 0]) ** 2 + torch.relu(jaw[:, 0] - config.jaw_max) ** 2).mean(),
+            **_frame_priors(p, config),
             "focal": config.focal_prior * (fit.log_focal - math.log(f0)) ** 2,
             "static_offset": config.w_static_offset * (fit.offset_theta ** 2).sum(-1).mean()
             + config.w_static_smooth * (fit.offset_theta * (fit.offset_energy @ fit.offset_theta)).sum()
             if fit.offset_theta is not None else torch.zeros(()),
-            "smooth": config.w_smooth_expr * _diff_penalty(p.expr) + config.w_smooth_jaw * _diff_penalty(jaw)
-            + config.w_smooth_eyes * _diff_penalty(eyes) + config.w_smooth_pose * _diff_penalty(p.neck_pose),
+            "smooth": _motion_smoothness(p, config),
         })
         return terms
 
@@ -331,6 +358,7 @@ def track(
         width = np.linalg.norm(landmarks[:, 234, :2] - landmarks[:, 454, :2], axis=-1)  # [T] cheek to cheek
         err = (pixels - target).norm(dim=-1).numpy()  # [T, L]
         errors = np.median(err, axis=1) / np.maximum(width, 1e-6)
+    model_static_offset = None if params.static_offset is None else params.static_offset[0].detach().numpy().copy()
     params = {k: v.detach().numpy().copy() for k, v in params.to_npz().items()}
     if fit.offset_theta is not None:
         params["static_offset"] = offset_map.extend(0.01 * fit.offset_theta.detach().numpy()).astype(np.float32)  # [V, 3]
@@ -343,7 +371,84 @@ def track(
         landmark_ids=ids,
         errors=errors,
         log=log,
+        model_static_offset=model_static_offset,
     )
+
+
+class OnlineFit:
+    """Frame-by-frame continuation of `track` for live video: after `track` fitted a video's first frames
+    (identity, static offset and focal, then frozen), each new frame's pose, jaw, eyes and expression
+    are fitted by a fixed number of L-BFGS iterations (strong Wolfe line search) warm-started from the
+    previous frame (parameters and the optimiser's curvature pairs carry over). The energy is `track`'s full-stage energy restricted to the new frame:
+    its data term and per-frame priors, and the temporal terms over the window of the last two fitted
+    frames (fixed) and the new one. Causal: a frame never waits for later ones.
+
+        online = OnlineFit(model, result, iterations=8)
+        params, error = online(landmarks [478, >=2], principal [2], size_px)   # HeadParams [1, ...] (model's vertices)
+    """
+
+    def __init__(self, model: HeadModel, result: TrackingResult, config: TrackingConfig = TrackingConfig(),
+                 iterations: int = 8, lr: float = 1.0):
+        if iterations < 1:
+            raise ValueError(f"OnlineFit: iterations must be >= 1, got {iterations}")
+        self.model, self.config, self.iterations = model, config, iterations
+        values = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in result.params.items() if k != "static_offset"}
+        fitted = HeadParams.from_npz(values)  # [T, ...] of the frames `track` fitted
+        static = result.model_static_offset
+        self.shape = fitted.shape.detach()
+        self.static_offset = None if static is None else torch.as_tensor(static, dtype=torch.float32)[None]
+        self.focal = float(result.focal)
+        self.viewmat = torch.as_tensor(result.viewmat, dtype=torch.float32)
+        self.ids = torch.as_tensor(result.landmark_ids, dtype=torch.long)
+        groups = [GROUP_OF.get(int(i), "face_oval_lower") for i in result.landmark_ids]
+        self.weights = torch.tensor([GROUP_WEIGHTS[g] for g in groups], dtype=torch.float32)
+        self.history = [fitted.frame(-2 if fitted.batch > 1 else -1).detach(), fitted.frame(-1).detach()]  # t-2, t-1
+        last = self.history[-1]
+        self.current = {key: torch.nn.Parameter(getattr(last, key).clone()) for key in
+                        ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")}
+        # L-BFGS with a line search: a handful of iterations reach what Adam needs hundreds for, from a warm start
+        self.optimizer = torch.optim.LBFGS(list(self.current.values()), lr=lr, max_iter=iterations,
+                                           history_size=iterations, line_search_fn="strong_wolfe")
+
+    def _params(self) -> HeadParams:
+        return HeadParams(shape=self.shape, static_offset=self.static_offset, **self.current)
+
+    def __call__(self, landmarks: np.ndarray, principal) -> tuple[HeadParams, float]:
+        """Fit one frame: landmarks [478, >=2] in crop pixels, principal point [2] (crop pixels).
+
+        Returns (HeadParams of the frame, per-frame keys [1, ...], the landmark model's static offset) and
+        its median landmark error / face width (track's `errors` measure)."""
+        config = self.config
+        target = torch.as_tensor(np.asarray(landmarks)[None, self.ids.numpy(), :2], dtype=torch.float32)  # [1, L, 2]
+        size = torch.as_tensor(np.linalg.norm(landmarks[10, :2] - landmarks[152, :2]), dtype=torch.float32).clamp_min(1.0)[None]
+        K = _intrinsics(torch.tensor(self.focal), torch.as_tensor(np.asarray(principal, np.float32))[None])
+        conf = torch.ones(1)
+        past = self.history
+        def energy() -> Tensor:
+            self.optimizer.zero_grad(set_to_none=True)
+            p = self._params()
+            window = HeadParams(shape=self.shape, static_offset=self.static_offset, **{
+                key: torch.cat([getattr(past[0], key), getattr(past[1], key), value], 0)
+                for key, value in self.current.items()})  # [3, ...]: t-2, t-1 fixed; t free
+            terms = {"data": _data_term(self.model, p, self.viewmat, K, target, size, self.weights, conf, config.huber)}
+            terms.update(_pose_smoothness(window, config))
+            terms.update(_frame_priors(p, config))
+            terms["smooth"] = _motion_smoothness(window, config)
+            total = sum(terms.values())
+            total.backward()
+            return total
+
+        with torch.enable_grad():
+            self.optimizer.step(energy)
+        with torch.no_grad():
+            fitted = self._params().detach()
+            fitted = fitted.map(torch.clone)
+            self.history = [past[1], fitted]
+            pixels, _ = project(self.model.forward_params(fitted, vertex_ids=self.model.landmark_vertex_ids).landmarks,
+                                self.viewmat, K)
+            width = max(float(np.linalg.norm(landmarks[234, :2] - landmarks[454, :2])), 1e-6)
+            error = float((pixels[0] - target[0]).norm(dim=-1).median()) / width
+        return fitted, error
 
 
 def offset_rows(offset_map: SmoothOffset, model: HeadModel) -> np.ndarray:
@@ -377,5 +482,5 @@ def load_landmark_embedding(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return ids, faces, bary
 
 
-__all__ = ["GROUP_WEIGHTS", "GROUP_OF", "TrackingConfig", "TrackingResult", "landmark_head", "camera_viewmat", "track",
+__all__ = ["GROUP_WEIGHTS", "GROUP_OF", "OnlineFit", "TrackingConfig", "TrackingResult", "landmark_head", "camera_viewmat", "track",
            "offset_rows", "load_landmark_embedding"]
