@@ -9,6 +9,9 @@ opacities); this process poses them. The GUI:
                  jaw's x axis), head yaw and pitch (degrees, turning the head about its own centre);
                  "Reset edits" sets them back to 0
 
+Live mode (`live=True`, used by `geoavatar drive --view`): the sequence and edit controls are off and
+the caller sends each posed frame with `Viewer.show_live(gaussians, info)`.
+
 A frame without edits uses the T rule of apps/common.py (a training frame with its own T and refined
 parameters); an edited frame is a new animation and uses T = 0.
 
@@ -55,6 +58,13 @@ def covariances(g: GlobalGaussians) -> Tensor:
     return (rot * g.scales[:, None, :] ** 2) @ rot.transpose(-1, -2)
 
 
+def splat_arrays(g: GlobalGaussians) -> dict[str, np.ndarray]:
+    """What viser's splat set takes: centres, covariances, colours in [0, 1], opacities [N, 1] (numpy)."""
+    numpy = lambda x: x.detach().float().cpu().numpy()  # noqa: E731
+    return {"centers": numpy(g.means), "covariances": numpy(covariances(g)), "rgbs": numpy(g.colors.clamp(0.0, 1.0)),
+            "opacities": numpy(g.opacities[:, None])}
+
+
 def edited_params(head, params: HeadParams, expr_offsets: list[float], jaw: float, yaw_deg: float,
                   pitch_deg: float, centre: Tensor) -> HeadParams:
     """`params` (per-frame keys [1, ...]) with the viewer's edits applied (see the module docstring).
@@ -88,7 +98,7 @@ class Viewer:
     """A running viser server showing one run; `stop()` ends it."""
 
     def __init__(self, run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr_sliders: int = 10,
-                 fps: float = 25.0, data: Path | None = None):
+                 fps: float = 25.0, data: Path | None = None, live: bool = False):
         try:
             import viser
         except ImportError as err:
@@ -98,6 +108,7 @@ class Viewer:
         self.frames = RunFrames(run)
         self._lock = threading.RLock()
         self._batch = False
+        self.live = live
         self._stopped = threading.Event()
         self.server = viser.ViserServer(host=host, port=port, label="GeoAvatar", verbose=False)
         self.host, self.port = host, self.server.get_port()
@@ -107,8 +118,8 @@ class Viewer:
         count = len(self.frames)
         with gui.add_folder("Sequence"):
             self.frame = gui.add_slider("frame", min=0, max=max(count - 1, 1), step=1, initial_value=0,
-                                        disabled=count < 2, hint="position in the run's sequence")
-            self.playing = gui.add_checkbox("play", initial_value=False, disabled=count < 2)
+                                        disabled=count < 2 or live, hint="position in the run's sequence")
+            self.playing = gui.add_checkbox("play", initial_value=False, disabled=count < 2 or live)
             self.fps = gui.add_slider("fps", min=1.0, max=60.0, step=1.0, initial_value=float(fps))
             self.info = gui.add_markdown("")
         names = list(run.head.data.metadata.get("expression_names", []))
@@ -151,23 +162,27 @@ class Viewer:
     @torch.no_grad()
     def _gaussians(self) -> dict[str, np.ndarray]:
         params, t = self.current_params()
-        g = pose_gaussians(self.run, params, t)
-        numpy = lambda x: x.detach().float().cpu().numpy()  # noqa: E731
-        return {
-            "centers": numpy(g.means),
-            "covariances": numpy(covariances(g)),
-            "rgbs": numpy(g.colors.clamp(0.0, 1.0)),
-            "opacities": numpy(g.opacities[:, None]),
-        }
+        return splat_arrays(pose_gaussians(self.run, params, t))
 
     def update(self) -> None:
         """Pose the avatar for the current GUI state and send it to the browsers."""
-        if self._batch or self._stopped.is_set():
+        if self._batch or self.live or self._stopped.is_set():
             return
         with self._lock:
             g = self._gaussians()
             self.splats.set_gaussians(g["centers"], g["covariances"], g["rgbs"], g["opacities"])
             self._show_info()
+
+    @torch.no_grad()
+    def show_live(self, gaussians: GlobalGaussians, info: str = "") -> None:
+        """Live mode: send these posed Gaussians to the browsers (the caller poses them, e.g. `drive`)."""
+        if self._stopped.is_set():
+            return
+        g = splat_arrays(gaussians)
+        with self._lock:
+            self.splats.set_gaussians(g["centers"], g["covariances"], g["rgbs"], g["opacities"])
+            if info:
+                self.info.content = info
 
     def _show_info(self) -> None:
         timestep = self.frames.timesteps[min(int(self.frame.value), len(self.frames) - 1)]
@@ -215,13 +230,13 @@ class Viewer:
 
 
 def start_viewer(run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr_sliders: int = 10,
-                 fps: float = 25.0, data: Path | None = None) -> Viewer:
-    """Start serving `run` and return the running Viewer (call .stop() to end it)."""
+                 fps: float = 25.0, data: Path | None = None, live: bool = False) -> Viewer:
+    """Start serving `run` and return the running Viewer (call .stop() to end it); `live`: see show_live."""
     if not 0 <= port <= 65535:
         raise OptionError(f"--port must be in [0, 65535], got {port}")
     if expr_sliders < 0:
         raise OptionError(f"--expr-sliders must be >= 0, got {expr_sliders}")
-    return Viewer(run, host, port, expr_sliders, fps, data)
+    return Viewer(run, host, port, expr_sliders, fps, data, live)
 
 
 def view(
@@ -267,4 +282,4 @@ def view(
     return 0
 
 
-__all__ = ["Viewer", "covariances", "edited_params", "start_viewer", "view"]
+__all__ = ["Viewer", "covariances", "edited_params", "splat_arrays", "start_viewer", "view"]

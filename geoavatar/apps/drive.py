@@ -1,0 +1,619 @@
+"""`geoavatar drive RUN (--camera N | --video FILE)`: drive a trained avatar live from a webcam or a video.
+
+Per frame (one worker thread; a reader thread keeps only the newest frame):
+
+    landmarks   the driver's frame cropped the way `prepare` crops (a square of one side around the
+                face, its centre following the face), MediaPipe's face mesh (prep/landmarks.py)
+    fit         the driver's pose, jaw, eyes and expression: prep/tracking.py's OnlineFit, a few L-BFGS
+                iterations warm-started from the previous frame, on the energy of the batch tracker
+    pose        the avatar's parameters from the driver's (apps/reenact.py's driven_params: absolute,
+                or --relative offsets from the driver's neutral onto the avatar's), avatar.pose_avatar
+    render      avatar.rasterize_gaussians with the avatar's dataset camera at --size
+
+The first second of the driver (`--init-seconds`) is the identity stage: its frames are collected,
+the crop's side and centres come from the face detector as in `prepare` (prep/video.py's
+smooth_crop_boxes), and the batched tracker (prep/tracking.track) fits the driver's identity, smooth
+static offset and focal length over them; these stay frozen and the online fit continues from the last
+of those frames. The driver's neutral (for --relative and for the head's translation) is the mean of
+the first second.
+
+Real time: `--video` plays the file at its own frame rate, as a live source would deliver it: when the
+worker is busy, a newer frame replaces the waiting one and the older is dropped (counted), never queued.
+Latency is measured from the moment a frame is available to the moment its output is done. A status
+line shows the FPS, drops and the per-stage times. The written mp4 (`--out`, driver | avatar) runs at
+the source's frame rate; a dropped frame repeats the previous output, so the video keeps real time.
+`--view` serves the browser viewer (apps/view.py) in live mode: the posed Gaussians are sent to the
+browser, which renders them itself (without --out the render stage is skipped).
+
+The fit runs on the CPU (a few hundred landmarks: a GPU's launch overhead would dominate); posing and
+rendering run on --device (auto: CUDA when there).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator, Literal, Optional
+
+import numpy as np
+import torch
+
+from geoavatar.apps.common import RunFrames, RunPath, fit_height, open_run, record_camera, side_by_side, to_uint8
+from geoavatar.apps.reenact import TRANSFERRED_KEYS, driven_params, reference_frame
+from geoavatar.avatar import pose_avatar, rasterize_gaussians
+from geoavatar.data import DatasetError, open_subject
+from geoavatar.errors import GeoAvatarError, OptionError
+from geoavatar.head.params import HeadParams
+from geoavatar.io.video import Mp4Writer
+from geoavatar.prep.errors import PrepareError
+from geoavatar.train.checkpoint import LoadedRun, RunError
+
+STAGES = ("landmarks", "fit", "pose", "render")
+
+
+class DriveError(GeoAvatarError):
+    """The driving source (camera or video) cannot be opened or read; the message names it."""
+
+
+# --- sources ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Source:
+    name: str  # for messages: "--video FILE" / "--camera N"
+    fps: float
+    frames: Callable[[], Iterator[np.ndarray]]  # a fresh iterator of upright RGB uint8 frames
+    live: bool  # a camera: frames arrive by themselves (no pacing)
+
+
+def open_video(path: str | Path) -> Source:
+    """A video file as a source (PyAV, prep/video.py); DriveError when missing or unreadable."""
+    from geoavatar.prep.video import decode_frames, probe_video
+
+    name = f"--video {path}"
+    try:
+        info = probe_video(path)
+    except PrepareError as err:
+        raise DriveError(f"{name}: {err}") from err
+
+    def frames() -> Iterator[np.ndarray]:
+        try:
+            for _index, rgb in decode_frames(path):
+                yield rgb
+        except PrepareError as err:
+            raise DriveError(f"{name}: {err}") from err
+
+    return Source(name, info.fps if info.fps > 0 else 25.0, frames, live=False)
+
+
+def open_camera(index: int) -> Source:
+    """Webcam `index`: PyAV's v4l2 input (/dev/videoN), else OpenCV; DriveError when neither opens it."""
+    name = f"--camera {index}"
+    if index < 0:
+        raise OptionError(f"{name}: the camera number must be >= 0")
+    device = f"/dev/video{index}"
+    problems = []
+    try:
+        import av
+
+        container = av.open(device, format="v4l2")
+        stream = container.streams.video[0]
+        fps = float(stream.average_rate or 30.0)
+
+        def frames() -> Iterator[np.ndarray]:
+            try:
+                for frame in container.decode(stream):
+                    yield frame.to_ndarray(format="rgb24")
+            except Exception as err:  # a camera unplugged mid-stream
+                raise DriveError(f"{name}: reading {device} failed ({type(err).__name__}: {err})") from err
+            finally:
+                container.close()
+
+        return Source(name, fps, frames, live=True)
+    except Exception as err:  # PyAV raises FileNotFoundError, OSError, av.error.* for a missing device
+        problems.append(f"PyAV: {type(err).__name__}: {err}")
+    try:
+        import cv2
+
+        capture = cv2.VideoCapture(index)
+        ok = capture.isOpened() and capture.read()[0]
+        if not ok:
+            capture.release()
+            raise OSError(f"could not open camera {index}")
+        fps = float(capture.get(cv2.CAP_PROP_FPS) or 30.0)
+
+        def frames() -> Iterator[np.ndarray]:
+            try:
+                while True:
+                    ok, bgr = capture.read()
+                    if not ok:
+                        raise DriveError(f"{name}: the camera stopped delivering frames")
+                    yield cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            finally:
+                capture.release()
+
+        return Source(name, fps if fps > 0 else 30.0, frames, live=True)
+    except Exception as err:
+        problems.append(f"OpenCV: {err}")
+    raise DriveError(f"{name}: cannot open the camera {device} ({'; '.join(problems)})")
+
+
+class NewestFrame:
+    """A one-slot mailbox between the reader and the worker: a new frame replaces a waiting one (a drop).
+
+    With `lossless` the reader waits for the worker instead (every frame is processed; for measurements)."""
+
+    def __init__(self, lossless: bool = False):
+        self.lossless = lossless
+        self._item = None
+        self._closed = False
+        self._error: BaseException | None = None
+        self._cond = threading.Condition()
+        self.dropped = 0
+        self.delivered = 0
+
+    def put(self, item) -> None:
+        with self._cond:
+            while self.lossless and self._item is not None and not self._closed:
+                self._cond.wait()
+            if self._item is not None:
+                self.dropped += 1
+            self._item = item
+            self.delivered += 1
+            self._cond.notify_all()
+
+    def close(self, error: BaseException | None = None) -> None:
+        with self._cond:
+            self._closed, self._error = True, error
+            self._cond.notify_all()
+
+    def get(self):
+        """The newest frame, waiting for one; None when the source ended (its error re-raised)."""
+        with self._cond:
+            while self._item is None and not self._closed:
+                self._cond.wait()
+            item, self._item = self._item, None
+            self._cond.notify_all()
+            if item is None and self._error is not None:
+                raise self._error
+            return item
+
+
+def start_reader(source: Source, mailbox: NewestFrame, max_frames: int | None, stop: threading.Event) -> threading.Thread:
+    """A thread putting (index, available_time, rgb) into the mailbox; a file is paced at its frame rate."""
+
+    def read() -> None:
+        error = None
+        try:
+            start = time.perf_counter()
+            for index, rgb in enumerate(source.frames()):
+                if stop.is_set() or (max_frames is not None and index >= max_frames):
+                    break
+                if not source.live and not mailbox.lossless:
+                    due = start + index / source.fps
+                    wait = due - time.perf_counter()
+                    if wait > 0:
+                        time.sleep(wait)
+                mailbox.put((index, time.perf_counter(), rgb))
+        except BaseException as err:  # handed to the worker, which raises it
+            error = err
+        finally:
+            mailbox.close(error)
+
+    thread = threading.Thread(target=read, name="geoavatar-drive-reader", daemon=True)
+    thread.start()
+    return thread
+
+
+# --- the driver: crop, landmarks, identity stage, online fit ----------------------------------------
+
+
+@dataclass
+class DriverFrame:
+    crop: np.ndarray  # [S, S, 3] uint8, the face crop the landmarks were found on
+    params: HeadParams  # the driver's fitted parameters, per-frame keys [1, ...] (CPU)
+    error: float  # median landmark error / face width
+    landmarks: np.ndarray  # [478, 3] crop pixels
+    found: bool  # False: no face in this frame, the previous fit is held
+
+
+class DriverTracker:
+    """The driver's side of `drive`: frames in, fitted parameters out (see the module docstring).
+
+    push(rgb) returns None while the first `init_frames` are collected, the identity stage's frames
+    (a list of DriverFrame) when it finishes, and a DriverFrame for every later frame."""
+
+    def __init__(self, head: str = "openhead", init_frames: int = 25, fps: float = 25.0, crop_size: int = 256,
+                 iterations: int = 8, lr: float = 1.0, flame_dir: Path | None = None, tracking_steps=(100, 300)):
+        from geoavatar.prep.landmarks import FaceDetector, FaceMesh
+        from geoavatar.prep.pipeline import PrepareConfig, load_tracking_head, tracking_config
+
+        if init_frames < 2:
+            raise OptionError(f"--init-seconds gives {init_frames} frame(s); the identity stage needs at least 2")
+        self.prepare = PrepareConfig(video=Path("-"), out=Path("-"), head=head, flame_dir=flame_dir,
+                                     tracking_steps=tuple(tracking_steps), log=lambda _line: None)
+        try:
+            self.data, self.model = load_tracking_head(self.prepare)
+        except PrepareError as err:
+            raise RunError(str(err)) from err
+        self.config = tracking_config(self.prepare)
+        self.init_frames, self.fps, self.crop_size = init_frames, fps, crop_size
+        self.iterations, self.lr = iterations, lr
+        self.detector, self.mesh = FaceDetector(), FaceMesh()
+        self._buffer: list[np.ndarray] = []
+        self._boxes: list = []
+        self.online = None  # OnlineFit after the identity stage
+        self.box = None  # [3] the current crop (cx, cy, side) in source pixels
+        self._offset = np.zeros(2)  # crop centre - landmark centre (source pixels), from the first second
+        self.neutral: dict[str, torch.Tensor] | None = None  # the driver's mean over the first second
+        self.init_seconds = 0.0
+        self._last: DriverFrame | None = None
+        self.landmarks_done = 0.0  # perf_counter() when the last online frame's landmarks were found
+
+    def close(self) -> None:
+        self.detector.close()
+        self.mesh.close()
+
+    # the crop geometry of prepare: principal point of the source frame's centre, in crop pixels
+    def _principal(self, box: np.ndarray, frame_size: tuple[int, int]) -> np.ndarray:
+        from geoavatar.prep.video import crop_intrinsics
+
+        scale, ox, oy = crop_intrinsics(box, self.crop_size)
+        return np.array([scale * (frame_size[0] / 2 - ox), scale * (frame_size[1] / 2 - oy)])
+
+    def push(self, rgb: np.ndarray):
+        if self.online is None:
+            self._buffer.append(rgb)
+            self._boxes.append(self.detector(rgb))
+            if len(self._buffer) < self.init_frames:
+                return None
+            return self._identity_stage()
+        return self._online_frame(rgb)
+
+    def _identity_stage(self) -> list[DriverFrame]:
+        from geoavatar.head.smooth_offset import smooth_offset
+        from geoavatar.prep.landmarks import filter_landmarks, landmark_confidence
+        from geoavatar.prep.tracking import OnlineFit, track
+        from geoavatar.prep.video import crop_square, fill_missing, smooth_crop_boxes
+
+        started = time.perf_counter()
+        height, width = self._buffer[0].shape[:2]
+        found = np.array([b is not None for b in self._boxes])
+        if not found.any():
+            raise DriveError(f"no face was found in the first {len(self._buffer)} frames of the driver")
+        centres = np.array([b.centre if b else np.zeros(2) for b in self._boxes])
+        sizes = np.array([b.size if b else 0.0 for b in self._boxes])
+        boxes = smooth_crop_boxes(centres, sizes, found, (width, height), self.prepare.crop_scale, self.prepare.crop_sigma)
+        crops = [crop_square(rgb, box, self.crop_size) for rgb, box in zip(self._buffer, boxes)]
+        raw = np.zeros((len(crops), 478, 3))
+        seen = np.zeros(len(crops), bool)
+        for k, crop in enumerate(crops):
+            points = self.mesh(crop)
+            if points is not None:
+                raw[k], seen[k] = points, True
+        if seen.sum() < 2:
+            raise DriveError(f"the face mesh found a face in {seen.sum()} of the first {len(crops)} driver frames; "
+                             "the identity stage needs the face in view")
+        raw = fill_missing(raw, seen)
+        filtered = filter_landmarks(raw, self.fps)
+        confidence = landmark_confidence(raw, filtered, np.where(seen, 1.0, 0.0))
+        principal = np.array([self._principal(box, (width, height)) for box in boxes])
+        scale = self.crop_size / boxes[0][2]
+        focal = scale * 0.5 * max(width, height) / math.tan(math.radians(self.config.fov_deg) / 2)
+        offset_map = None
+        if self.config.fit_static_offset:
+            offset_map = smooth_offset(self.data, self.model.data.metadata["vertex_ids"], decay=self.config.offset_decay)
+        with torch.enable_grad():
+            result = track(self.model, filtered, confidence, principal, self.crop_size, self.config, focal_init=focal,
+                           offset_map=offset_map)
+        self.online = OnlineFit(self.model, result, self.config, self.iterations, self.lr)
+        values = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in result.params.items() if k != "static_offset"}
+        fitted = HeadParams.from_npz(values)
+        npz = fitted.to_npz()
+        self.neutral = reference_frame(npz, list(range(fitted.batch)), "mean")
+        # the crop follows the face from here: the detector's centre, estimated from the landmarks
+        last = raw[-1][:, :2] / scale + boxes[-1][:2] - boxes[-1][2] / 2
+        self._offset = np.mean([boxes[k][:2] - (raw[k][:, :2].mean(0) / scale + boxes[k][:2] - boxes[k][2] / 2)
+                                for k in range(len(boxes)) if seen[k]], axis=0)
+        self.box = boxes[-1].copy()
+        self._target_centre = last.mean(0) + self._offset
+        self._frame_size = (width, height)
+        frames = [DriverFrame(crops[k], fitted.frame(k), float(result.errors[k]), raw[k], bool(seen[k]))
+                  for k in range(len(crops))]
+        self._last = frames[-1]
+        self._buffer, self._boxes = [], []
+        self.init_seconds = time.perf_counter() - started
+        return frames
+
+    def _online_frame(self, rgb: np.ndarray) -> DriverFrame:
+        from geoavatar.prep.video import crop_square
+
+        height, width = rgb.shape[:2]
+        side = self.box[2]
+        # causal smoothing of the crop centre (prepare smooths over the whole video; live, only the past)
+        centre = self.box[:2] + 0.5 * (self._target_centre - self.box[:2])
+        centre = np.clip(centre, side / 2, [width - side / 2, height - side / 2])
+        self.box = np.array([centre[0], centre[1], side])
+        crop = crop_square(rgb, self.box, self.crop_size)
+        points = self.mesh(crop)
+        if points is None:  # no face: hold the last fit; let the detector find the face again
+            box = self.detector(rgb)
+            if box is not None:
+                self._target_centre = box.centre
+            self._last = DriverFrame(crop, self._last.params, float("nan"), self._last.landmarks, False)
+            return self._last
+        self.landmarks_done = time.perf_counter()
+        scale = self.crop_size / side
+        self._target_centre = points[:, :2].mean(0) / scale + self.box[:2] - side / 2 + self._offset
+        params, error = self.online(points, self._principal(self.box, (width, height)))
+        self._last = DriverFrame(crop, params, error, points, True)
+        return self._last
+
+
+# --- the pipeline -----------------------------------------------------------------------------------
+
+
+@dataclass
+class DriveStats:
+    frames: int = 0  # frames shown after the first online one (the FPS counts these)
+    processed: int = 0  # frames the worker took from the source (identity stage included)
+    init_frames: int = 0
+    dropped: int = 0  # frames the source delivered that were never processed
+    delivered: int = 0
+    no_face: int = 0
+    seconds: float = 0.0  # wall time from the first online frame to the last
+    init_seconds: float = 0.0  # the identity stage's fit
+    stage_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
+    latency_ms: list[float] = field(default_factory=list)
+    records: list[dict] = field(default_factory=list)  # per processed frame (record=True)
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+    def summary(self) -> str:
+        stages = " ".join(f"{s} {np.mean(v):.1f}" for s, v in self.stage_ms.items() if v)
+        latency = f"{np.median(self.latency_ms):.0f} ms" if self.latency_ms else "-"
+        return (f"{self.frames} frames, {self.fps:.1f} fps, dropped {self.dropped}/{self.delivered}, latency {latency} "
+                f"(median), stages ms: {stages}")
+
+
+class _Status:
+    def __init__(self, enabled: bool, every: float = 1.0):
+        self.enabled, self.every, self.last = enabled, every, 0.0
+        self.tty = sys.stderr.isatty()
+
+    def __call__(self, stats: DriveStats, force: bool = False) -> None:
+        now = time.perf_counter()
+        if not self.enabled or (now - self.last < self.every and not force):
+            return
+        self.last = now
+        recent = {s: np.mean(v[-25:]) for s, v in stats.stage_ms.items() if v}
+        line = (f"drive: {stats.frames} frames, {stats.fps:5.1f} fps, dropped {stats.dropped}, latency "
+                f"{np.mean(stats.latency_ms[-25:]) if stats.latency_ms else 0:5.0f} ms | "
+                + " ".join(f"{s} {v:5.1f}" for s, v in recent.items()) + " ms")
+        print(("\r" + line) if self.tty else line, end="" if self.tty else "\n", file=sys.stderr, flush=True)
+
+
+@torch.no_grad()
+def drive_avatar(
+    run: LoadedRun,
+    source: Source,
+    out: Path | None = None,
+    relative: bool = False,
+    size: int = 512,
+    init_seconds: float = 1.0,
+    iterations: int = 8,
+    lr: float = 1.0,
+    max_frames: int | None = None,
+    lossless: bool = False,
+    viewer=None,
+    backend: str = "auto",
+    data: Path | None = None,
+    status: bool = True,
+    record: bool = False,
+    flame_dir: Path | None = None,
+    render: bool | None = None,
+    init_steps: tuple[int, int] = (100, 300),
+) -> DriveStats:
+    """Run the live pipeline until the source ends; returns the measurements (see the module docstring)."""
+    if size < 16:
+        raise OptionError(f"--size must be >= 16, got {size}")
+    if iterations < 1:
+        raise OptionError(f"--iterations must be >= 1, got {iterations}")
+    if init_seconds <= 0:
+        raise OptionError(f"--init-seconds must be positive, got {init_seconds}")
+    frames = RunFrames(run)
+    device = frames.device
+    avatar_root = Path(data) if data is not None else run.info.data_root
+    try:
+        camera = record_camera(open_subject(avatar_root), frames.timesteps[0], None).resized(size).to(device)
+    except (DatasetError, OSError) as err:
+        raise RunError(f"{run.info.run_dir}: the camera comes from its dataset {avatar_root}, which cannot be read "
+                       f"({err}); pass --data DIR") from err
+    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, "first")
+    identity = frames.identity()
+    background = torch.tensor(run.info.background, dtype=torch.float32, device=device)
+    render = (out is not None or viewer is None) if render is None else render
+
+    init_count = max(2, round(init_seconds * source.fps))
+    threads = torch.get_num_threads()
+    tracker = DriverTracker(run.info.head_model, init_count, source.fps, 256, iterations, lr, flame_dir, init_steps)
+    stats = DriveStats()
+    show = _Status(status)
+    mailbox = NewestFrame(lossless)
+    stop = threading.Event()
+    reader = start_reader(source, mailbox, max_frames, stop)
+    writer = Mp4Writer(out, fps=source.fps) if out is not None else None
+    last_index, last_picture = -1, None
+    started = None
+
+    def output(index: int, driver: DriverFrame, timings: dict, available: float) -> None:
+        nonlocal last_index, last_picture, started
+        t0 = time.perf_counter()
+        driver_now = {k: getattr(driver.params, k).to(device) for k in TRANSFERRED_KEYS}
+        driver_ref = {k: v.to(device) for k, v in tracker.neutral.items()}
+        params = HeadParams.from_npz(driven_params(identity, avatar_ref, driver_now, driver_ref, relative))
+        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer)
+        if viewer is not None:
+            viewer.show_live(posed.gaussians, f"live: frame {index}, {stats.fps:.1f} fps, dropped {mailbox.dropped}")
+        t1 = time.perf_counter()
+        timings["pose"] = t1 - t0
+        if render:
+            rgb = rasterize_gaussians(posed.gaussians, camera, background, backend, check_values=False).rgb
+            picture = to_uint8(rgb.clamp(0.0, 1.0))  # the read-back synchronises the device
+            timings["render"] = time.perf_counter() - t1
+            if writer is not None:
+                picture = side_by_side(fit_height(driver.crop, picture.shape[0]), picture)
+                for _ in range(index - last_index - 1 if last_picture is not None else 0):
+                    writer.write(last_picture)  # dropped frames: the video keeps real time
+                writer.write(picture)
+                last_picture = picture
+        last_index = index
+        done = time.perf_counter()
+        if started is None:
+            started = done  # the first online frame: FPS counts from its end
+        else:
+            stats.frames += 1
+            stats.seconds = done - started
+        for stage, seconds in timings.items():
+            stats.stage_ms[stage].append(1000.0 * seconds)
+        stats.latency_ms.append(1000.0 * (done - available))
+        if record:
+            stats.records.append({"index": index, "error": driver.error, "found": driver.found,
+                                  **{k: getattr(driver.params, k)[0].numpy().copy() for k in ("expr", "jaw_pose", "rotation")}})
+
+    try:
+        if writer is not None:
+            writer.__enter__()
+        while True:
+            try:
+                item = mailbox.get()
+            except KeyboardInterrupt:  # Ctrl-C ends a live source; what was written is kept
+                item = None
+            if item is None:
+                break
+            index, available, rgb = item
+            stats.processed += 1
+            t0 = time.perf_counter()
+            torch.set_num_threads(1)  # the fit's tensors are small: more threads only spin (measured 10x slower
+            try:  # on a loaded 2-core machine); the renderer gets the process's threads back
+                result = tracker.push(rgb)
+            finally:
+                torch.set_num_threads(threads)
+            if result is None:
+                continue
+            if isinstance(result, list):  # the identity stage finished: its frames are not shown live
+                stats.init_frames, stats.init_seconds = len(result), tracker.init_seconds
+                if record:
+                    stats.records.extend({"index": k, "init": True, "error": f.error,
+                                          **{key: getattr(f.params, key)[0].numpy().copy()
+                                             for key in ("expr", "jaw_pose", "rotation")}} for k, f in enumerate(result))
+                last_index = index
+                continue
+            now = time.perf_counter()
+            timings = ({"landmarks": tracker.landmarks_done - t0, "fit": now - tracker.landmarks_done}
+                       if result.found else {"landmarks": now - t0})
+            stats.no_face += 0 if result.found else 1
+            output(index, result, timings, available)
+            show(stats)
+        if writer is not None:
+            writer.__exit__(None, None, None)
+            writer = None
+    except BaseException as err:
+        if writer is not None:
+            writer.__exit__(type(err), err, err.__traceback__)
+        raise
+    finally:
+        stop.set()
+        mailbox.close()
+        reader.join(timeout=5.0)
+        tracker.close()
+        stats.dropped, stats.delivered = mailbox.dropped, mailbox.delivered
+        show(stats, force=True)
+        if status and sys.stderr.isatty():
+            print(file=sys.stderr)
+    if stats.init_frames == 0:
+        raise DriveError(f"{source.name}: the source ended after {mailbox.delivered} frame(s), before the identity "
+                         f"stage's {init_count} frames (--init-seconds {init_seconds})")
+    return stats
+
+
+def drive(
+    run: RunPath,
+    camera: Optional[int] = None,
+    video: Optional[Path] = None,
+    relative: bool = False,
+    out: Optional[Path] = None,
+    view: bool = False,
+    size: int = 512,
+    init_seconds: float = 1.0,
+    iterations: int = 8,
+    max_frames: Optional[int] = None,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    data: Optional[Path] = None,
+    device: str = "auto",
+    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
+    flame_dir: Optional[Path] = None,
+    status: bool = True,
+) -> int:
+    """Drive a trained avatar live from a webcam or a video: landmarks, online fit, avatar posed and rendered.
+
+    The driver's first second fits its identity (then frozen); every later frame is fitted warm-started
+    from the previous one. Frames the pipeline cannot keep up with are dropped (counted), never queued.
+
+    Args:
+        run: Run folder written by `geoavatar train` (the avatar).
+        camera: Webcam number N (/dev/videoN through PyAV's v4l2 input, else OpenCV).
+        video: A video file played as a live source at its own frame rate.
+        relative: Transfer expression and pose as offsets from the driver's neutral (its first second) onto
+            the avatar's neutral (its first frame), instead of the driver's absolute values.
+        out: Write driver | avatar to this mp4 (at the source's frame rate; a dropped frame repeats the last output).
+        view: Show the avatar live in the browser viewer (viser) on --host/--port.
+        size: Side of the rendered avatar in pixels (the avatar's dataset camera, scaled).
+        init_seconds: Length of the identity stage at the start of the driver.
+        iterations: L-BFGS iterations of the online fit per frame (its latency grows with them).
+        max_frames: Stop after this many source frames (default: the whole video, or until Ctrl-C).
+        host: Viewer address (--view).
+        port: Viewer port (--view).
+        data: The avatar's dataset folder, when it moved since training (the camera is read from it).
+        device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N: where the avatar is posed and rendered.
+        backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
+        flame_dir: Folder with your FLAME model files (FLAME avatars only).
+        status: Print a status line (FPS, drops, latency per stage) about once a second.
+    """
+    if (camera is None) == (video is None):
+        raise OptionError("give one driving source: --camera N or --video FILE")
+    if out is None and not view:
+        raise OptionError("nothing to show: pass --out FILE.mp4 and/or --view")
+    source = open_video(video) if video is not None else open_camera(camera)
+    loaded = open_run(run, device, flame_dir)
+    viewer = None
+    if view:
+        from geoavatar.apps.view import start_viewer
+
+        try:
+            viewer = start_viewer(loaded, host, port, expr_sliders=0, data=data, live=True)
+        except (ImportError, OSError) as err:
+            raise GeoAvatarError(f"cannot start the viewer: {err}") from err
+        print(f"GeoAvatar live viewer: {viewer.url}", flush=True)
+    try:
+        stats = drive_avatar(loaded, source, out, relative, size, init_seconds, iterations, max_frames=max_frames,
+                             viewer=viewer, backend=backend, data=data, status=status, flame_dir=flame_dir)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        if viewer is not None:
+            viewer.stop()
+    print(f"drive: {stats.summary()}; identity stage {stats.init_frames} frames in {stats.init_seconds:.1f} s"
+          + (f"; wrote {out}" if out is not None else ""))
+    return 0
+
+
+__all__ = ["DriveError", "DriveStats", "DriverTracker", "NewestFrame", "Source", "drive", "drive_avatar",
+           "open_camera", "open_video"]
