@@ -1,0 +1,163 @@
+"""`geoavatar drive`: a short clip cut from the real test video (128 px) drives a tiny untrained avatar;
+frames come out, drops are counted, the online fit follows the landmarks; bad sources are one-line errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from apps_fixtures import make_subject, make_untrained_run
+from geoavatar.apps.drive import NewestFrame, Source, drive_avatar, open_video
+from geoavatar.cli import main
+
+VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "wojtek.mp4"
+needs_video = pytest.mark.skipif(not VIDEO.is_file(), reason=f"test video {VIDEO} is absent")
+INIT_STEPS = (30, 60)  # the identity stage's tracker steps (prepare uses 100, 300)
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory) -> Path:
+    """The first 30 frames of wojtek.mp4 at 128 px, 25 fps."""
+    if not VIDEO.is_file():
+        pytest.skip(f"test video {VIDEO} is absent")
+    import cv2
+
+    from geoavatar.io.video import Mp4Writer
+    from geoavatar.prep.video import decode_frames
+
+    path = tmp_path_factory.mktemp("drive") / "clip.mp4"
+    with Mp4Writer(path, fps=25) as video:
+        for _index, rgb in decode_frames(VIDEO, max_frames=30):
+            video.write(cv2.resize(rgb, (128, 128), interpolation=cv2.INTER_AREA))
+    return path
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("drive_run")
+    return make_untrained_run(make_subject(root / "subject", frames=6), root / "run")
+
+
+@pytest.fixture(scope="module")
+def run(run_dir):
+    from geoavatar.apps.common import open_run
+
+    return open_run(run_dir, "cpu")
+
+
+def test_newest_frame_drops_what_the_worker_did_not_take():
+    box = NewestFrame()
+    for i in range(3):
+        box.put(i)
+    assert box.get() == 2 and box.dropped == 2 and box.delivered == 3
+    box.put(3)
+    box.close()
+    assert box.get() == 3 and box.get() is None  # closed and empty: the end
+
+
+def test_newest_frame_hands_on_the_reader_error():
+    box = NewestFrame()
+    box.close(RuntimeError("camera unplugged"))
+    with pytest.raises(RuntimeError, match="unplugged"):
+        box.get()
+
+
+def test_lossless_mailbox_waits_for_the_worker():
+    box = NewestFrame(lossless=True)
+    got = []
+
+    def worker():
+        while (item := box.get()) is not None:
+            got.append(item)
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    for i in range(20):
+        box.put(i)
+    box.close()
+    thread.join(5)
+    assert got == list(range(20)) and box.dropped == 0
+
+
+@needs_video
+def test_drive_every_frame_writes_the_video_and_follows_the_face(run, clip, tmp_path):
+    out = tmp_path / "drive.mp4"
+    stats = drive_avatar(run, open_video(clip), out, size=48, init_seconds=0.2, lossless=True, record=True,
+                         status=False, init_steps=INIT_STEPS)
+    assert stats.dropped == 0 and stats.delivered == stats.processed == 30
+    assert stats.init_frames == 5 and stats.frames == 30 - 5 - 1  # FPS counts from the first online frame's end
+    assert all(len(v) == 25 for k, v in stats.stage_ms.items())
+    online = [r for r in stats.records if not r.get("init")]
+    assert len(online) == 25 and all(r["found"] for r in online)
+    errors = np.array([r["error"] for r in online])
+    assert np.median(errors) < 0.03, errors  # median landmark error under 3 % of the face width
+    jaw = np.array([r["jaw_pose"][0] for r in stats.records])
+    assert np.isfinite(jaw).all()
+    import av
+
+    with av.open(str(out)) as container:
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    assert len(frames) == 25 and frames[0].shape == (48, 96, 3)  # driver | avatar
+
+
+@needs_video
+def test_a_fast_source_drops_frames_and_counts_them(run, clip, tmp_path):
+    fast = dataclasses.replace(open_video(clip), fps=400.0)  # 2.5 ms a frame: the worker cannot keep up
+    out = tmp_path / "fast.mp4"
+    stats = drive_avatar(run, fast, out, size=32, init_seconds=5 / 400, status=False, init_steps=INIT_STEPS)
+    assert stats.delivered == 30 and stats.dropped > 0
+    assert stats.processed + stats.dropped == stats.delivered
+    import av
+
+    with av.open(str(out)) as container:  # dropped frames repeat the last output: the video keeps real time
+        count = sum(1 for _ in container.decode(video=0))
+    assert stats.frames + 1 <= count <= 30
+
+
+@needs_video
+def test_relative_driving_renders(run, clip, tmp_path):
+    stats = drive_avatar(run, open_video(clip), tmp_path / "rel.mp4", relative=True, size=32, init_seconds=0.2,
+                         lossless=True, max_frames=8, status=False, init_steps=INIT_STEPS)
+    assert stats.init_frames == 5 and stats.processed == 8
+
+
+def test_a_source_too_short_for_the_identity_stage_is_an_error(run):
+    from geoavatar.apps.drive import DriveError
+
+    blank = Source("--video blank", 25.0, lambda: iter([np.zeros((64, 64, 3), np.uint8)] * 3), live=False)
+    with pytest.raises(DriveError, match="identity stage"):
+        drive_avatar(run, blank, None, size=32, status=False, lossless=True)
+
+
+def _one_line_error(capsys, argv: list[str], *needles: str) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("geoavatar drive: "), err
+    for needle in needles:
+        assert needle in err, err
+
+
+def test_missing_and_unreadable_videos_are_one_line_errors(run_dir, tmp_path, capsys):
+    _one_line_error(capsys, ["drive", str(run_dir), "--video", str(tmp_path / "none.mp4"), "--out", str(tmp_path / "o.mp4")],
+                    "none.mp4", "not found")
+    bad = tmp_path / "broken.mp4"
+    bad.write_bytes(b"not a video at all" * 64)
+    _one_line_error(capsys, ["drive", str(run_dir), "--video", str(bad), "--out", str(tmp_path / "o.mp4")],
+                    "broken.mp4", "not a readable video")
+
+
+def test_missing_camera_is_a_one_line_error(run_dir, tmp_path, capsys):
+    if Path("/dev/video63").exists():
+        pytest.skip("a /dev/video63 exists here")
+    _one_line_error(capsys, ["drive", str(run_dir), "--camera", "63", "--out", str(tmp_path / "o.mp4")],
+                    "--camera 63", "cannot open")
+
+
+def test_options_are_checked(run_dir, tmp_path, capsys):
+    _one_line_error(capsys, ["drive", str(run_dir), "--out", str(tmp_path / "o.mp4")], "--camera N or --video FILE")
+    _one_line_error(capsys, ["drive", str(run_dir), "--camera", "0", "--video", "x.mp4", "--out", "o.mp4"], "one driving source")
+    _one_line_error(capsys, ["drive", str(run_dir), "--camera", "0"], "--out", "--view")
