@@ -19,6 +19,7 @@ the first second.
 
 Real time: `--video` plays the file at its own frame rate, as a live source would deliver it: when the
 worker is busy, a newer frame replaces the waiting one and the older is dropped (counted), never queued.
+The file's clock starts after the identity stage (a camera's frames are dropped during it).
 Latency is measured from the moment a frame is available to the moment its output is done. A status
 line shows the FPS, drops and the per-stage times. The written mp4 (`--out`, driver | avatar) runs at
 the source's frame rate; a dropped frame repeats the previous output, so the video keeps real time.
@@ -156,6 +157,11 @@ class NewestFrame:
         self.dropped = 0
         self.delivered = 0
 
+    def set_lossless(self, lossless: bool) -> None:
+        with self._cond:
+            self.lossless = lossless
+            self._cond.notify_all()
+
     def put(self, item) -> None:
         with self._cond:
             while self.lossless and self._item is not None and not self._closed:
@@ -184,18 +190,20 @@ class NewestFrame:
 
 
 def start_reader(source: Source, mailbox: NewestFrame, max_frames: int | None, stop: threading.Event) -> threading.Thread:
-    """A thread putting (index, available_time, rgb) into the mailbox; a file is paced at its frame rate."""
+    """A thread putting (index, available_time, rgb) into the mailbox; a file is paced at its frame rate
+    from the first frame it puts while the mailbox is not lossless (its clock starts there)."""
 
     def read() -> None:
         error = None
         try:
-            start = time.perf_counter()
+            origin = None  # (perf_counter, frame index) where the file's clock started
             for index, rgb in enumerate(source.frames()):
                 if stop.is_set() or (max_frames is not None and index >= max_frames):
                     break
                 if not source.live and not mailbox.lossless:
-                    due = start + index / source.fps
-                    wait = due - time.perf_counter()
+                    if origin is None:
+                        origin = (time.perf_counter(), index)
+                    wait = origin[0] + (index - origin[1]) / source.fps - time.perf_counter()
                     if wait > 0:
                         time.sleep(wait)
                 mailbox.put((index, time.perf_counter(), rgb))
@@ -445,11 +453,14 @@ def drive_avatar(
     tracker = DriverTracker(run.info.head_model, init_count, source.fps, 256, iterations, lr, flame_dir, init_steps)
     stats = DriveStats()
     show = _Status(status)
-    mailbox = NewestFrame(lossless)
+    # A file waits (nothing dropped) while the identity stage collects and fits its first second, then plays
+    # in real time from there; a camera's frames are dropped during it, as at any time the worker is busy.
+    mailbox = NewestFrame(lossless or not source.live)
     stop = threading.Event()
     reader = start_reader(source, mailbox, max_frames, stop)
     writer = Mp4Writer(out, fps=source.fps) if out is not None else None
     last_index, last_picture = -1, None
+    init_indices: list[int] = []  # source indices of the identity stage's frames
     started = None
 
     def output(index: int, driver: DriverFrame, timings: dict, available: float) -> None:
@@ -499,6 +510,8 @@ def drive_avatar(
                 break
             index, available, rgb = item
             stats.processed += 1
+            if tracker.online is None:
+                init_indices.append(index)
             t0 = time.perf_counter()
             torch.set_num_threads(1)  # the fit's tensors are small: more threads only spin (measured 10x slower
             try:  # on a loaded 2-core machine); the renderer gets the process's threads back
@@ -509,8 +522,9 @@ def drive_avatar(
                 continue
             if isinstance(result, list):  # the identity stage finished: its frames are not shown live
                 stats.init_frames, stats.init_seconds = len(result), tracker.init_seconds
+                mailbox.set_lossless(lossless)
                 if record:
-                    stats.records.extend({"index": k, "init": True, "error": f.error,
+                    stats.records.extend({"index": init_indices[k], "init": True, "error": f.error,
                                           **{key: getattr(f.params, key)[0].numpy().copy()
                                              for key in ("expr", "jaw_pose", "rotation")}} for k, f in enumerate(result))
                 last_index = index
