@@ -43,6 +43,7 @@ CHEAP: dict[str, list[str]] = {
     "view": ["--port", "0", "--no-serve-forever", "--device", "cpu"],
     "bench": ["--resolution", "32", "--iterations", "1", "--warmup", "0", "--no-progress", "--device", "cpu"],
     "head show": ["--size", "64"],
+    "drive": ["--init-seconds", "0.12", "--iterations", "2", "--size", "32", "--no-status", "--device", "cpu"],
 }
 # Lines that are only parsed: the whole demo, tables over runs the README names but the test lacks, and
 # (to keep this test near a minute on 2 shared cores) prepare, eval and head show, whose own tests run them.

@@ -427,6 +427,7 @@ def drive_avatar(
     flame_dir: Path | None = None,
     render: bool | None = None,
     init_steps: tuple[int, int] = (100, 300),
+    threads: int = 1,
 ) -> DriveStats:
     """Run the live pipeline until the source ends; returns the measurements (see the module docstring)."""
     if size < 16:
@@ -449,7 +450,10 @@ def drive_avatar(
     render = (out is not None or viewer is None) if render is None else render
 
     init_count = max(2, round(init_seconds * source.fps))
-    threads = torch.get_num_threads()
+    if threads < 1:
+        raise OptionError(f"--threads must be >= 1, got {threads}")
+    process_threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
     tracker = DriverTracker(run.info.head_model, init_count, source.fps, 256, iterations, lr, flame_dir, init_steps)
     stats = DriveStats()
     show = _Status(status)
@@ -513,11 +517,7 @@ def drive_avatar(
             if tracker.online is None:
                 init_indices.append(index)
             t0 = time.perf_counter()
-            torch.set_num_threads(1)  # the fit's tensors are small: more threads only spin (measured 10x slower
-            try:  # on a loaded 2-core machine); the renderer gets the process's threads back
-                result = tracker.push(rgb)
-            finally:
-                torch.set_num_threads(threads)
+            result = tracker.push(rgb)
             if result is None:
                 continue
             if isinstance(result, list):  # the identity stage finished: its frames are not shown live
@@ -547,6 +547,7 @@ def drive_avatar(
         mailbox.close()
         reader.join(timeout=5.0)
         tracker.close()
+        torch.set_num_threads(process_threads)
         stats.dropped, stats.delivered = mailbox.dropped, mailbox.delivered
         show(stats, force=True)
         if status and sys.stderr.isatty():
@@ -575,6 +576,7 @@ def drive(
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
     status: bool = True,
+    threads: int = 1,
 ) -> int:
     """Drive a trained avatar live from a webcam or a video: landmarks, online fit, avatar posed and rendered.
 
@@ -600,6 +602,8 @@ def drive(
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (FLAME avatars only).
         status: Print a status line (FPS, drops, latency per stage) about once a second.
+        threads: CPU threads of the pipeline's torch and rasterizer work. 1 by default: its tensors are small,
+            and on a busy 2-core machine 2 threads made the fit 10x and posing 3-5x slower (OpenMP waits).
     """
     if (camera is None) == (video is None):
         raise OptionError("give one driving source: --camera N or --video FILE")
@@ -618,7 +622,8 @@ def drive(
         print(f"GeoAvatar live viewer: {viewer.url}", flush=True)
     try:
         stats = drive_avatar(loaded, source, out, relative, size, init_seconds, iterations, max_frames=max_frames,
-                             viewer=viewer, backend=backend, data=data, status=status, flame_dir=flame_dir)
+                             viewer=viewer, backend=backend, data=data, status=status, flame_dir=flame_dir,
+                             threads=threads)
     except KeyboardInterrupt:
         return 0
     finally:
