@@ -28,6 +28,7 @@ def prepare(
     flame_dir: Optional[Path] = None,
     flame_landmarks: Optional[Path] = None,
     static_offset: bool = True,
+    photometric: bool = True,
     overlay: bool = True,
     progress: bool = True,
 ) -> int:
@@ -51,13 +52,16 @@ def prepare(
         flame_landmarks: FLAME's MediaPipe landmark embedding (default FLAME_DIR/mediapipe_landmark_embedding.npz).
         static_offset: Fit one smooth static offset of the mesh for the person (VHAP's static_offset),
             written to the dataset; without it only the head model's identity modes adapt.
+        photometric: After the landmark fit, refine every frame photometrically (a mesh-bound appearance
+            model rendered with the CPU rasterizer against the masked crops, landmarks kept as a term);
+            --no-photometric writes the landmark fit.
         overlay: Write OUT/overlay.mp4.
         progress: Show progress bars.
     """
     config = PrepareConfig(
         video=video, out=out, head=head, size=size, fps=fps, max_frames=max_frames, missing=missing,
         test_fraction=test_fraction, flame_dir=flame_dir, flame_landmarks=flame_landmarks,
-        static_offset=static_offset, overlay=overlay,
+        static_offset=static_offset, photometric=photometric, overlay=overlay,
         progress=progress,
     )
     try:

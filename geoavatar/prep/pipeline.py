@@ -14,6 +14,8 @@ holds the key it would have now, and redoes it and every stage that depends on i
     landmarks  face mesh on the crops, One-Euro filtering, confidence, missing frames
     masks      selfie segmentation x landmark head region (see geoavatar.prep.masks)
     tracking   the head-model fit (geoavatar.prep.tracking)
+    photometric  every frame refined against its crop (geoavatar.prep.photometric; --no-photometric: skipped,
+               the dataset is written from the landmark fit)
     write      the dataset through LayoutWriter, then the overlay video and the report
 
 A stage's key is the sha256 of the canonical JSON of {its version, its config, its upstream stages'
@@ -43,17 +45,18 @@ import numpy as np
 
 from geoavatar.prep.errors import PrepareError
 
-STAGES = ("frames", "landmarks", "masks", "tracking", "write")
+STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
 # ones depending on it) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "write": 1}
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 1, "write": 2}
 # The stages whose outputs a stage reads: a rerun of one redoes these dependants.
 DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "frames": (),
     "landmarks": ("frames",),
     "masks": ("frames", "landmarks"),
     "tracking": ("frames", "landmarks"),
-    "write": ("frames", "landmarks", "masks", "tracking"),
+    "photometric": ("frames", "landmarks", "masks", "tracking"),
+    "write": ("frames", "landmarks", "masks", "tracking", "photometric"),
 }
 WORK = ".prepare"
 UNKEYED = "-"  # a PrepareConfig field no stage output depends on (where to write, logging)
@@ -88,6 +91,9 @@ class PrepareConfig:
     tracking_steps: tuple[int, int] = _stage_field("tracking", (100, 300))  # rigid, full
     # fit a smooth static offset of the mesh (geoavatar.head.smooth_offset)
     static_offset: bool = _stage_field("tracking", True)
+    # photometric tracking of every frame after the landmark fit (geoavatar.prep.photometric)
+    photometric: bool = _stage_field("photometric", True)
+    photometric_epochs: tuple[int, int] = _stage_field("photometric", (4, 3))  # at 64 px, at 128 px
     overlay: bool = _stage_field("write", True)
     mask_backend: str = _stage_field("masks", "selfie")
     progress: bool = _stage_field(UNKEYED, True)
@@ -173,6 +179,19 @@ def tracking_config(config: PrepareConfig):
                           fit_static_offset=config.static_offset)
 
 
+def photometric_config(config: PrepareConfig):
+    """The PhotometricConfig the photometric stage runs with (all of its fields are part of the stage's key)."""
+    from geoavatar.prep.photometric import PhotometricConfig
+
+    return PhotometricConfig(sizes=(64, 128), epochs=tuple(config.photometric_epochs), tracking=tracking_config(config))
+
+
+def fit_file(config: PrepareConfig, work: Path) -> Path:
+    """The head-model fit the dataset is written from: photometric.npz (same keys as tracking.npz) unless
+    --no-photometric."""
+    return work / ("photometric.npz" if config.photometric else "tracking.npz")
+
+
 def _canonical(value: Any) -> Any:
     """JSON-able form of a config value: paths as strings, tuples as lists, dataclasses as dicts."""
     if isinstance(value, os.PathLike):
@@ -200,6 +219,8 @@ def stage_configs(config: PrepareConfig) -> dict[str, dict[str, Any]]:
     stat = video.stat()
     out["frames"]["video"] = {"path": str(video), "bytes": stat.st_size, "mtime": int(stat.st_mtime)}
     out["tracking"]["tracking_config"] = _canonical(tracking_config(config))
+    if config.photometric:
+        out["photometric"]["photometric_config"] = _canonical(photometric_config(config))
     return out
 
 
@@ -390,13 +411,73 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
     return {"focal": result.focal, "median_error": float(np.median(result.errors)), "log": result.log}
 
 
+def stage_photometric(config: PrepareConfig, work: Path) -> dict:
+    """Refine every frame's parameters against the crops (masked photometric L1 + the landmark term)."""
+    import torch
+
+    from geoavatar.head import HeadModel
+    from geoavatar.head.mouth import add_mouth_structure
+    from geoavatar.head.params import HeadParams
+    from geoavatar.prep.photometric import (LandmarkTargets, PhotometricTargets, crop_boxes, fit_photometric,
+                                            total_steps, weighted_vertex_ids)
+    from geoavatar.prep.tracking import GROUP_OF, GROUP_WEIGHTS
+    from geoavatar.render.camera import project
+
+    (work / "photometric.npz").unlink(missing_ok=True)
+    if not config.photometric:
+        return {"skipped": True}
+    marks = np.load(work / "landmarks.npz")
+    fit = np.load(work / "tracking.npz")
+    keep = marks["keep"]
+    data, _ = load_tracking_head(config)
+    head = HeadModel(add_mouth_structure(data, kind="geoavatar"))
+    settings = photometric_config(config)
+    params = {k[len("param_"):]: torch.as_tensor(fit[k], dtype=torch.float32) for k in fit.files if k.startswith("param_")}
+    if "static_offset" in params:
+        params["static_offset"] = params["static_offset"].reshape(1, -1, 3)
+    init = HeadParams.from_npz(params)
+    images = np.stack([_read_png(work / "frames" / f"{k:05d}.png") for k in keep])
+    masks = np.stack([_read_png(work / "masks" / f"{k:05d}.png") for k in keep])
+    viewmat = torch.as_tensor(fit["viewmat"], dtype=torch.float32).expand(len(keep), 4, 4)
+    K = torch.as_tensor(fit["K"], dtype=torch.float32)
+    boxes = crop_boxes(head, init, viewmat, K, weighted_vertex_ids(head), settings.crop_margin)
+    targets = PhotometricTargets.from_arrays(images, masks, viewmat.numpy(), K.numpy(), max(settings.sizes), boxes)
+    ids = head.landmark_ids.cpu().numpy()
+    points = marks["filtered"]
+    landmarks = LandmarkTargets(
+        points=torch.as_tensor(points[:, ids, :2], dtype=torch.float32),
+        size=torch.as_tensor(np.linalg.norm(points[:, 10, :2] - points[:, 152, :2], axis=-1), dtype=torch.float32).clamp_min(1.0),
+        weights=torch.tensor([GROUP_WEIGHTS[GROUP_OF.get(int(i), "face_oval_lower")] for i in ids], dtype=torch.float32),
+        confidence=torch.as_tensor(marks["confidence"], dtype=torch.float32).clamp(0.05, 1.0))
+    bar = _bar(config, total_steps(settings, len(keep)), "photometric")
+    try:
+        with torch.enable_grad():
+            result = fit_photometric(head, init, targets, settings, landmarks=landmarks, progress=bar.update)
+    finally:
+        bar.close()
+    with torch.no_grad():
+        pixels, _ = project(head.forward_params(result.params, vertex_ids=head.landmark_vertex_ids).landmarks, viewmat, K)
+    width = np.maximum(np.linalg.norm(points[:, 234, :2] - points[:, 454, :2], axis=-1), 1e-6)
+    errors = np.median((pixels - landmarks.points).norm(dim=-1).numpy(), axis=1) / width
+    fitted = {k: v.numpy() for k, v in result.params.to_npz().items() if k != "static_offset"}
+    if "param_static_offset" in fit.files:
+        fitted["static_offset"] = fit["param_static_offset"]
+    _atomic_npz(work / "photometric.npz", **{f"param_{k}": v for k, v in fitted.items()}, focal=fit["focal"],
+                viewmat=fit["viewmat"], K=fit["K"], projected=pixels.numpy(), landmark_ids=ids, errors=errors,
+                residual=result.residual, residual_before=result.residual_before)
+    for line in result.log:
+        config.log(f"prepare: photometric {line}")
+    return {"residual_before": float(result.residual_before.mean()), "residual": float(result.residual.mean()),
+            "median_error": float(np.median(errors)), "log": result.log}
+
+
 def stage_write(config: PrepareConfig, work: Path) -> dict:
     from geoavatar.data.layout import LayoutWriter
     from geoavatar.data.splits import SplitConfig
 
     frames = np.load(work / "frames.npz")
     marks = np.load(work / "landmarks.npz")
-    fit = np.load(work / "tracking.npz")
+    fit = np.load(fit_file(config, work))
     keep = marks["keep"]
     count = len(keep)
     test = max(1, math.ceil(config.test_fraction * count)) if config.test_fraction > 0 else 0
@@ -425,6 +506,12 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
         },
         "jaw_open_rad": {"min": float(params["jaw_pose"][:, 0].min()), "max": float(params["jaw_pose"][:, 0].max())},
     }
+    if "residual" in fit.files:  # masked L1 of the photometric fit's appearance model, 128 px face crops
+        report["photometric_residual"] = {
+            "mean": float(fit["residual"].mean()), "mean_before": float(fit["residual_before"].mean()),
+            "per_frame": [round(float(e), 5) for e in fit["residual"]],
+            "per_frame_before": [round(float(e), 5) for e in fit["residual_before"]],
+        }
     _atomic_json(Path(config.out) / "report.json", report)
     return {"dataset": str(dataset), "frames": int(count), "test_frames": int(test)}
 
@@ -437,7 +524,7 @@ def overlay_frames(config: PrepareConfig, work: Path, rows=None):
     from geoavatar.prep.overlay import overlay_frame
 
     marks = np.load(work / "landmarks.npz")
-    fit = np.load(work / "tracking.npz")
+    fit = np.load(fit_file(config, work))
     data, _ = load_tracking_head(config)
     head = HeadModel(data)
     keep = marks["keep"]
@@ -474,7 +561,7 @@ def write_overlay(config: PrepareConfig, work: Path, path: Path) -> Path:
 # --- the run ----------------------------------------------------------------------------------------
 
 _RUNNERS = {"frames": stage_frames, "landmarks": stage_landmarks, "masks": stage_masks, "tracking": stage_tracking,
-            "write": stage_write}
+            "photometric": stage_photometric, "write": stage_write}
 
 
 def run_prepare(config: PrepareConfig) -> Path:
