@@ -143,6 +143,7 @@ def track(
     fit_shape: bool = False,
     overwrite: bool = False,
     flame_dir: Path | None = None,
+    threads: int = 1,
     progress: bool = True,
 ) -> int:
     """Photometric tracking of an existing monocular dataset: fit every frame's rotation, translation, neck,
@@ -158,6 +159,7 @@ def track(
         fit_shape: Refine the identity shape too.
         overwrite: Replace an existing OUT.
         flame_dir: FLAME files for a FLAME dataset.
+        threads: Torch threads (1 is fastest on a busy 2-core machine: the fit runs many small operations).
         progress: Show a progress bar.
     """
     import time
@@ -173,6 +175,9 @@ def track(
         config = PhotometricConfig(sizes=tuple(sizes), epochs=tuple(epochs), chunk=chunk, fit_shape=fit_shape)
     except ValueError as err:
         raise OptionError(str(err)) from None
+    if threads < 1:
+        raise OptionError(f"--threads must be at least 1, got {threads}")
+    torch.set_num_threads(threads)
     subject = open_subject(dataset)
     started = time.perf_counter()
     result = track_subject(subject, config, flame_dir, progress)

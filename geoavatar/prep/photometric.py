@@ -67,7 +67,8 @@ class PhotometricConfig:
     lr_eyes: float = 1e-2
     lr_expr: float = 3e-2
     lr_shape: float = 1e-2
-    lr_albedo: float = 0.1
+    lr_albedo: float = 0.1  # appearance-only epochs
+    lr_albedo_pose: float = 0.005  # while the pose moves: slow, so that the albedo cannot absorb misalignment
     lr_light: float = 1e-2
     lr_decay: float = 0.2  # the learning rate falls to this fraction over each level
     fit_shape: bool = False  # refine the identity shape shared by all frames too
@@ -401,10 +402,10 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
     finest = targets.level(max(config.sizes))
     _init_albedo(appearance, head, init, finest, config.chunk)
     shape = torch.nn.Parameter(init.shape.clone())
-    shared = [{"params": [appearance.albedo], "lr": config.lr_albedo, "base": config.lr_albedo},
-              {"params": [appearance.light], "lr": config.lr_light, "base": config.lr_light}]
+    shared = [{"params": [appearance.albedo], "lr": config.lr_albedo, "base": (config.lr_albedo, config.lr_albedo_pose)},
+              {"params": [appearance.light], "lr": config.lr_light, "base": (config.lr_light, config.lr_light)}]
     if config.fit_shape:
-        shared.append({"params": [shape], "lr": config.lr_shape, "base": config.lr_shape})
+        shared.append({"params": [shape], "lr": config.lr_shape, "base": (0.0, config.lr_shape)})
     shared_optimizer = torch.optim.Adam(shared)
     chunks = [_Chunk(init, s, min(s + config.chunk, T), config) for s in range(0, T, config.chunk)]
     prior_config = config.tracking
@@ -477,7 +478,7 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
                 chunk = chunks[index]
                 chunk.set_lr(factor)
                 for group in shared_optimizer.param_groups:
-                    group["lr"] = group["base"] * factor
+                    group["lr"] = group["base"][0 if appearance_only else 1] * factor
                 chunk.optimizer.zero_grad(set_to_none=True)
                 shared_optimizer.zero_grad(set_to_none=True)
                 total, terms = chunk_loss(index, level, weights, appearance_only)

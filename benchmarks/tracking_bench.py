@@ -1,0 +1,111 @@
+"""Photometric tracking against the truth on generated subjects: `geoavatar track` on `geoavatar synth` output.
+
+    .venv/bin/python benchmarks/tracking_bench.py --work /work/track_runs/bench --subjects 0 --frames 48 --size 256
+
+For each subject: generate (or reuse) WORK/synth<k>, run `geoavatar track` into WORK/tracked<k>, then compare the
+written parameters (flame_param/ of the synthetic dataset: truth + tracker-like error) and the fitted ones
+with the truth (flame_param_gt/), per split (train / test frames of the dataset): head rotation error (deg),
+translation error (mm), jaw error (deg), mean posed-vertex error over the face region and over the lips (mm).
+Prints a Markdown table and writes WORK/tracking_bench.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+FRAME_KEYS = ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
+
+
+def load_params(root: Path, folder: str, timesteps) -> dict[str, torch.Tensor]:
+    arrays = [dict(np.load(root / folder / f"{t:05d}.npz")) for t in timesteps]
+    out = {k: torch.as_tensor(np.concatenate([a[k] for a in arrays])).float() for k in FRAME_KEYS}
+    out["shape"] = torch.as_tensor(arrays[0]["shape"]).float()
+    if "static_offset" in arrays[0]:
+        out["static_offset"] = torch.as_tensor(arrays[0]["static_offset"]).float()
+    return out
+
+
+def angle_deg(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
+    """Angle of R(a)^T R(b) per row, degrees (axis-angle inputs [T, 3])."""
+    from scipy.spatial.transform import Rotation
+
+    relative = Rotation.from_rotvec(a.numpy().astype(np.float64)).inv() * Rotation.from_rotvec(b.numpy().astype(np.float64))
+    return np.degrees(relative.magnitude())
+
+
+def errors(head, params: dict, truth: dict) -> dict[str, np.ndarray]:
+    """Per-frame errors of `params` against `truth`."""
+    with torch.no_grad():
+        a, b = head.forward_params(params).vertices, head.forward_params(truth).vertices  # [T, V, 3]
+    distance = (a - b).norm(dim=-1) * 1000  # [T, V] mm
+    face, lips = (torch.as_tensor(np.asarray(head.regions[name])) for name in ("face", "lips"))
+    return {
+        "rotation_deg": angle_deg(params["rotation"], truth["rotation"]),
+        "translation_mm": (params["translation"] - truth["translation"]).norm(dim=-1).numpy() * 1000,
+        "jaw_deg": angle_deg(params["jaw_pose"], truth["jaw_pose"]),
+        "face_mm": distance[:, face].mean(1).numpy(),
+        "lips_mm": distance[:, lips].mean(1).numpy(),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--subjects", type=int, nargs="+", default=[0])
+    parser.add_argument("--frames", type=int, default=48)
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--epochs", type=int, nargs="+", default=None, help="passed to geoavatar track --epochs")
+    args = parser.parse_args()
+    from geoavatar.data.dataset import open_subject
+    from geoavatar.head import load_head_model
+
+    head = load_head_model("openhead", mouth="geoavatar")
+    geoavatar = [sys.executable, "-m", "geoavatar.cli"]
+    results, rows = {}, []
+    for subject in args.subjects:
+        synth, tracked = args.work / f"synth{subject}", args.work / f"tracked{subject}"
+        if not (synth / "flame_param_gt").is_dir():
+            subprocess.run([*geoavatar, "synth", "--out", str(synth), "--subject", str(subject), "--frames",
+                            str(args.frames), "--size", str(args.size), "--no-progress"], check=True)
+        command = [*geoavatar, "track", str(synth), "--out", str(tracked), "--overwrite", "--no-progress"]
+        if args.epochs:
+            command += ["--epochs", *map(str, args.epochs)]
+        started = time.perf_counter()
+        subprocess.run(command, check=True)
+        seconds = time.perf_counter() - started
+        source = open_subject(synth)
+        split = source.split()
+        truth = load_params(synth, "flame_param_gt", source.timesteps)
+        written = load_params(synth, "flame_param", source.timesteps)
+        fitted = load_params(tracked, "flame_param", source.timesteps)
+        row_of = {t: i for i, t in enumerate(source.timesteps)}
+        measured = {"written": errors(head, written, truth), "photometric": errors(head, fitted, truth)}
+        results[subject] = {"seconds": seconds, "frames": len(source.timesteps)}
+        for name, timesteps in (("train", split.train), ("test", split.test)):
+            ids = [row_of[t] for t in timesteps]
+            for kind, values in measured.items():
+                summary = {k: float(v[ids].mean()) for k, v in values.items()}
+                results[subject][f"{name}/{kind}"] = summary
+                rows.append(f"| {subject} | {name} ({len(ids)}) | {kind} | " + " | ".join(
+                    f"{summary[k]:.2f}" for k in ("rotation_deg", "translation_mm", "jaw_deg", "face_mm", "lips_mm")) + " |")
+    print("| subject | frames | parameters | rotation (deg) | translation (mm) | jaw (deg) | face (mm) | lips (mm) |")
+    print("|---|---|---|---|---|---|---|---|")
+    print("\n".join(rows))
+    for subject, result in results.items():
+        print(f"subject {subject}: geoavatar track took {result['seconds']:.1f} s for {result['frames']} frames "
+              f"(load average {os.getloadavg()[0]:.1f})")
+    (args.work / "tracking_bench.json").write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
