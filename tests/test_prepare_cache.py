@@ -39,10 +39,11 @@ def test_a_changed_field_redoes_its_stage_and_the_dependants_only(config, ran):
     changed = config
     for change, redone in [
         ({"test_fraction": 0.3}, ["write"]),
-        ({"mask_backend": "other"}, ["masks", "write"]),  # the tracking does not read the masks
-        ({"tracking_steps": (10, 20)}, ["tracking", "write"]),
-        ({"static_offset": False}, ["tracking", "write"]),
-        ({"missing": "drop"}, ["landmarks", "masks", "tracking", "write"]),
+        ({"mask_backend": "other"}, ["masks", "photometric", "write"]),  # the tracking does not read the masks
+        ({"tracking_steps": (10, 20)}, ["tracking", "photometric", "write"]),
+        ({"static_offset": False}, ["tracking", "photometric", "write"]),
+        ({"missing": "drop"}, ["landmarks", "masks", "tracking", "photometric", "write"]),
+        ({"photometric_epochs": (1, 1)}, ["photometric", "write"]),
         ({"crop_sigma": 3.0}, list(STAGES)),
     ]:
         changed = replace(changed, **change)
@@ -57,16 +58,16 @@ def test_a_changed_field_redoes_its_stage_and_the_dependants_only(config, ran):
 def test_an_interrupted_stage_redoes_its_dependants(config, ran):
     run_prepare(config)
     (config.out / pipeline.WORK / "landmarks.json").unlink()  # killed while the landmarks were being redone
-    assert rerun(config, ran) == ["landmarks", "masks", "tracking", "write"]
+    assert rerun(config, ran) == ["landmarks", "masks", "tracking", "photometric", "write"]
 
 
 def test_a_changed_tracking_default_or_stage_version_is_not_reused(config, ran, monkeypatch):
     run_prepare(config)
     original = pipeline.tracking_config
     monkeypatch.setattr(pipeline, "tracking_config", lambda c: replace(original(c), offset_decay=0.2))
-    assert rerun(config, ran) == ["tracking", "write"]
+    assert rerun(config, ran) == ["tracking", "photometric", "write"]
     monkeypatch.setitem(pipeline.STAGE_VERSIONS, "masks", pipeline.STAGE_VERSIONS["masks"] + 1)
-    assert rerun(config, ran) == ["masks", "write"]
+    assert rerun(config, ran) == ["masks", "photometric", "write"]
 
 
 def test_a_changed_video_file_redoes_everything(config, ran):

@@ -205,7 +205,7 @@ def tiny(tmp_path_factory):
     data = make_subject(root / "fixtures" / "data", subject=0, frames=8, size=48)
     driver = make_subject(root / "fixtures" / "driver", subject=1, frames=4, size=48, seed=1)
     run = make_run(data, root / "fixtures" / "run", steps=2)
-    clip = _tiny_clip(root / "fixtures" / "talk.mp4") if VIDEO.is_file() and "prepare" not in PARSE_ONLY else None
+    clip = _tiny_clip(root / "fixtures" / "talk.mp4") if VIDEO.is_file() else None
     return {"root": root, "data": data, "driver": driver, "run": run, "clip": clip}
 
 
@@ -227,7 +227,7 @@ def _runnable(line: str, tiny: dict, workdir: Path) -> list[str] | None:
             word = str(tiny["driver"] if previous == "--driver" else tiny["data"])
         elif word == "talk.mp4":
             word = str(tiny["clip"])
-        elif word == "data/talk/dataset" and tiny["clip"] is None:  # prepare's output; prepare is parse-only
+        elif word == "data/talk/dataset":  # prepare's output; prepare is parse-only
             word = str(tiny["data"])
         elif word in PLACEHOLDERS and previous.startswith("--"):
             word = PLACEHOLDERS[word]

@@ -28,7 +28,7 @@ def prepare(
     flame_dir: Optional[Path] = None,
     flame_landmarks: Optional[Path] = None,
     static_offset: bool = True,
-    photometric: bool = True,
+    photometric: bool = False,
     overlay: bool = True,
     progress: bool = True,
 ) -> int:
@@ -54,7 +54,7 @@ def prepare(
             written to the dataset; without it only the head model's identity modes adapt.
         photometric: After the landmark fit, refine every frame photometrically (a mesh-bound appearance
             model rendered with the CPU rasterizer against the masked crops, landmarks kept as a term);
-            --no-photometric writes the landmark fit.
+            experimental and off by default until it measurably beats the landmark fit (issue #12).
         overlay: Write OUT/overlay.mp4.
         progress: Show progress bars.
     """

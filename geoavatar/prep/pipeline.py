@@ -14,7 +14,7 @@ holds the key it would have now, and redoes it and every stage that depends on i
     landmarks  face mesh on the crops, One-Euro filtering, confidence, missing frames
     masks      selfie segmentation x landmark head region (see geoavatar.prep.masks)
     tracking   the head-model fit (geoavatar.prep.tracking)
-    photometric  every frame refined against its crop (geoavatar.prep.photometric; --no-photometric: skipped,
+    photometric  every frame refined against its crop (geoavatar.prep.photometric; opt-in with --photometric, else skipped,
                the dataset is written from the landmark fit)
     write      the dataset through LayoutWriter, then the overlay video and the report
 
@@ -92,7 +92,7 @@ class PrepareConfig:
     # fit a smooth static offset of the mesh (geoavatar.head.smooth_offset)
     static_offset: bool = _stage_field("tracking", True)
     # photometric tracking of every frame after the landmark fit (geoavatar.prep.photometric)
-    photometric: bool = _stage_field("photometric", True)
+    photometric: bool = _stage_field("photometric", False)  # opt-in until it beats the landmark fit (issue #12)
     photometric_epochs: tuple[int, int] = _stage_field("photometric", (4, 3))  # at 64 px, at 128 px
     overlay: bool = _stage_field("write", True)
     mask_backend: str = _stage_field("masks", "selfie")
