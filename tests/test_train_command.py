@@ -23,7 +23,7 @@ from geoavatar.config import STEP_FIELDS, TrainConfig, config_values, preset
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.train import budget
 from geoavatar.train import checkpoint as ckpt
-from geoavatar.train.trainer import train
+from geoavatar.train.trainer import _flatten as _flat, train
 from test_trainer import STEPS, TOLERANCE, assert_same, learned_tensors, options, small_config, straight_run, subject  # noqa: F401
 
 QUIET = ["--no-progress", "--val-every", "1000", "--ckpt-every", "1000", "--seed", "3"]
@@ -108,16 +108,6 @@ def test_overrides_reach_the_run_and_config_json_records_everything(subject, tmp
     assert schedule["not_scaled"] == ["densify.reset_opacity_every", "aps_step"] and schedule["budget"] is None
     assert "overrides: model.init_opacity=0.5" in (out / "train.log").read_text()
     assert set(schedule["not_scaled"]) <= set(STEP_FIELDS)
-
-
-def _flat(data: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 # --- --extend ---------------------------------------------------------------------------------
