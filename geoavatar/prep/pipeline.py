@@ -43,6 +43,7 @@ from typing import Any, Callable, Literal
 
 import numpy as np
 
+from geoavatar.io.atomic import atomic_write_json, atomic_write_npz, atomic_write_png
 from geoavatar.prep.errors import PrepareError
 
 STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write")
@@ -108,30 +109,6 @@ if _unassigned:  # a field outside every stage key would silently reuse stale st
 # --- small helpers ----------------------------------------------------------------------------------
 
 
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
-def _atomic_json(path: Path, value) -> None:
-    _atomic_bytes(path, (json.dumps(value, indent=2) + "\n").encode())
-
-
-def _atomic_npz(path: Path, **arrays) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
-
-
-def _write_png(path: Path, image: np.ndarray) -> None:
-    from PIL import Image
-
-    tmp = path.with_name(f".{path.name}.tmp")
-    Image.fromarray(image).save(tmp, format="PNG", compress_level=1)
-    os.replace(tmp, path)
-
-
 def _read_png(path: Path) -> np.ndarray:
     from PIL import Image
 
@@ -168,7 +145,7 @@ class _Stages:
         (self.work / f"{stage}.json").unlink(missing_ok=True)
 
     def finish(self, stage: str, info: dict) -> None:
-        _atomic_json(self.work / f"{stage}.json", {"key": self.keys[stage], **info})
+        atomic_write_json(self.work / f"{stage}.json", {"key": self.keys[stage], **info})
 
 
 def tracking_config(config: PrepareConfig):
@@ -269,11 +246,11 @@ def stage_frames(config: PrepareConfig, work: Path) -> dict:
     with _bar(config, len(indices), "crop") as bar:
         for index, rgb in decode_frames(config.video, config.fps, config.max_frames):
             k = by_index[index]
-            _write_png(frames_dir / f"{k:05d}.png", crop_square(rgb, boxes[k], config.size))
+            atomic_write_png(frames_dir / f"{k:05d}.png", crop_square(rgb, boxes[k], config.size), compress_level=1)
             bar.update(1)
     source_fps = info.fps
     fps = min(config.fps, source_fps) if config.fps else source_fps
-    _atomic_npz(work / "frames.npz", source_index=np.array(indices), boxes=boxes, presence=np.array(scores),
+    atomic_write_npz(work / "frames.npz", source_index=np.array(indices), boxes=boxes, presence=np.array(scores),
                 detected=found, frame_size=np.array([info.width, info.height]), fps=np.array(fps))
     return {"frames": len(indices), "no_face_detected": [int(indices[k]) for k in np.flatnonzero(~found)],
             "video": asdict(info)}
@@ -312,7 +289,7 @@ def stage_landmarks(config: PrepareConfig, work: Path) -> dict:
     filtered = filter_landmarks(raw[keep], float(frames["fps"]))
     presence = np.where(found, np.clip(frames["presence"], 0.5, 1.0), 0.0)[keep]  # interpolated frames: 0 presence
     confidence = landmark_confidence(raw[keep], filtered, presence)
-    _atomic_npz(work / "landmarks.npz", raw=raw[keep], filtered=filtered, confidence=confidence, keep=keep,
+    atomic_write_npz(work / "landmarks.npz", raw=raw[keep], filtered=filtered, confidence=confidence, keep=keep,
                 found=found)
     return {"frames": int(len(keep)), "missing_source_frames": missing, "mode": config.missing}
 
@@ -330,7 +307,7 @@ def stage_masks(config: PrepareConfig, work: Path) -> dict:
         for row, k in enumerate(keep):
             rgb = _read_png(work / "frames" / f"{k:05d}.png")
             mask = foreground_mask(segment(rgb), points[row])
-            _write_png(masks_dir / f"{k:05d}.png", mask)
+            atomic_write_png(masks_dir / f"{k:05d}.png", mask, compress_level=1)
             coverage.append(float(mask.mean() / 255.0))
             bar.update(1)
     return {"frames": int(len(keep)), "mean_coverage": float(np.mean(coverage))}
@@ -403,7 +380,7 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
                            offset_map=offset_map)
     finally:
         bar.close()
-    _atomic_npz(work / "tracking.npz", **{f"param_{k}": v for k, v in result.params.items()}, focal=result.focal,
+    atomic_write_npz(work / "tracking.npz", **{f"param_{k}": v for k, v in result.params.items()}, focal=result.focal,
                 viewmat=result.viewmat, K=result.K, projected=result.projected, landmark_ids=result.landmark_ids,
                 errors=result.errors)
     for line in result.log:
@@ -462,7 +439,7 @@ def stage_photometric(config: PrepareConfig, work: Path) -> dict:
     fitted = {k: v.numpy() for k, v in result.params.to_npz().items() if k != "static_offset"}
     if "param_static_offset" in fit.files:
         fitted["static_offset"] = fit["param_static_offset"]
-    _atomic_npz(work / "photometric.npz", **{f"param_{k}": v for k, v in fitted.items()}, focal=fit["focal"],
+    atomic_write_npz(work / "photometric.npz", **{f"param_{k}": v for k, v in fitted.items()}, focal=fit["focal"],
                 viewmat=fit["viewmat"], K=fit["K"], projected=pixels.numpy(), landmark_ids=ids, errors=errors,
                 residual=result.residual, residual_before=result.residual_before)
     for line in result.log:
@@ -512,7 +489,7 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
             "per_frame": [round(float(e), 5) for e in fit["residual"]],
             "per_frame_before": [round(float(e), 5) for e in fit["residual_before"]],
         }
-    _atomic_json(Path(config.out) / "report.json", report)
+    atomic_write_json(Path(config.out) / "report.json", report)
     return {"dataset": str(dataset), "frames": int(count), "test_frames": int(test)}
 
 
