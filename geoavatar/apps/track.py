@@ -90,6 +90,16 @@ def track_subject(subject, config=None, flame_dir: Path | None = None, progress:
     return result
 
 
+def _in_width_of(like: np.ndarray, values: np.ndarray, dtype=None) -> np.ndarray:
+    """`values` [K] in an array shaped like `like` [..., W] (its dtype unless given): the leading
+    min(K, W) entries, zeros after them, so a dataset keeps its own widths (e.g. FLAME's 100
+    expressions for 23 fitted)."""
+    out = np.zeros(like.shape, dtype or like.dtype)
+    n = min(like.shape[-1], values.shape[-1])
+    out[..., :n] = values[:n]
+    return out
+
+
 def write_tracked_copy(subject, params: HeadParams, out: Path, report: dict) -> Path:
     """Copy the dataset folder to `out` (atomically) with flame_param/ rewritten from `params` [T]
     (every other key of each npz kept; shape in each npz and in canonical_flame_param.npz from `params`)."""
@@ -111,24 +121,16 @@ def write_tracked_copy(subject, params: HeadParams, out: Path, report: dict) -> 
                 arrays = {k: npz[k] for k in npz.files}
             for key in FRAME_KEYS:
                 width = arrays[key].shape[-1] if key in arrays else fitted[key].shape[-1]
-                value = np.zeros((1, width), np.float32)
-                n = min(width, fitted[key].shape[-1])
-                value[0, :n] = fitted[key][row, :n]
-                arrays[key] = value
+                arrays[key] = _in_width_of(np.empty((1, width)), fitted[key][row], np.float32)
             if "shape" in arrays:
-                shape = np.zeros_like(arrays["shape"])
-                n = min(shape.shape[-1], fitted["shape"].shape[-1])
-                shape[..., :n] = fitted["shape"][:n]
-                arrays["shape"] = shape
+                arrays["shape"] = _in_width_of(arrays["shape"], fitted["shape"])
             np.savez(path, **arrays)
         canonical = folder / CANONICAL_FILE
         if canonical.is_file():
             with np.load(canonical, allow_pickle=False) as npz:
                 arrays = {k: npz[k] for k in npz.files}
             if "shape" in arrays:
-                n = min(arrays["shape"].shape[-1], fitted["shape"].shape[-1])
-                arrays["shape"] = arrays["shape"].copy()
-                arrays["shape"][..., :n] = fitted["shape"][:n]
+                arrays["shape"] = _in_width_of(arrays["shape"], fitted["shape"])
                 np.savez(canonical, **arrays)
         (folder / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
     return out
