@@ -64,8 +64,11 @@ class HeadParams:
         """Frame `index` of a batch as a batch of one: per-frame keys [1, ...]; shape and static_offset kept."""
         if not -self.batch <= index < self.batch:
             raise IndexError(f"HeadParams: frame {index} outside a batch of {self.batch}")
-        row = slice(index, index + 1) if index != -1 else slice(-1, None)
-        return replace(self, **{key: getattr(self, key)[row] for key in FRAME_KEYS})
+        return self.rows(slice(index, index + 1) if index != -1 else slice(-1, None))
+
+    def rows(self, index: "Tensor | slice") -> "HeadParams":
+        """The frames `index` selects (a slice, or a tensor of row ids [K]) as a batch; shape and static_offset kept."""
+        return replace(self, **{key: getattr(self, key)[index] for key in FRAME_KEYS})
 
     def to(self, device: torch.device | str) -> "HeadParams":
         return self.map(lambda value: value.to(device))

@@ -43,6 +43,7 @@ from torch import Tensor
 from geoavatar.head.base import HeadModel
 from geoavatar.head.params import FRAME_KEYS, HeadParams
 from geoavatar.prep.tracking import TrackingConfig, _data_term, _frame_priors, _motion_smoothness, _pose_smoothness
+from geoavatar.render.camera import scale_intrinsics
 from geoavatar.render.rasterize import rasterize
 
 # Vertex groups whose faces the appearance model renders (and the photometric term sees).
@@ -144,7 +145,7 @@ class PhotometricTargets:
         images = F.interpolate(self.images.permute(0, 3, 1, 2), size=(h, w), mode="area").permute(0, 2, 3, 1)
         masks = F.interpolate(self.masks.permute(0, 3, 1, 2), size=(h, w), mode="area").permute(0, 2, 3, 1)
         return PhotometricTargets(images.contiguous(), masks.contiguous(), self.viewmat,
-                                  scaled_intrinsics(self.K, w / W, h / H), self.K_source)
+                                  scale_intrinsics(self.K, w / W, h / H), self.K_source)
 
 
 @dataclass
@@ -201,21 +202,13 @@ def crop_boxes(head: HeadModel, params: HeadParams, viewmat: Tensor, K: Tensor, 
     with torch.no_grad():
         for start in range(0, params.batch, chunk):
             rows = torch.arange(start, min(start + chunk, params.batch))
-            vertices = head.forward_params(_rows(params, rows), vertex_ids=vertex_ids).vertices  # [B, K, 3]
+            vertices = head.forward_params(params.rows(rows), vertex_ids=vertex_ids).vertices  # [B, K, 3]
             pixels, _ = project(vertices, viewmat[rows], K[rows])  # [B, K, 2]
             low, high = pixels.amin(1), pixels.amax(1)  # [B, 2]
             centres.append((low + high) / 2)
             sides.append((high - low).amax(-1))
     centre, side = torch.cat(centres).numpy(), float(torch.cat(sides).max()) * margin
     return np.concatenate([centre - side / 2, np.full((len(centre), 1), side)], 1)
-
-
-def scaled_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
-    """K [..., 3, 3] for an image resized by (sx, sy); pixel centres at +0.5 keep their meaning."""
-    out = K.clone()
-    out[..., 0, :] *= sx
-    out[..., 1, :] *= sy
-    return out
 
 
 def weighted_faces(head: HeadModel, regions=WEIGHTED_REGIONS) -> np.ndarray:
@@ -328,7 +321,7 @@ def region_weights(appearance: "SurfaceAppearance", head: HeadModel, params: Hea
     with torch.no_grad():
         for start in range(0, level.frames, chunk):
             rows = torch.arange(start, min(start + chunk, level.frames))
-            vertices = head.forward_params(_rows(params, rows), vertex_ids=appearance.vertex_ids).vertices
+            vertices = head.forward_params(params.rows(rows), vertex_ids=appearance.vertex_ids).vertices
             for i, row in enumerate(rows.tolist()):
                 out[row] = appearance.render(vertices[i], level.viewmat[row], level.K[row], W, H, coverage=True).rgb[..., :1]
     inside = (out > 0.5).float().permute(0, 3, 1, 2)
@@ -346,7 +339,7 @@ def _init_albedo(appearance: SurfaceAppearance, head: HeadModel, params: HeadPar
     with torch.no_grad():
         for start in range(0, targets.frames, chunk):
             rows = torch.arange(start, min(start + chunk, targets.frames))
-            vertices = head.forward_params(_rows(params, rows), vertex_ids=appearance.vertex_ids).vertices
+            vertices = head.forward_params(params.rows(rows), vertex_ids=appearance.vertex_ids).vertices
             centre, normal, _ = appearance.geometry(vertices)  # [B, F, 3]
             view = targets.viewmat[rows]  # [B, 4, 4]
             cam = centre @ view[:, :3, :3].transpose(1, 2) + view[:, None, :3, 3]  # [B, F, 3]
@@ -362,10 +355,6 @@ def _init_albedo(appearance: SurfaceAppearance, head: HeadModel, params: HeadPar
     mean = (total.sum(0) / weight.sum().clamp_min(1e-6)).clamp(0.05, 1.0)
     albedo = torch.where(weight > 1e-3, total / weight.clamp_min(1e-6), mean)
     appearance.albedo.data.copy_(albedo.clamp(0.0, 1.0))
-
-
-def _rows(params: HeadParams, rows: Tensor) -> HeadParams:
-    return params.replace(**{key: getattr(params, key)[rows] for key in FRAME_KEYS})
 
 
 class _Chunk:
@@ -498,7 +487,7 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
         log.append(f"{stage} {size}px: {epochs} epoch(s), last epoch " + ", ".join(f"{k} {v:.4g}" for k, v in sums.items()))
 
     weights = region_weights(appearance, head, init, finest, config.chunk)
-    before = residuals(lambda c: _rows(init, torch.arange(c.start, c.stop)), weights)
+    before = residuals(lambda c: init.rows(slice(c.start, c.stop)), weights)
     after = residuals(lambda c: frame_params(c, frozen=True), weights)
     fitted = HeadParams(shape=shape.detach().clone(), static_offset=init.static_offset,
                         **{k: torch.cat([c.values[k].detach() for c in chunks]) for k in FRAME_KEYS})
@@ -514,5 +503,5 @@ def total_steps(config: PhotometricConfig, frames: int) -> int:
 
 
 __all__ = ["LandmarkTargets", "PhotometricConfig", "PhotometricResult", "PhotometricTargets", "SurfaceAppearance",
-           "WEIGHTED_REGIONS", "fit_photometric", "photometric_loss", "scaled_intrinsics", "sh_basis", "total_steps",
+           "WEIGHTED_REGIONS", "fit_photometric", "photometric_loss", "sh_basis", "total_steps",
            "weighted_faces", "weighted_vertex_ids", "crop_boxes", "grow_faces", "region_weights"]

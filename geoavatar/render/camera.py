@@ -39,8 +39,13 @@ class Camera(NamedTuple):
         """The same camera for an image whose longer side is `longer_side` pixels (K scaled)."""
         scale = longer_side / max(self.width, self.height)
         width, height = max(1, round(self.width * scale)), max(1, round(self.height * scale))
-        factors = torch.tensor([width / self.width, height / self.height, 1.0], dtype=self.K.dtype, device=self.K.device)
-        return Camera(self.viewmat, self.K * factors[:, None], width, height)
+        return Camera(self.viewmat, scale_intrinsics(self.K, width / self.width, height / self.height), width, height)
+
+
+def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
+    """K [..., 3, 3] for the image resized by (sx, sy): rows 0 and 1 scaled, so pixel centres at +0.5 keep their meaning."""
+    factors = torch.tensor([sx, sy, 1.0], dtype=K.dtype, device=K.device)
+    return K * factors[:, None]
 
 
 def _as_tensor(x: Tensor | Sequence[float], like: Tensor | None = None) -> Tensor:
@@ -179,5 +184,5 @@ def _homogeneous(matrix: Tensor, name: str) -> Tensor:
 
 __all__ = [
     "Camera", "look_at", "intrinsics_from_fov", "fov_from_intrinsics", "world_to_camera", "project",
-    "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse",
+    "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "scale_intrinsics",
 ]
