@@ -32,7 +32,6 @@ rendering run on --device (auto: CUDA when there).
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 import time
@@ -266,13 +265,6 @@ class DriverTracker:
         self.detector.close()
         self.mesh.close()
 
-    # the crop geometry of prepare: principal point of the source frame's centre, in crop pixels
-    def _principal(self, box: np.ndarray, frame_size: tuple[int, int]) -> np.ndarray:
-        from geoavatar.prep.video import crop_intrinsics
-
-        scale, ox, oy = crop_intrinsics(box, self.crop_size)
-        return np.array([scale * (frame_size[0] / 2 - ox), scale * (frame_size[1] / 2 - oy)])
-
     def push(self, rgb: np.ndarray):
         if self.online is None:
             self._buffer.append(rgb)
@@ -283,9 +275,8 @@ class DriverTracker:
         return self._online_frame(rgb)
 
     def _identity_stage(self) -> list[DriverFrame]:
-        from geoavatar.head.smooth_offset import smooth_offset
         from geoavatar.prep.landmarks import filter_landmarks, landmark_confidence
-        from geoavatar.prep.tracking import OnlineFit, track
+        from geoavatar.prep.tracking import OnlineFit, track_crops
         from geoavatar.prep.video import crop_square, fill_missing, smooth_crop_boxes
 
         started = time.perf_counter()
@@ -309,15 +300,9 @@ class DriverTracker:
         raw = fill_missing(raw, seen)
         filtered = filter_landmarks(raw, self.fps)
         confidence = landmark_confidence(raw, filtered, np.where(seen, 1.0, 0.0))
-        principal = np.array([self._principal(box, (width, height)) for box in boxes])
+        result = track_crops(self.model, self.data, filtered, confidence, boxes, (width, height), self.crop_size,
+                             self.config)
         scale = self.crop_size / boxes[0][2]
-        focal = scale * 0.5 * max(width, height) / math.tan(math.radians(self.config.fov_deg) / 2)
-        offset_map = None
-        if self.config.fit_static_offset:
-            offset_map = smooth_offset(self.data, self.model.data.metadata["vertex_ids"], decay=self.config.offset_decay)
-        with torch.enable_grad():
-            result = track(self.model, filtered, confidence, principal, self.crop_size, self.config, focal_init=focal,
-                           offset_map=offset_map)
         self.online = OnlineFit(self.model, result, self.config, self.iterations, self.lr)
         values = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in result.params.items() if k != "static_offset"}
         fitted = HeadParams.from_npz(values)
@@ -338,6 +323,7 @@ class DriverTracker:
         return frames
 
     def _online_frame(self, rgb: np.ndarray) -> DriverFrame:
+        from geoavatar.prep.tracking import crop_principal_point
         from geoavatar.prep.video import crop_square
 
         height, width = rgb.shape[:2]
@@ -357,7 +343,7 @@ class DriverTracker:
         self.landmarks_done = time.perf_counter()
         scale = self.crop_size / side
         self._target_centre = points[:, :2].mean(0) / scale + self.box[:2] - side / 2 + self._offset
-        params, error = self.online(points, self._principal(self.box, (width, height)))
+        params, error = self.online(points, crop_principal_point(self.box, (width, height), self.crop_size))
         self._last = DriverFrame(crop, params, error, points, True)
         return self._last
 

@@ -347,37 +347,17 @@ def load_tracking_head(config: PrepareConfig):
 
 
 def stage_tracking(config: PrepareConfig, work: Path) -> dict:
-    import torch
-
-    from geoavatar.head.smooth_offset import smooth_offset
-    from geoavatar.prep.tracking import track
-    from geoavatar.prep.video import crop_intrinsics
+    from geoavatar.prep.tracking import track_crops
 
     frames = np.load(work / "frames.npz")
     marks = np.load(work / "landmarks.npz")
     keep = marks["keep"]
     data, model = load_tracking_head(config)
-
-    width, height = (int(v) for v in frames["frame_size"])
-    principal = []
-    scale = 1.0
-    for k in keep:
-        scale, ox, oy = crop_intrinsics(frames["boxes"][k], config.size)
-        principal.append([scale * (width / 2 - ox), scale * (height / 2 - oy)])
-    settings = tracking_config(config)
-    offset_map = None
-    if config.static_offset:
-        # Handles: the mesh vertices under the landmarks, the ones the landmark-only model keeps.
-        offset_map = smooth_offset(data, model.data.metadata["vertex_ids"], decay=settings.offset_decay)
-    # Initial focal: 25 degrees across the source frame's longer side, in crop pixels.
-    focal = scale * 0.5 * max(width, height) / math.tan(math.radians(settings.fov_deg) / 2)
-    total = sum(config.tracking_steps)
-    bar = _bar(config, total, "tracking", unit="step")
+    frame_size = tuple(int(v) for v in frames["frame_size"])
+    bar = _bar(config, sum(config.tracking_steps), "tracking", unit="step")
     try:
-        with torch.enable_grad():
-            result = track(model, marks["filtered"], marks["confidence"], np.array(principal), config.size,
-                           settings, focal_init=focal, progress=lambda n, _stage: bar.update(n),
-                           offset_map=offset_map)
+        result = track_crops(model, data, marks["filtered"], marks["confidence"], frames["boxes"][keep], frame_size,
+                             config.size, tracking_config(config), progress=lambda n, _stage: bar.update(n))
     finally:
         bar.close()
     atomic_write_npz(work / "tracking.npz", **{f"param_{k}": v for k, v in result.params.items()}, focal=result.focal,

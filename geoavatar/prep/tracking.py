@@ -255,6 +255,44 @@ def _motion_smoothness(p: HeadParams, config: TrackingConfig) -> Tensor:
             + config.w_smooth_eyes * _diff_penalty(p.eyes_pose) + config.w_smooth_pose * _diff_penalty(p.neck_pose))
 
 
+def crop_principal_point(box: np.ndarray, frame_size: tuple[int, int], crop_size: int) -> np.ndarray:
+    """[2] the source frame's centre (the principal point) in the pixels of the square crop `box` (cx, cy, side)
+    of a frame of `frame_size` (w, h), resized to `crop_size`."""
+    from geoavatar.prep.video import crop_intrinsics
+
+    scale, ox, oy = crop_intrinsics(box, crop_size)
+    return np.array([scale * (frame_size[0] / 2 - ox), scale * (frame_size[1] / 2 - oy)])
+
+
+def track_crops(
+    model: HeadModel,
+    data: HeadModelData,  # the full head model (the smooth static offset lives on its mesh)
+    landmarks: np.ndarray,  # [T, 478, >=2] filtered landmarks, crop pixels
+    confidence: np.ndarray,  # [T]
+    boxes: np.ndarray,  # [T, 3] the square crops (cx, cy, side; one side for the video) in source pixels
+    frame_size: tuple[int, int],  # (w, h) of the source frames
+    crop_size: int,
+    config: TrackingConfig,
+    progress=None,
+) -> TrackingResult:
+    """`track` on frames cut from a video with square crops: principal points from the crops, the initial
+    focal (fov_deg across the source frame's longer side, in crop pixels), the smooth static offset's
+    handles (the mesh vertices under the landmarks, the ones the landmark-only model keeps). Prepare's
+    tracking stage and drive's identity stage."""
+    from geoavatar.head.smooth_offset import smooth_offset
+    from geoavatar.prep.video import crop_intrinsics
+
+    principal = np.array([crop_principal_point(box, frame_size, crop_size) for box in boxes])  # [T, 2]
+    scale = crop_intrinsics(boxes[-1], crop_size)[0]
+    focal = scale * 0.5 * max(frame_size) / math.tan(math.radians(config.fov_deg) / 2)
+    offset_map = None
+    if config.fit_static_offset:
+        offset_map = smooth_offset(data, model.data.metadata["vertex_ids"], decay=config.offset_decay)
+    with torch.enable_grad():
+        return track(model, landmarks, confidence, principal, crop_size, config, focal_init=focal, progress=progress,
+                     offset_map=offset_map)
+
+
 def track(
     model: HeadModel,
     landmarks: np.ndarray,  # [T, 478, >=2] detected landmarks, crop pixels
