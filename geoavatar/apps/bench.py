@@ -24,7 +24,7 @@ from typing import Literal, Optional
 import torch
 
 from geoavatar.apps.common import (Camera, RunFrames, RunPath, head_centre, open_run, posed_head_vertices,
-                                   rasterize_gaussians, record_camera, run_device, synchronize)
+                                   rasterize_gaussians, record_camera, run_background, run_device, synchronize)
 from geoavatar.data import DatasetError, open_subject
 from geoavatar.errors import OptionError
 from geoavatar.io.atomic import atomic_write_json
@@ -76,7 +76,7 @@ def run_bench(run: LoadedRun, resolution: int = 512, iterations: int = 20, warmu
     frames = RunFrames(run)
     all_params = [frames.params(t)[0] for t in frames.timesteps]
     camera = bench_camera(run, frames, resolution).to(device)
-    background = torch.tensor(run.info.background, dtype=torch.float32, device=device)
+    background = run_background(run).to(device)
     params_of = lambda i: all_params[i % len(all_params)]  # noqa: E731 - a new frame each iteration
 
     fixed_vertices = posed_head_vertices(run, all_params[0])

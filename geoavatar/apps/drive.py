@@ -42,7 +42,8 @@ from typing import Callable, Iterator, Literal, Optional
 import numpy as np
 import torch
 
-from geoavatar.apps.common import RunFrames, RunPath, fit_height, open_run, record_camera, side_by_side, to_uint8
+from geoavatar.apps.common import (RunFrames, RunPath, fit_height, open_run, record_camera, run_background, side_by_side,
+                                   to_uint8)
 from geoavatar.apps.reenact import TRANSFERRED_KEYS, driven_params, reference_frame
 from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.data import DatasetError, open_subject
@@ -432,7 +433,7 @@ def drive_avatar(
                        f"({err}); pass --data DIR") from err
     avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, "first")
     identity = frames.identity()
-    background = torch.tensor(run.info.background, dtype=torch.float32, device=device)
+    background = run_background(run).to(device)
     render = (out is not None or viewer is None) if render is None else render
 
     init_count = max(2, round(init_seconds * source.fps))

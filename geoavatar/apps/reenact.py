@@ -41,7 +41,8 @@ import torch
 from torch import Tensor
 
 from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, evenly_spaced, fit_height,
-                                   open_run, progress, record_camera, render_params, side_by_side, to_uint8)
+                                   open_run, progress, record_camera, render_params, run_background, side_by_side,
+                                   to_uint8)
 from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError, OptionError
@@ -179,7 +180,7 @@ def reenact_video(
         # the camera of the avatar's neutral frame (its first frame for 'first' and 'mean')
         camera_timestep = frames.timesteps[0] if avatar_neutral in ("first", "mean") else int(avatar_neutral)
         fixed_camera = record_camera(open_subject(avatar_root), camera_timestep, run.info.resolution)
-    background = torch.tensor(run.info.background, dtype=torch.float32, device=device)
+    background = run_background(run).to(device)
     row_of = {t: i for i, t in enumerate(driver_timesteps)}
     with Mp4Writer(out, fps=fps, crf=crf) as video:
         for index in progress(evenly_spaced(len(driver_set), max_frames), enabled=show_progress, desc="reenact"):
