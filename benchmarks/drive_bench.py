@@ -39,7 +39,8 @@ def main() -> None:
     parser.add_argument("--offline", type=Path, default=None, help="geoavatar prepare folder of the driving video")
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--seconds", type=float, default=8.0, help="seconds of the video played (after the first)")
-    parser.add_argument("--iterations", type=int, default=8)
+    parser.add_argument("--solver", choices=["gauss_newton", "lbfgs"], default="gauss_newton")
+    parser.add_argument("--iterations", type=int, default=None, help="online fit iterations (default: the solver's)")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--threads", type=int, default=1, help="drive's --threads")
     args = parser.parse_args()
@@ -60,7 +61,7 @@ def main() -> None:
     frames = int(round((1.0 + args.seconds) * source.fps))
     print(f"avatar {args.avatar} (preset {config.get('preset', '?')}, checkpoint step {run.info.step} of {config.get('schedule', {}).get('steps', '?')}, "
           f"{run.avatar.num_gaussians} Gaussians, trained at {run.info.resolution} px, device {run.avatar.binding.device}); "
-          f"driver {args.driver} at {source.fps:g} fps, {frames} frames; online fit {args.iterations} L-BFGS iterations; "
+          f"driver {args.driver} at {source.fps:g} fps, {frames} frames; online fit {args.solver} ({args.iterations or 'default'} iterations); "
           f"drive --threads {args.threads}")
     print()
     print("| output | FPS | dropped | latency p50 / p95 (ms) | landmarks | fit | pose | render (ms, mean) | identity stage |")
@@ -68,7 +69,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for size in args.sizes:
             stats = drive_avatar(run, open_video(args.driver), Path(tmp) / f"drive_{size}.mp4", size=size,
-                                 iterations=args.iterations, max_frames=frames, status=False, threads=args.threads)
+                                 iterations=args.iterations, solver=args.solver, max_frames=frames, status=False, threads=args.threads)
             ms = {s: np.mean(v) if v else float("nan") for s, v in stats.stage_ms.items()}
             lat = np.array(stats.latency_ms)
             print(f"| {size}² | {stats.fps:.1f} | {stats.dropped}/{stats.delivered} | {np.median(lat):.0f} / "
@@ -83,7 +84,7 @@ def main() -> None:
     tracked = np.load(work / "tracking.npz")
     row_of = {int(s): r for r, s in enumerate(offline_frames["source_index"])}
     started = time.perf_counter()
-    stats = drive_avatar(run, open_video(args.driver), None, size=args.sizes[0], iterations=args.iterations,
+    stats = drive_avatar(run, open_video(args.driver), None, size=args.sizes[0], iterations=args.iterations, solver=args.solver,
                          max_frames=frames, lossless=True, record=True, status=False, render=False,
                          threads=args.threads)
     online = [r for r in stats.records if not r.get("init") and r["found"] and r["index"] in row_of]

@@ -4,8 +4,9 @@ Per frame (one worker thread; a reader thread keeps only the newest frame):
 
     landmarks   the driver's frame cropped the way `prepare` crops (a square of one side around the
                 face, its centre following the face), MediaPipe's face mesh (prep/landmarks.py)
-    fit         the driver's pose, jaw, eyes and expression: prep/tracking.py's OnlineFit, a few L-BFGS
-                iterations warm-started from the previous frame, on the energy of the batch tracker
+    fit         the driver's pose, jaw, eyes and expression: prep/tracking.py's OnlineFit, two damped
+                Gauss-Newton iterations (or L-BFGS, --solver) warm-started from the previous frame, on the
+                energy of the batch tracker
     pose        the avatar's parameters from the driver's (apps/reenact.py's driven_params: absolute,
                 or --relative offsets from the driver's neutral onto the avatar's), avatar.pose_avatar
     render      avatar.rasterize_gaussians with the avatar's dataset camera at --size
@@ -236,7 +237,8 @@ class DriverTracker:
     (a list of DriverFrame) when it finishes, and a DriverFrame for every later frame."""
 
     def __init__(self, head: str = "openhead", init_frames: int = 25, fps: float = 25.0, crop_size: int = 256,
-                 iterations: int = 8, lr: float = 1.0, flame_dir: Path | None = None, tracking_steps=(100, 300)):
+                 iterations: int | None = None, solver: str = "gauss_newton", flame_dir: Path | None = None,
+                 tracking_steps=(100, 300)):
         from geoavatar.prep.landmarks import FaceDetector, FaceMesh
         from geoavatar.prep.pipeline import PrepareConfig, load_tracking_head, tracking_config
 
@@ -250,7 +252,7 @@ class DriverTracker:
             raise RunError(str(err)) from err
         self.config = tracking_config(self.prepare)
         self.init_frames, self.fps, self.crop_size = init_frames, fps, crop_size
-        self.iterations, self.lr = iterations, lr
+        self.iterations, self.solver = iterations, solver
         self.detector, self.mesh = FaceDetector(), FaceMesh()
         self._buffer: list[np.ndarray] = []
         self._boxes: list = []
@@ -304,7 +306,7 @@ class DriverTracker:
         result = track_crops(self.model, self.data, filtered, confidence, boxes, (width, height), self.crop_size,
                              self.config)
         scale = self.crop_size / boxes[0][2]
-        self.online = OnlineFit(self.model, result, self.config, self.iterations, self.lr)
+        self.online = OnlineFit(self.model, result, self.config, self.iterations, solver=self.solver)
         values = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in result.params.items() if k != "static_offset"}
         fitted = HeadParams.from_npz(values)
         npz = fitted.to_npz()
@@ -402,8 +404,8 @@ def drive_avatar(
     relative: bool = False,
     size: int = 512,
     init_seconds: float = 1.0,
-    iterations: int = 8,
-    lr: float = 1.0,
+    iterations: int | None = None,
+    solver: str = "gauss_newton",
     max_frames: int | None = None,
     lossless: bool = False,
     viewer=None,
@@ -419,7 +421,7 @@ def drive_avatar(
     """Run the live pipeline until the source ends; returns the measurements (see the module docstring)."""
     if size < 16:
         raise OptionError(f"--size must be >= 16, got {size}")
-    if iterations < 1:
+    if iterations is not None and iterations < 1:
         raise OptionError(f"--iterations must be >= 1, got {iterations}")
     if init_seconds <= 0:
         raise OptionError(f"--init-seconds must be positive, got {init_seconds}")
@@ -441,7 +443,7 @@ def drive_avatar(
         raise OptionError(f"--threads must be >= 1, got {threads}")
     process_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
-    tracker = DriverTracker(run.info.head_model, init_count, source.fps, 256, iterations, lr, flame_dir, init_steps)
+    tracker = DriverTracker(run.info.head_model, init_count, source.fps, 256, iterations, solver, flame_dir, init_steps)
     stats = DriveStats()
     show = _Status(status)
     # A file waits (nothing dropped) while the identity stage collects and fits its first second, then plays
@@ -554,7 +556,8 @@ def drive(
     view: bool = False,
     size: int = 512,
     init_seconds: float = 1.0,
-    iterations: int = 8,
+    solver: Literal["gauss_newton", "lbfgs"] = "gauss_newton",
+    iterations: Optional[int] = None,
     max_frames: Optional[int] = None,
     host: str = "127.0.0.1",
     port: int = 8080,
@@ -580,7 +583,10 @@ def drive(
         view: Show the avatar live in the browser viewer (viser) on --host/--port.
         size: Side of the rendered avatar in pixels (the avatar's dataset camera, scaled).
         init_seconds: Length of the identity stage at the start of the driver.
-        iterations: L-BFGS iterations of the online fit per frame (its latency grows with them).
+        solver: Online fit per frame: gauss_newton (damped Gauss-Newton; closer to the offline tracking at
+            the same cost) or lbfgs.
+        iterations: Iterations of the online fit per frame (default: 2 Gauss-Newton or 8 L-BFGS; its latency
+            grows with them).
         max_frames: Stop after this many source frames (default: the whole video, or until Ctrl-C).
         host: Viewer address (--view).
         port: Viewer port (--view).
@@ -608,7 +614,7 @@ def drive(
             raise GeoAvatarError(f"cannot start the viewer: {err}") from err
         print(f"GeoAvatar live viewer: {viewer.url}", flush=True)
     try:
-        stats = drive_avatar(loaded, source, out, relative, size, init_seconds, iterations, max_frames=max_frames,
+        stats = drive_avatar(loaded, source, out, relative, size, init_seconds, iterations, solver, max_frames=max_frames,
                              viewer=viewer, backend=backend, data=data, status=status, flame_dir=flame_dir,
                              threads=threads)
     except KeyboardInterrupt:
