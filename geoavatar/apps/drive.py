@@ -1,6 +1,7 @@
 """`geoavatar drive RUN (--camera N | --video FILE)`: drive a trained avatar live from a webcam or a video.
 
-Per frame (one worker thread; a reader thread keeps only the newest frame):
+Per frame (a reader thread, a fit thread (landmarks, fit) and the output stage (pose, render), each stage
+keeping only the newest item of the one before):
 
     landmarks   the driver's frame cropped the way `prepare` crops (a square of one side around the
                 face, its centre following the face), MediaPipe's face mesh (prep/landmarks.py)
@@ -19,7 +20,7 @@ of those frames. The driver's neutral (for --relative and for the head's transla
 the first second.
 
 Real time: `--video` plays the file at its own frame rate, as a live source would deliver it: when the
-worker is busy, a newer frame replaces the waiting one and the older is dropped (counted), never queued.
+pipeline is busy, a newer frame replaces the waiting one and the older is dropped (counted), never queued.
 The file's clock starts after the identity stage (a camera's frames are dropped during it).
 Latency is measured from the moment a frame is available to the moment its output is done. A status
 line shows the FPS, drops and the per-stage times. The written mp4 (`--out`, driver | avatar) runs at
@@ -145,9 +146,9 @@ def open_camera(index: int) -> Source:
 
 
 class NewestFrame:
-    """A one-slot mailbox between the reader and the worker: a new frame replaces a waiting one (a drop).
+    """A one-slot mailbox between two stages (reader -> fit -> output): a new item replaces a waiting one (a drop).
 
-    With `lossless` the reader waits for the worker instead (every frame is processed; for measurements)."""
+    With `lossless` the producer waits for the consumer instead (every frame is processed; for measurements)."""
 
     def __init__(self, lossless: bool = False):
         self.lossless = lossless
@@ -357,7 +358,7 @@ class DriverTracker:
 @dataclass
 class DriveStats:
     frames: int = 0  # frames shown after the first online one (the FPS counts these)
-    processed: int = 0  # frames the worker took from the source (identity stage included)
+    processed: int = 0  # frames the fit stage took from the source (identity stage included)
     init_frames: int = 0
     dropped: int = 0  # frames the source delivered that were never processed
     delivered: int = 0
@@ -447,7 +448,7 @@ def drive_avatar(
     stats = DriveStats()
     show = _Status(status)
     # A file waits (nothing dropped) while the identity stage collects and fits its first second, then plays
-    # in real time from there; a camera's frames are dropped during it, as at any time the worker is busy.
+    # in real time from there; a camera's frames are dropped during it, as at any time the fit stage is busy.
     mailbox = NewestFrame(lossless or not source.live)
     stop = threading.Event()
     reader = start_reader(source, mailbox, max_frames, stop)
@@ -464,7 +465,8 @@ def drive_avatar(
         params = HeadParams.from_npz(driven_params(identity, avatar_ref, driver_now, driver_ref, relative))
         posed = pose_avatar(run.avatar, run.head, params, None, run.deformer)
         if viewer is not None:
-            viewer.show_live(posed.gaussians, f"live: frame {index}, {stats.fps:.1f} fps, dropped {mailbox.dropped}")
+            viewer.show_live(posed.gaussians, f"live: frame {index}, {stats.fps:.1f} fps, "
+                                                f"dropped {mailbox.dropped + fitted.dropped}")
         t1 = time.perf_counter()
         timings["pose"] = t1 - t0
         if render:
@@ -491,38 +493,57 @@ def drive_avatar(
             stats.records.append({"index": index, "error": driver.error, "found": driver.found,
                                   **{k: getattr(driver.params, k)[0].numpy().copy() for k in ("expr", "jaw_pose", "rotation")}})
 
+    # Two stages in two threads, each keeping only the newest item of the one before: the fit (landmarks +
+    # online fit) of frame t+1 runs while frame t is posed and rendered (torch ops and the native
+    # rasterizer release the GIL), so the frame rate is bounded by the slower stage, not by their sum.
+    fitted = NewestFrame(lossless)
+
+    def fit_frames() -> None:
+        error = None
+        try:
+            while True:
+                item = mailbox.get()
+                if item is None:
+                    break
+                index, available, rgb = item
+                stats.processed += 1
+                if tracker.online is None:
+                    init_indices.append(index)
+                t0 = time.perf_counter()
+                result = tracker.push(rgb)
+                if result is None:
+                    continue
+                if isinstance(result, list):  # the identity stage finished: its frames are not shown live
+                    stats.init_frames, stats.init_seconds = len(result), tracker.init_seconds
+                    mailbox.set_lossless(lossless)
+                    if record:
+                        stats.records.extend({"index": init_indices[k], "init": True, "error": f.error,
+                                              **{key: getattr(f.params, key)[0].numpy().copy()
+                                                 for key in ("expr", "jaw_pose", "rotation")}} for k, f in enumerate(result))
+                    continue
+                now = time.perf_counter()
+                timings = ({"landmarks": tracker.landmarks_done - t0, "fit": now - tracker.landmarks_done}
+                           if result.found else {"landmarks": now - t0})
+                stats.no_face += 0 if result.found else 1
+                fitted.put((index, result, timings, available))
+        except BaseException as err:  # handed to the output stage, which raises it
+            error = err
+        finally:
+            fitted.close(error)
+
+    fitter = threading.Thread(target=fit_frames, name="geoavatar-drive-fit", daemon=True)
     try:
         if writer is not None:
             writer.__enter__()
+        fitter.start()
         while True:
             try:
-                item = mailbox.get()
+                item = fitted.get()
             except KeyboardInterrupt:  # Ctrl-C ends a live source; what was written is kept
                 item = None
             if item is None:
                 break
-            index, available, rgb = item
-            stats.processed += 1
-            if tracker.online is None:
-                init_indices.append(index)
-            t0 = time.perf_counter()
-            result = tracker.push(rgb)
-            if result is None:
-                continue
-            if isinstance(result, list):  # the identity stage finished: its frames are not shown live
-                stats.init_frames, stats.init_seconds = len(result), tracker.init_seconds
-                mailbox.set_lossless(lossless)
-                if record:
-                    stats.records.extend({"index": init_indices[k], "init": True, "error": f.error,
-                                          **{key: getattr(f.params, key)[0].numpy().copy()
-                                             for key in ("expr", "jaw_pose", "rotation")}} for k, f in enumerate(result))
-                last_index = index
-                continue
-            now = time.perf_counter()
-            timings = ({"landmarks": tracker.landmarks_done - t0, "fit": now - tracker.landmarks_done}
-                       if result.found else {"landmarks": now - t0})
-            stats.no_face += 0 if result.found else 1
-            output(index, result, timings, available)
+            output(*item)
             show(stats)
         if writer is not None:
             writer.__exit__(None, None, None)
@@ -535,9 +556,12 @@ def drive_avatar(
         stop.set()
         mailbox.close()
         reader.join(timeout=5.0)
+        if fitter.is_alive():
+            fitter.join(timeout=5.0)
         tracker.close()
         torch.set_num_threads(process_threads)
-        stats.dropped, stats.delivered = mailbox.dropped, mailbox.delivered
+        # a frame is dropped when the fit never took it or when the render stage never took its fit
+        stats.dropped, stats.delivered = mailbox.dropped + fitted.dropped, mailbox.delivered
         show(stats, force=True)
         if status and sys.stderr.isatty():
             print(file=sys.stderr)

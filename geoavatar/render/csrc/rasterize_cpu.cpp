@@ -1169,10 +1169,13 @@ std::vector<torch::Tensor> project_backward(const torch::Tensor& means, const to
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.doc() = "geoavatar native CPU rasterize-to-pixels (tile binning, compositing, backward)";
-  module.def("forward", &forward, "rgb, alpha, tile offsets, tile ids, last, t_final");
-  module.def("backward", &backward, "grads of means2d, conics, opacities, colors");
-  module.def("project", &project, "means2d, conics, depths, radii, visible of one camera");
-  module.def("project_backward", &project_backward, "grads of means, quats, scales");
+  // The GIL is released while a call runs (arguments and results are tensors, converted outside the guard):
+  // other Python threads (drive's fit beside its render, a viewer) keep running during a frame.
+  using release_gil = pybind11::call_guard<pybind11::gil_scoped_release>;
+  module.def("forward", &forward, "rgb, alpha, tile offsets, tile ids, last, t_final", release_gil());
+  module.def("backward", &backward, "grads of means2d, conics, opacities, colors", release_gil());
+  module.def("project", &project, "means2d, conics, depths, radii, visible of one camera", release_gil());
+  module.def("project_backward", &project_backward, "grads of means, quats, scales", release_gil());
   module.def("simd_paths", &simd_paths, "SIMD paths of the float32 compositing this CPU runs, fastest first");
   module.def("max_threads", []() { return omp_get_max_threads(); });
 }
