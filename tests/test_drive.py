@@ -125,6 +125,32 @@ def test_relative_driving_renders(run, clip, tmp_path):
     assert stats.init_frames == 5 and stats.processed == 8
 
 
+@needs_video
+def test_view_mode_sends_every_online_frame_to_the_live_viewer(run, clip):
+    pytest.importorskip("viser")
+    import socket
+
+    from geoavatar.apps.view import start_viewer
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    viewer = start_viewer(run, port=port, expr_sliders=0, live=True)
+    try:
+        before = viewer.splats.centers.copy()
+        shown = []
+        show_live = viewer.show_live
+        viewer.show_live = lambda gaussians, info="": (shown.append(info), show_live(gaussians, info))
+        stats = drive_avatar(run, open_video(clip), None, viewer=viewer, size=32, init_seconds=0.2, lossless=True,
+                             max_frames=10, status=False, init_steps=INIT_STEPS)
+        assert stats.processed == 10 and len(shown) == 10 - 5 and shown[-1].startswith("live: frame 9")
+        assert not stats.stage_ms["render"]  # --view without --out: the browser renders, the render stage is skipped
+        after = viewer.splats.centers
+        assert after.shape == before.shape and np.isfinite(after).all() and not np.allclose(after, before)
+    finally:
+        viewer.stop()
+
+
 def test_a_source_too_short_for_the_identity_stage_is_an_error(run):
     from geoavatar.apps.drive import DriveError
 
