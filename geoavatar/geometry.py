@@ -48,10 +48,11 @@ def matrix_to_quaternion(matrix: Tensor) -> Tensor:
     return torch.where(quat[..., :1] < 0, -quat, quat)
 
 
-def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product a ⊗ b of quaternions [..., 4] (w, x, y, z)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
+def quaternion_multiply(a: Tensor, b: Tensor, dim: int = -1) -> Tensor:
+    """Hamilton product a ⊗ b of quaternions [..., 4] (w, x, y, z); `dim`: the component axis
+    (0 for component-major [4, ...] tensors, whose components are contiguous)."""
+    aw, ax, ay, az = a.unbind(dim)
+    bw, bx, by, bz = b.unbind(dim)
     return torch.stack(
         [
             aw * bw - ax * bx - ay * by - az * bz,
@@ -59,7 +60,7 @@ def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
             aw * by - ax * bz + ay * bw + az * bx,
             aw * bz + ax * by - ay * bx + az * bw,
         ],
-        dim=-1,
+        dim=dim,
     )
 
 
