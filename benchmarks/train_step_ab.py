@@ -17,7 +17,8 @@ accumulated every step, as in training.
     .venv/bin/python benchmarks/train_step_ab.py --trees . --data DIR --mode profile
 
 Modes: time (steps/s, wall and CPU seconds per step), losses (every loss term of every step, to check
-that two trees train identically), profile (torch.profiler's top ops of a few steps).
+that two trees train identically), profile (torch.profiler's top ops of a few steps), raster (the
+rasterizer alone, fwd + bwd on frame 0's posed Gaussians: the best of --steps calls; "steps/s" = calls/s).
 """
 
 from __future__ import annotations
@@ -104,6 +105,34 @@ def child(args) -> dict:
         out["psnr"] = [r.psnr for r in reports]
         out["final_params"] = {k: float(v.detach().double().abs().sum()) for k, v in state.avatar.params.items()}
         return out
+    if args.mode == "raster":  # the rasterizer alone (fwd + bwd) on the posed Gaussians of frame 0
+        from geoavatar.avatar import pose_avatar
+        from geoavatar.render import rasterize
+        from geoavatar.train.trainer import item_camera
+
+        item = data.train_set[0]
+        camera = item_camera(item)
+        with torch.no_grad():
+            g = pose_avatar(state.avatar, data.head, state.frames(item["row"]), item["timestep"], state.deformer).gaussians
+        leaves = [t.detach().clone().requires_grad_() for t in (g.means, g.quats, g.scales, g.opacities, g.colors)]
+        target = torch.rand(item["height"], item["width"], 3, generator=torch.Generator().manual_seed(0))
+
+        def once() -> None:
+            rgb = rasterize(*leaves, camera.viewmat, camera.K, camera.width, camera.height, item["background"],
+                            backend=args.backend, check_values=False).rgb
+            (rgb - target).abs().mean().backward()
+
+        for _ in range(args.warmup):
+            once()
+        wall, cpu = [], []
+        for _ in range(args.steps):
+            w, c = time.perf_counter(), time.process_time()
+            once()
+            wall.append(time.perf_counter() - w)
+            cpu.append(time.process_time() - c)
+        out.update(steps=args.steps, s_per_step=min(wall), cpu_s_per_step=min(cpu), steps_per_second=1 / min(wall),
+                   peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+        return out
     run(args.warmup)
     if args.mode == "profile":
         from torch.profiler import ProfilerActivity, profile
@@ -148,7 +177,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--backend", default="auto")
-    parser.add_argument("--mode", choices=["time", "losses", "profile"], default="time")
+    parser.add_argument("--mode", choices=["time", "losses", "profile", "raster"], default="time")
     parser.add_argument("--rows", type=int, default=30)
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
