@@ -27,18 +27,20 @@ def axis_angle_to_matrix(axis_angle: Tensor) -> Tensor:
 
 def matrix_to_quaternion(matrix: Tensor) -> Tensor:
     """Rotation matrices [..., 3, 3] -> unit quaternions [..., 4] (w, x, y, z), w >= 0."""
-    m = matrix
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    # The nine entries by one unbind: its backward is one stack, where 9 selects would each add a
+    # zero-filled [..., 3, 3] gradient.
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = matrix.flatten(-2).unbind(-1)
     # Four candidate magnitudes; pick the best-conditioned per element (Shepperd's method).
     q_abs = torch.stack(
         [1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], dim=-1
     ).clamp_min(1e-12).sqrt()  # [..., 4] = 2*|w|, 2*|x|, 2*|y|, 2*|z|
+    q0, q1, q2, q3 = q_abs.unbind(-1)
     candidates = torch.stack(
         [
-            torch.stack([q_abs[..., 0] ** 2, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-            torch.stack([m[..., 2, 1] - m[..., 1, 2], q_abs[..., 1] ** 2, m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]], -1),
-            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1], q_abs[..., 2] ** 2, m[..., 2, 1] + m[..., 1, 2]], -1),
-            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 2, 0] + m[..., 0, 2], m[..., 2, 1] + m[..., 1, 2], q_abs[..., 3] ** 2], -1),
+            torch.stack([q0 ** 2, m21 - m12, m02 - m20, m10 - m01], -1),
+            torch.stack([m21 - m12, q1 ** 2, m10 + m01, m02 + m20], -1),
+            torch.stack([m02 - m20, m10 + m01, q2 ** 2, m21 + m12], -1),
+            torch.stack([m10 - m01, m20 + m02, m21 + m12, q3 ** 2], -1),
         ],
         dim=-2,
     ) / (2.0 * q_abs[..., :, None])  # [..., 4, 4]
@@ -48,10 +50,11 @@ def matrix_to_quaternion(matrix: Tensor) -> Tensor:
     return torch.where(quat[..., :1] < 0, -quat, quat)
 
 
-def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product a ⊗ b of quaternions [..., 4] (w, x, y, z)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
+def quaternion_multiply(a: Tensor, b: Tensor, dim: int = -1) -> Tensor:
+    """Hamilton product a ⊗ b of quaternions [..., 4] (w, x, y, z); `dim`: the component axis
+    (0 for component-major [4, ...] tensors, whose components are contiguous)."""
+    aw, ax, ay, az = a.unbind(dim)
+    bw, bx, by, bz = b.unbind(dim)
     return torch.stack(
         [
             aw * bw - ax * bx - ay * by - az * bz,
@@ -59,7 +62,7 @@ def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
             aw * by - ax * bz + ay * bw + az * bx,
             aw * bz + ax * by - ay * bx + az * bw,
         ],
-        dim=-1,
+        dim=dim,
     )
 
 

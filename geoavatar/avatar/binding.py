@@ -27,12 +27,13 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from geoavatar.geometry import matrix_to_quaternion, quaternion_multiply
+from geoavatar.avatar import fused
+from geoavatar.avatar.fused import place_gaussians
+from geoavatar.geometry import matrix_to_quaternion
 
-NORMAL_AXIS = 1  # local axis along the face normal (a1)
+NORMAL_AXIS = fused.NORMAL_AXIS  # local axis along the face normal (a1)
 _EPS = 1e-12
 
 
@@ -96,16 +97,11 @@ def local_to_global(
     binding: Tensor,  # [N] face index of each Gaussian
     frames: FaceFrames,  # [..., F, ...]
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """mu_g = k R mu + C, q_g = q_face (x) normalize(q), s_g = k exp(s): -> [..., N, 3], [..., N, 4], [..., N, 3]."""
-    binding = binding.to(device=means.device, dtype=torch.long)
-    rot = frames.rotation[..., binding, :, :]  # [..., N, 3, 3]
-    k = frames.scale[..., binding, None]  # [..., N, 1]
-    centre = frames.centre[..., binding, :]  # [..., N, 3]
-    means_g = k * (rot @ means[..., None]).squeeze(-1) + centre
-    face_quat = frames.quaternion[..., binding, :]  # [..., N, 4]
-    quats_g = quaternion_multiply(face_quat, F.normalize(quats, dim=-1).expand_as(face_quat))
-    scales_g = k * torch.exp(log_scales)
-    return means_g, quats_g, scales_g
+    """mu_g = k R mu + C, q_g = q_face (x) normalize(q), s_g = k exp(s): -> [..., N, 3], [..., N, 4], [..., N, 3].
+
+    One autograd Function with a hand-written backward (fused.place_gaussians)."""
+    return place_gaussians(frames.rotation, frames.centre, frames.scale, frames.quaternion, means, quats, log_scales,
+                           binding)
 
 
 def polar_coordinates(local_means: Tensor, two_sided: bool = False) -> tuple[Tensor, Tensor]:
@@ -113,15 +109,4 @@ def polar_coordinates(local_means: Tensor, two_sided: bool = False) -> tuple[Ten
 
     local_means: [N, 3] -> r [N], phi [N] in [0, pi] ([0, pi/2] when two_sided).
     """
-    r = torch.linalg.vector_norm(local_means, dim=-1)  # PyTorch's norm has a zero subgradient at 0
-    tiny = r <= 1e-12
-    along_normal = torch.zeros_like(local_means)
-    along_normal[..., NORMAL_AXIS] = 1.0
-    safe = torch.where(tiny[..., None], along_normal, local_means)  # phi = 0 at the origin
-    normal_part = safe[..., NORMAL_AXIS]
-    tangent = torch.cat([safe[..., :NORMAL_AXIS], safe[..., NORMAL_AXIS + 1:]], dim=-1)
-    tangent_norm = torch.linalg.vector_norm(tangent, dim=-1)
-    if two_sided:
-        normal_part = normal_part.abs()
-    phi = torch.atan2(tangent_norm, normal_part)
-    return r, phi
+    return fused.polar_coordinates(local_means, two_sided)

@@ -467,6 +467,16 @@ GEOAVATAR_INLINE int32_t sum_lanes(typename Vec<W>::I v) {
 }
 #endif
 
+// A tile's entries are in depth order and their splats lie scattered in memory (a Splat<float> spans two
+// cache lines): the lane loops fetch the splat of the entry kPrefetch ahead while working on this one.
+constexpr int64_t kPrefetch = 4;
+
+template <typename T>
+GEOAVATAR_INLINE void prefetch_splat(const T* splat) {
+  __builtin_prefetch(splat);
+  __builtin_prefetch(reinterpret_cast<const char*>(splat) + 64);
+}
+
 // One tile of the lane forward: geometry, its entries and per-thread scratch planes (lane_stride).
 struct LaneTile {
   const Splat<float>* splats;
@@ -493,6 +503,7 @@ GEOAVATAR_INLINE void composite_tile_vec(const LaneTile& tile) {
   const F alpha_max = splat<F>(kAlphaMaxF), t_min = splat<F>(kTransmittanceMinF);
   int64_t n_done = 0;
   for (int64_t k = tile.begin; k < tile.end && n_done < tw * th; ++k) {
+    if (k + kPrefetch < tile.end) prefetch_splat(tile.splats + tile.ids[k + kPrefetch]);
     const Splat<float>& s = tile.splats[tile.ids[k]];
     const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
     const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
@@ -697,6 +708,7 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
   const F zero = splat<F>(0.0f), one = splat<F>(1.0f), half = splat<F>(0.5f);
   const F alpha_min = splat<F>(kAlphaMinF), alpha_max = splat<F>(kAlphaMaxF);
   for (int64_t k = tile.begin + tile.max_last - 1; k >= tile.begin; --k) {
+    if (k - kPrefetch >= tile.begin) prefetch_splat(tile.splats + tile.ids[k - kPrefetch]);
     const Splat<float>& s = tile.splats[tile.ids[k]];
     const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
     const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
