@@ -236,7 +236,9 @@ class AblationComponents:
 #   components with a single GeoAvatar threshold for every Gaussian, no L_angle.
 # - H/I add "FLAME mouth modification, i.e. mesh modification and part-wise deformation" to F/G.
 #   Table 6's I equals Table 7's "Ours w/o APS" to the last digit (0.853 / 31.318 / 0.930 / 0.629), so
-#   H and I keep the rest of GeoAvatar, L_angle included.
+#   H and I keep the rest of GeoAvatar, L_angle included, and GeoAvatar's mouth set F_m with
+#   tau_m = tau_r (it belongs to the mouth structure, not to APS); F and G, with GaussianAvatars'
+#   teeth, give every face, teeth included, their one threshold.
 # - Table 7's isolating ablations: "w/o APS" = I, "w/o L_angle" = D, and the two others are
 #   "E-no-mouth" and "E-no-deform" below.
 ABLATIONS: dict[str, AblationComponents] = {
