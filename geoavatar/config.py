@@ -127,7 +127,12 @@ class LearningRates:
     scaling: float = 0.017
     rotation: float = 1e-3
     adam_eps: float = 1e-15  # Adam's eps for the Gaussians
-    mouth_deform: float = 1e-4  # not given by the paper; a common MLP learning rate
+    # Phi's rate is not given by the paper. Phi corrects *subtle* per-frame mouth misalignment (mm); with
+    # Adam every weight of its last layer moves ~lr per step whatever the gradient's size, and the
+    # output is in centimetres, so 1e-4 let the part offsets drift ~5 mm within 1500 steps even with
+    # exact parameters (nothing to correct), costing 2 dB of mouth PSNR; 1e-5 keeps them ~0.3 mm
+    # there and D = C (BENCHMARKS.md, issue #13).
+    mouth_deform: float = 1e-5
     tracking_expr: float = 1e-3  # tracking refinement (GaussianAvatars)
     tracking_pose: float = 1e-5  # rotation, neck, jaw, eyes
     tracking_translation: float = 1e-6
