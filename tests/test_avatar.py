@@ -307,6 +307,10 @@ def test_aps_assigns_parts_by_the_mean_distance_rule():
     assert face_set_ids(part_of_face, "aps", None).tolist() == [RIGID] * 6 + [MOUTH] * 2
     assert (face_set_ids(part_of_face, "flexible") == FLEXIBLE).all()
     assert (face_set_ids(part_of_face, "rigid") == RIGID).all()
+    # H / I: GeoAvatar's mouth structure keeps its own set (tau_m) when every other face is rigid / flexible.
+    assert face_set_ids(part_of_face, "flexible", mouth_set=True).tolist() == [FLEXIBLE] * 6 + [MOUTH] * 2
+    assert face_set_ids(part_of_face, "rigid", mouth_set=True).tolist() == [RIGID] * 6 + [MOUTH] * 2
+    assert (face_set_ids(part_of_face, "gaussianavatars", mouth_set=True) == BASELINE).all()
     assert (face_set_ids(part_of_face, "gaussianavatars") == BASELINE).all()
     with pytest.raises(ValueError, match="face-set mode"):
         face_set_ids(part_of_face, "bogus")

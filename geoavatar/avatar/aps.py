@@ -63,12 +63,16 @@ def assign_parts(
     return flexible, distances, threshold
 
 
-def face_set_ids(part_of_face: Tensor | np.ndarray, mode: str, flexible_parts: Tensor | None = None) -> Tensor:
+def face_set_ids(part_of_face: Tensor | np.ndarray, mode: str, flexible_parts: Tensor | None = None,
+                 mouth_set: bool = False) -> Tensor:
     """The regulariser set of every face: [F] int64 of RIGID / FLEXIBLE / MOUTH / BASELINE.
 
     mode "aps": mouth faces MOUTH, other faces RIGID, or FLEXIBLE when their part is in
-    flexible_parts [num_parts] (None before the APS step); "rigid" / "flexible": every face
-    (mouth included: the paper's F-I treat "every Gaussian" alike); "gaussianavatars": BASELINE.
+    flexible_parts [num_parts] (None before the APS step); "rigid" / "flexible": every face, and the
+    mouth faces too unless `mouth_set`, which keeps them MOUTH (tau_mouth): GeoAvatar's F_m comes with
+    its mouth structure, not with APS, so the paper's H / I ("mouth modification" added to F / G; I is
+    Table 7's "Ours w/o APS") keep tau_m = tau_r on it while F / G, with GaussianAvatars' teeth, treat
+    every Gaussian alike; "gaussianavatars": BASELINE.
     """
     part_of_face = torch.as_tensor(part_of_face).long()
     if mode == "aps":
@@ -86,7 +90,10 @@ def face_set_ids(part_of_face: Tensor | np.ndarray, mode: str, flexible_parts: T
     fill = {"rigid": RIGID, "flexible": FLEXIBLE, "gaussianavatars": BASELINE}.get(mode)
     if fill is None:
         raise ValueError(f"face_set_ids: unknown face-set mode '{mode}'; choose one of {', '.join(FACE_SET_MODES)}")
-    return torch.full_like(part_of_face, fill)
+    sets = torch.full_like(part_of_face, fill)
+    if mouth_set and mode != "gaussianavatars":
+        sets[part_of_face < 0] = MOUTH
+    return sets
 
 
 @dataclass
@@ -112,8 +119,8 @@ class APSState:
         """[num_parts] bool once APS ran, else None (everything rigid)."""
         return torch.tensor(self.flexible, dtype=torch.bool) if self.done else None
 
-    def face_sets(self, part_of_face: Tensor | np.ndarray, mode: str = "aps") -> Tensor:
-        return face_set_ids(part_of_face, mode, self.flexible_parts() if mode == "aps" else None)
+    def face_sets(self, part_of_face: Tensor | np.ndarray, mode: str = "aps", mouth_set: bool = False) -> Tensor:
+        return face_set_ids(part_of_face, mode, self.flexible_parts() if mode == "aps" else None, mouth_set)
 
     def to_dict(self) -> dict:
         return {"part_names": list(self.part_names), "done": self.done, "step": self.step,

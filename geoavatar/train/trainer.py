@@ -242,7 +242,8 @@ def new_state(data: TrainingData, config: TrainConfig, seed: int) -> TrainingSta
         avatar=avatar, deformer=deformer, frames=frames,
         optimizers=build_optimizers(avatar, deformer, frames, config, data.extent),
         stats=densify_ops.new_state(avatar.num_gaussians, device),
-        aps=aps, face_sets=aps.face_sets(data.part_of_face, config.model.face_sets).to(device),
+        aps=aps, face_sets=aps.face_sets(data.part_of_face, config.model.face_sets,
+                                    mouth_set=config.model.mouth == "geoavatar").to(device),
         generator=generator,
     )
 
