@@ -54,7 +54,8 @@ from geoavatar.avatar import TimestepMode, frame_timestep, render_avatar
 from geoavatar.data import HeadAvatarDataset, evenly_spaced
 from geoavatar.errors import OptionError
 from geoavatar.eval import metrics
-from geoavatar.eval.floaters import DEFAULT_DILATE, FloaterConfig, dilate_mask, head_silhouette, outside_share, side_view_shares
+from geoavatar.eval.floaters import (DEFAULT_DILATE, FloaterConfig, dilate_mask, head_silhouette, outside_share,
+                                     side_view_shares)
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import rasterize_mesh

@@ -234,5 +234,6 @@ def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[st
             "json": atomic_write_json(markdown.with_suffix(".json"), body)}
 
 
-__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "extra_sections", "side_view_table", "view_table", "comparison_markdown", "eval_dir", "metric_table",
+__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "extra_sections", "side_view_table", "view_table",
+           "comparison_markdown", "eval_dir", "metric_table",
            "run_json", "run_markdown", "write_comparison", "write_frame_images", "write_run_report"]
