@@ -43,6 +43,7 @@ FaceSetMode = Literal["aps", "rigid", "flexible", "gaussianavatars"]
 # Mouth interior appended to the head model (geoavatar.head.mouth):
 #   "none" no interior, "gaussianavatars" frontal teeth only, "geoavatar" teeth+molars+palate+floor
 MouthKind = Literal["none", "gaussianavatars", "geoavatar"]
+BackgroundMode = Literal["dataset", "random"]
 
 PAPER_STEPS = 200_000
 # The fields of TrainConfig counted in steps (dotted names): TrainConfig.scaled_to scales them.
@@ -148,6 +149,11 @@ class TrainConfig:
     # training with tiny learning rates (its default, not_finetune_flame_params=False); GeoAvatar
     # follows GaussianAvatars' settings, so it is on in every preset. Test frames are never refined.
     refine_tracking: bool = True
+    # The colour behind the avatar in training, the target composited on the same colour (trainer.step_background):
+    # "dataset" = the dataset's one background, as GaussianAvatars; "random" = a uniform random colour per
+    # step, so that no Gaussian can lower the loss by showing the background colour (e.g. to carve the
+    # silhouette) and off-mask pixels ask for transparency, not for that colour.
+    background: BackgroundMode = "dataset"
     model: ModelConfig = field(default_factory=ModelConfig)  # the learned avatar
     loss: LossConfig = field(default_factory=LossConfig)  # L = L_rgb + L_reg (+ L_angle, scale loss)
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # adaptive density control
@@ -187,6 +193,8 @@ class TrainConfig:
             problems.append(f"steps must be positive (got {self.steps})")
         if not 0 <= self.aps_step <= self.steps:
             problems.append(f"aps_step must lie in [0, steps={self.steps}] (got {self.aps_step})")
+        if self.background not in ("dataset", "random"):
+            problems.append(f"background must be 'dataset' or 'random' (got {self.background!r})")
         if self.model.sh_degree != 0:
             problems.append(f"model.sh_degree: only 0 is supported (GeoAvatar uses 0), got {self.model.sh_degree}")
         if not 0.0 < self.model.init_opacity < 1.0:

@@ -38,6 +38,7 @@ from geoavatar.data import DatasetError, evenly_spaced
 from geoavatar.data.subject import Subject
 from geoavatar.errors import OptionError
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
+from geoavatar.head.regions import skull_centre
 from geoavatar.render.camera import Camera
 from geoavatar.runtime import resolve_device
 from geoavatar.train.checkpoint import LoadedRun, RunError, load_run, open_run_dataset
@@ -153,22 +154,9 @@ def render_params(run: LoadedRun, params: HeadParams, camera: Camera, timestep: 
 
 
 def head_centre(run: LoadedRun, params: HeadParams) -> Tensor:
-    """[3] centre of the posed head: the bounding-box centre of the skin without the neck.
-
-    The neck and the mouth structure are left out so that an orbit turns about the middle of the
-    skull and face, not about a point pulled down toward the shoulders."""
-    vertices = posed_head(run.head, params, None, None).vertices[0]  # [V, 3]
-    keep = torch.ones(vertices.shape[0], dtype=torch.bool, device=vertices.device)
-    regions = run.head.regions
-    if "neck" in regions:
-        keep[torch.as_tensor(np.asarray(regions["neck"]), dtype=torch.long, device=vertices.device)] = False
-    for group in ("mouth_upper", "mouth_lower"):
-        if group in run.head.vertex_groups:
-            keep[torch.as_tensor(np.asarray(run.head.vertex_groups[group]), dtype=torch.long, device=vertices.device)] = False
-    if not bool(keep.any()):
-        keep[:] = True
-    points = vertices[keep]
-    return 0.5 * (points.min(dim=0).values + points.max(dim=0).values)
+    """[3] centre of the posed head (head.regions.skull_centre: the skin without the neck and the mouth),
+    what an orbit turns about."""
+    return skull_centre(posed_head(run.head, params, None, None).vertices[0], run.head)
 
 
 # --- images ------------------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ def _common_parent(paths: list[Path]) -> Path:
 
 def eval_runs(
     runs: tyro.conf.Positional[list[Path]],
-    split: Literal["test", "val", "train"] = "test",
+    split: Literal["test", "val", "train", "novel"] = "test",
     lpips_net: Literal["vgg", "alex"] = "vgg",
     out: Optional[Path] = None,
     max_frames: Optional[int] = None,
@@ -30,6 +30,8 @@ def eval_runs(
     save_images: bool = False,
     lpips_unit_inputs: bool = False,
     mouth: bool = True,
+    floaters: bool = True,
+    floater_frames: int = 4,
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
     progress: bool = True,
@@ -45,7 +47,8 @@ def eval_runs(
 
     Args:
         runs: One or more RUN folders written by `geoavatar train`.
-        split: Frames to evaluate: test (held-out last frames), val or train.
+        split: Frames to evaluate: test (held-out last frames), val, train, or novel (test frames seen from
+            other cameras, with metrics per view: datasets from `geoavatar synth --novel-views`).
         lpips_net: LPIPS backbone: vgg (as the 3DGS / GaussianAvatars evaluation) or alex.
         out: Comparison table file (Markdown; a .json beside it) when several runs are given
             (default: eval_SPLIT_comparison.md in the runs' common parent folder).
@@ -57,19 +60,24 @@ def eval_runs(
         lpips_unit_inputs: Feed [0, 1] images to LPIPS unscaled, as the 3DGS scripts do (only then are
             numbers comparable with theirs); default: [-1, 1], as LPIPS is defined.
         mouth: Measure the mouth region too (--no-mouth skips it).
+        floaters: Measure the share of rendered opacity outside the dilated silhouette of the posed head mesh,
+            per frame and at side views (yaw +-30/60/90, pitch +-20) of a few frames (--no-floaters skips it).
+        floater_frames: Frames of the split rendered at the side views.
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs on FLAME-tracked data only).
         progress: Show progress bars.
     """
     from geoavatar.eval.evaluate import EvalConfig, evaluate_run
-    from geoavatar.eval.report import comparison_markdown, metric_table, write_comparison, write_run_report
+    from geoavatar.eval.report import (extra_sections, comparison_markdown, metric_table, write_comparison,
+                                       write_run_report)
     from geoavatar.train.checkpoint import load_run
     from geoavatar.runtime import resolve_device
 
     if not runs:
         raise SystemExit("geoavatar eval: give at least one RUN folder")
     config = EvalConfig(split=split, lpips_net=lpips_net, lpips_unit_inputs=lpips_unit_inputs, max_frames=max_frames,
-                        mouth=mouth, backend=backend, keep_images=save_images)
+                        mouth=mouth, backend=backend, keep_images=save_images, floaters=floaters,
+                        floater_frames=floater_frames)
     config.validate()  # OptionError naming the option
     try:
         torch_device = resolve_device(device)
@@ -85,6 +93,7 @@ def eval_runs(
         print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
     if len(results) == 1:
         print(metric_table(results, mark_best=False), end="")
+        print(extra_sections(results), end="")
         return 0
     target = out if out is not None else _common_parent(list(runs)) / f"eval_{split}_comparison.md"
     written = write_comparison(results, target)

@@ -8,24 +8,31 @@ bounding-box centre of the posed skin without the neck) and turn about that cent
     second half:               pitch(s) = pitch_max * sin(2 pi s)                about the camera's right axis
 
 so the video starts and ends at the dataset's own viewpoint (aimed at the head centre) and loops.
+
+Floaters (eval/floaters.py): every frame's share of rendered opacity outside the dilated silhouette of
+the posed head mesh is measured; the command prints its mean, its largest value and where, and with
+--stills writes a PNG of the sweep's extreme views.
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, NamedTuple, Optional
 
 import torch
 from torch import Tensor
 
 from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, head_centre, open_run,
-                                   progress, record_camera, render_params, to_uint8)
+                                   progress, rasterize_gaussians, record_camera, run_background, side_by_side,
+                                   to_uint8)
+from geoavatar.avatar import pose_avatar
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
-from geoavatar.geometry import axis_angle_to_matrix
+from geoavatar.eval.floaters import DEFAULT_DILATE, FloaterConfig, head_silhouette, outside_share
+from geoavatar.io.atomic import atomic_write_png
 from geoavatar.io.video import Mp4Writer
-from geoavatar.render.camera import look_at, rigid_inverse
+from geoavatar.render.camera import orbit_viewmat
 from geoavatar.train.checkpoint import RunError
 
 
@@ -41,19 +48,16 @@ def sweep_angles(frames: int, yaw_max: float, pitch_max: float) -> list[tuple[fl
 
 
 def orbit_cameras(base: Camera, centre: Tensor, angles: list[tuple[float, float]]) -> list[Camera]:
-    """Cameras turned about `centre` [3] by (yaw, pitch) degrees, at base's distance and intrinsics."""
+    """Cameras turned about `centre` [3] by (yaw, pitch) degrees, at base's distance and intrinsics
+    (render.camera.orbit_viewmat: positive yaw toward the camera's right, positive pitch up)."""
     viewmat = base.viewmat.to(centre)
-    c2w = rigid_inverse(viewmat)  # [4, 4] columns: camera axes in world, then the camera centre
-    right, up = c2w[:3, 0], -c2w[:3, 1]  # OpenCV: +y is down in the image
-    offset = c2w[:3, 3] - centre  # [3]
-    if float(offset.norm()) < 1e-9:
-        raise ValueError("orbit: the camera sits at the head centre")
-    cameras = []
-    for yaw, pitch in angles:
-        turn = axis_angle_to_matrix(up * math.radians(yaw)) @ axis_angle_to_matrix(right * math.radians(pitch))
-        eye = centre + turn @ offset
-        cameras.append(Camera(look_at(eye, centre, turn @ up), base.K, base.width, base.height))
-    return cameras
+    return [Camera(orbit_viewmat(viewmat, centre, yaw, pitch), base.K, base.width, base.height) for yaw, pitch in angles]
+
+
+class OrbitResult(NamedTuple):
+    frames: int
+    angles: list[tuple[float, float]]  # (yaw, pitch) of each frame, degrees
+    outside: list[float]  # share of opacity outside the dilated head silhouette, per frame
 
 
 @torch.no_grad()
@@ -70,8 +74,9 @@ def orbit_video(
     backend: str = "auto",
     data: Path | None = None,
     show_progress: bool = True,
-) -> int:
-    """Write the orbit video of one frame; returns the number of frames."""
+    stills: Path | None = None,
+) -> OrbitResult:
+    """Write the orbit video of one frame (and with `stills` a PNG of its extreme views)."""
     if not 0 <= yaw < 180 or not 0 <= pitch < 90:
         raise OptionError(f"--yaw must be in [0, 180) and --pitch in [0, 90) degrees, got {yaw}, {pitch}")
     run_frames = RunFrames(run)
@@ -85,11 +90,34 @@ def orbit_video(
     if resolution is not None:
         base = base.resized(resolution)
     centre = head_centre(run, params)  # [3]
-    cameras = orbit_cameras(base.to(centre.device), centre, sweep_angles(frames, yaw, pitch))
+    angles = sweep_angles(frames, yaw, pitch)
+    cameras = orbit_cameras(base.to(centre.device), centre, angles)
+    floaters = FloaterConfig()
+    posed = pose_avatar(run.avatar, run.head, params, t, run.deformer)  # one pose, many cameras
+    background = run_background(run).to(centre.device)
+    outside, images = [], []
     with Mp4Writer(out, fps=fps, crf=crf) as video:
         for camera in progress(cameras, enabled=show_progress, desc="orbit"):
-            video.write(to_uint8(render_params(run, params, camera, t, None, backend)))
-    return video.frames
+            result = rasterize_gaussians(posed.gaussians, camera, background, backend)
+            image = to_uint8(result.rgb.clamp(0.0, 1.0))
+            video.write(image)
+            images.append(image)
+            silhouette = head_silhouette(posed.vertices, run.head.faces, camera,
+                                         floaters.dilate_px(camera.width, camera.height))
+            outside.append(outside_share(result.alpha, silhouette))
+    if stills is not None:
+        atomic_write_png(stills, side_by_side(*[images[i] for i in still_indices(angles)]))
+    return OrbitResult(video.frames, angles, outside)
+
+
+def still_indices(angles: list[tuple[float, float]]) -> list[int]:
+    """Frames of the sweep to show as stills: the front, then the extreme yaws and pitches (each once)."""
+    picks = [0]
+    for key in (lambda a: a[0], lambda a: -a[0], lambda a: a[1], lambda a: -a[1]):
+        best = max(range(len(angles)), key=lambda i: key(angles[i]))
+        if key(angles[best]) > 0 and best not in picks:
+            picks.append(best)
+    return picks
 
 
 def orbit(
@@ -106,6 +134,7 @@ def orbit(
     device: str = "auto",
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
+    stills: Optional[Path] = None,
     progress: bool = True,
 ) -> int:
     """Novel views: orbit the camera around the head of one frame (a yaw sweep, then a pitch sweep).
@@ -124,6 +153,7 @@ def orbit(
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
+        stills: Also write this PNG: the front view and the sweep's extreme views side by side.
         progress: Show progress bars.
     """
     if resolution is not None and resolution <= 0:
@@ -131,9 +161,15 @@ def orbit(
     loaded = open_run(run, device, flame_dir)
     timestep = RunFrames(loaded).resolve(frame)
     target = out or default_output(loaded, VIDEO_DIR, f"orbit_{timestep:05d}.mp4")
-    count = orbit_video(loaded, target, timestep, frames, yaw, pitch, resolution, fps, crf, backend, data, progress)
-    print(f"wrote {target} ({count} frames, yaw +-{yaw:g} deg, pitch +-{pitch:g} deg)")
+    result = orbit_video(loaded, target, timestep, frames, yaw, pitch, resolution, fps, crf, backend, data, progress,
+                         stills)
+    print(f"wrote {target} ({result.frames} frames, yaw +-{yaw:g} deg, pitch +-{pitch:g} deg)"
+          + (f" and {stills}" if stills is not None else ""))
+    worst = max(range(len(result.outside)), key=result.outside.__getitem__)
+    print(f"opacity outside the head silhouette (dilated {100 * DEFAULT_DILATE:g} % of the image): mean "
+          f"{100 * sum(result.outside) / len(result.outside):.1f} %, largest {100 * result.outside[worst]:.1f} % "
+          f"at yaw {result.angles[worst][0]:+.0f}, pitch {result.angles[worst][1]:+.0f} deg")
     return 0
 
 
-__all__ = ["orbit", "orbit_cameras", "orbit_video", "sweep_angles"]
+__all__ = ["OrbitResult", "orbit", "orbit_cameras", "orbit_video", "still_indices", "sweep_angles"]

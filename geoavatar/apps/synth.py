@@ -17,6 +17,8 @@ def synth(
     seed: int = 0,
     preview: bool = False,
     tracking_noise: bool = True,
+    novel_views: bool = False,
+    novel_every: int = 2,
     progress: bool = True,
 ) -> None:
     """Generate a synthetic monocular head video with known ground truth, in the VHAP layout.
@@ -37,12 +39,15 @@ def synth(
         seed: Seed of the motion script and the tracker error (the actor is fixed by --subject).
         preview: Also write preview.png, a contact sheet across the sequence with side views.
         tracking_noise: Add tracker-like error to the written parameters (off: they equal the ground truth).
+        novel_views: Also render test frames from extra cameras turned about the head (yaw +-30 and +-60,
+            pitch +-20 degrees) into transforms_novel.json, the split `geoavatar eval --split novel` scores.
+        novel_every: Every this many test frames get the novel views.
         progress: Show progress bars.
     """
     get_subject(subject)  # OptionError for --subject outside 0..NUM_SUBJECTS-1 (bad options: one line at the CLI)
     config = SynthConfig(
         subject=subject, frames=frames, size=size, seed=seed,
-        tracking_noise=TrackingNoise(enabled=tracking_noise),
+        tracking_noise=TrackingNoise(enabled=tracking_noise), novel_views=novel_views, novel_every=novel_every,
     )
     generate_dataset(Path(out), config, preview=preview, progress=progress)
     print(f"wrote {out}" + (f" (preview: {Path(out) / PREVIEW_FILE})" if preview else ""))

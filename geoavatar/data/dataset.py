@@ -47,6 +47,7 @@ from torch.utils.data import Dataset
 
 import geoavatar.head as head_module
 from geoavatar.data import insta, layout
+from geoavatar.data.layout import EXTRA_SPLIT_FILES
 from geoavatar.data.errors import DatasetError
 from geoavatar.data.splits import Split, SplitConfig
 from geoavatar.data.subject import FrameRecord, Subject
@@ -133,7 +134,13 @@ class HeadAvatarDataset(Dataset):
             check_head_model(subject, **(head_options or {}))
         self.split_name = split
         self.split: Split = subject.split(self.config.split_config())
-        self.frames: list[FrameRecord] = subject.frames_of(self.split.timesteps(split))
+        if split in EXTRA_SPLIT_FILES:  # views listed in their own file only (layout.EXTRA_SPLIT_FILES)
+            if split not in subject.extra_frames:
+                raise DatasetError(f"{subject.root}: has no '{split}' split ({EXTRA_SPLIT_FILES[split]}); "
+                                   f"`geoavatar synth --novel-views` writes one")
+            self.frames: list[FrameRecord] = list(subject.extra_frames[split])
+        else:
+            self.frames = subject.frames_of(self.split.timesteps(split))
         self.sizes = [_target_size(f.width, f.height, self.config.resolution) for f in self.frames]  # (w, h)
         self.background = torch.tensor(subject.info.background, dtype=torch.float32)  # [3]
         self._cache: list[tuple[Tensor, Tensor] | None] = [None] * len(self.frames)  # uint8 RGB, mask

@@ -78,6 +78,10 @@ CANONICAL_FILE = "canonical_flame_param.npz"
 FORMAT_VERSION = 1
 HEAD_MODEL_NAMES = ("flame", "openhead")
 SPLIT_FILES = {"train": "transforms_train.json", "val": "transforms_val.json", "test": "transforms_test.json"}
+# Extra splits: views listed in their own transforms file and in no other (not in transforms.json), so
+# that readers that know nothing of them (GaussianAvatars) never train or test on them. "novel": test
+# timesteps seen from other cameras (`geoavatar synth --novel-views`), for `geoavatar eval --split novel`.
+EXTRA_SPLIT_FILES = {"novel": "transforms_novel.json"}
 ALL_FILE = "transforms.json"
 CANONICAL_JAW_OPEN = 0.3  # rad, as VHAP's canonical_flame_param.npz (open mouth)
 
@@ -202,6 +206,8 @@ def read_layout(root: str | os.PathLike) -> Subject:
         canonical = _load_params(root / CANONICAL_FILE, str(root / CANONICAL_FILE))
     params = stack_params(per_timestep, [str(p) for p in paths], canonical)
 
+    extra = {name: _extra_frames(root, fname, row_of) for name, fname in EXTRA_SPLIT_FILES.items()
+             if (root / fname).is_file()}
     if info.image_size is None:
         info.image_size = (frames_out[0].width, frames_out[0].height)
     explicit = None
@@ -220,7 +226,33 @@ def read_layout(root: str | os.PathLike) -> Subject:
         params=params,
         canonical={k: torch.from_numpy(v) for k, v in (canonical or {}).items()},
         explicit_split=explicit,
+        extra_frames=extra,
     )
+
+
+def _extra_frames(root: Path, fname: str, row_of: dict[int, int]) -> list[FrameRecord]:
+    """The frames of an extra split file: views of timesteps the main files hold (their parameters)."""
+    top = _read_json(root / fname)
+    frames = top.get("frames")
+    if not isinstance(frames, list):
+        raise DatasetError(f"{root / fname}: has no 'frames' list")
+    out, seen = [], set()
+    for i, frame in enumerate(frames):
+        where = f"{root / fname}, frame {i}"
+        if not isinstance(frame, dict) or "timestep_index" not in frame:
+            raise DatasetError(f"{where}: missing 'timestep_index'")
+        timestep, camera = int(frame["timestep_index"]), int(frame.get("camera_index", 0))
+        if timestep not in row_of:
+            raise DatasetError(f"{where}: timestep {timestep} is in none of the main transforms files, so it has "
+                               "no head parameters")
+        if (timestep, camera) in seen:
+            raise DatasetError(f"{where}: (timestep {timestep}, camera {camera}) is listed twice")
+        seen.add((timestep, camera))
+        record = _frame_record(root, frame, top, where, timestep, camera, row_of[timestep])
+        view = frame.get("view")
+        record.view = str(view["name"]) if isinstance(view, dict) and "name" in view else None
+        out.append(record)
+    return sorted(out, key=lambda f: (f.timestep, f.camera))
 
 
 def _read_json(path: Path) -> dict:
@@ -353,6 +385,7 @@ class LayoutWriter:
         for sub in ("images", "fg_masks", "flame_param"):
             (self.tmp / sub).mkdir()
         self.frames: list[dict] = []
+        self.extra: dict[str, list[dict]] = {}  # extra split -> its frames (EXTRA_SPLIT_FILES)
         self._written_params: set[int] = set()
         self._keys: set[tuple[int, int]] = set()
         self.done = False
@@ -376,8 +409,15 @@ class LayoutWriter:
         K: np.ndarray | Tensor,  # [3, 3] pixels
         mask: np.ndarray | Tensor | None = None,  # [H, W] or [H, W, 1], uint8 or float in [0, 1]
         camera: int = 0,
+        split: str | None = None,
+        view: Mapping[str, Any] | None = None,
     ) -> None:
-        """Write one frame's image, mask and (once per timestep) parameter npz to disk."""
+        """Write one frame's image, mask and (once per timestep) parameter npz to disk.
+
+        `split` names an extra split (EXTRA_SPLIT_FILES): the frame is listed in that split's transforms
+        file only. `view` ({"name": ..., ...}) is stored with the frame (how the camera was placed)."""
+        if split is not None and split not in EXTRA_SPLIT_FILES:
+            raise ValueError(f"unknown extra split {split!r}; known: {', '.join(EXTRA_SPLIT_FILES)}")
         if self.done:
             raise RuntimeError("LayoutWriter.add_frame after finish()/abort()")
         timestep, camera = int(timestep), int(camera)
@@ -398,6 +438,8 @@ class LayoutWriter:
 
         stem = f"{timestep:05d}_{camera:02d}"
         frame: dict[str, Any] = {"timestep_index": timestep, "camera_index": camera, "file_path": f"images/{stem}.png"}
+        if view is not None:
+            frame["view"] = dict(view)
         alpha = None
         if mask is not None:
             alpha = _to_uint8(mask, "mask")
@@ -421,8 +463,21 @@ class LayoutWriter:
             "transform_matrix": c2w.tolist(), "fl_x": fl_x, "fl_y": fl_y, "cx": cx, "cy": cy, "w": width, "h": height,
             "camera_angle_x": 2.0 * math.atan(width / (2.0 * fl_x)), "camera_angle_y": 2.0 * math.atan(height / (2.0 * fl_y)),
         })
-        self.frames.append(frame)
+        (self.frames if split is None else self.extra.setdefault(split, [])).append(frame)
         self._keys.add((timestep, camera))
+
+    def list_frame(self, split: str, timestep: int, camera: int = 0, view: Mapping[str, Any] | None = None) -> None:
+        """List a frame already added to the main files in an extra split too (the same image and camera),
+        e.g. the dataset's own view of a test timestep as the reference of the novel views."""
+        if split not in EXTRA_SPLIT_FILES:
+            raise ValueError(f"unknown extra split {split!r}; known: {', '.join(EXTRA_SPLIT_FILES)}")
+        match = [f for f in self.frames if (f["timestep_index"], f["camera_index"]) == (int(timestep), int(camera))]
+        if not match:
+            raise ValueError(f"list_frame: frame (timestep {timestep}, camera {camera}) was not added")
+        frame = dict(match[0])
+        if view is not None:
+            frame["view"] = dict(view)
+        self.extra.setdefault(split, []).append(frame)
 
     def _npz_arrays(self, params: Mapping[str, np.ndarray | Tensor], where: str) -> dict[str, np.ndarray]:
         known = {*POSE_SIZES, "expr", "dynamic_offset", "eyelids"}
@@ -462,10 +517,17 @@ class LayoutWriter:
                 self.frames.sort(key=lambda f: (f["timestep_index"], f["camera_index"]))
                 timesteps = sorted({f["timestep_index"] for f in self.frames})
                 chosen = split_timesteps(timesteps, split or self.split or SplitConfig(), source=str(self.root))
+                for name, frames in self.extra.items():
+                    orphans = sorted({f["timestep_index"] for f in frames} - set(timesteps))
+                    if orphans:
+                        raise ValueError(f"extra split {name!r}: timestep {orphans[0]} has no frame in the main files")
                 self._write_transforms(ALL_FILE, self.frames)
                 self._write_transforms(SPLIT_FILES["train"], [f for f in self.frames if f["timestep_index"] in set(chosen.train)])
                 self._write_transforms(SPLIT_FILES["val"], [f for f in self.frames if f["timestep_index"] in set(chosen.val)])
                 self._write_transforms(SPLIT_FILES["test"], [f for f in self.frames if f["timestep_index"] in set(chosen.test)])
+                for name, frames in self.extra.items():
+                    self._write_transforms(EXTRA_SPLIT_FILES[name], sorted(
+                        frames, key=lambda f: (f["timestep_index"], f["camera_index"])))
                 # geoavatar.json last: inside the temporary folder it marks the content complete.
                 (self.tmp / INFO_FILE).write_text(json.dumps(info_to_json(self.info), indent=2) + "\n")
                 self._move_into_place()
@@ -541,6 +603,6 @@ def _to_uint8(value: np.ndarray | Tensor, name: str) -> np.ndarray:
 
 
 __all__ = [
-    "CANONICAL_FILE", "FORMAT_VERSION", "HEAD_MODEL_NAMES", "INFO_FILE", "LayoutWriter", "info_to_json",
+    "EXTRA_SPLIT_FILES", "CANONICAL_FILE", "FORMAT_VERSION", "HEAD_MODEL_NAMES", "INFO_FILE", "LayoutWriter", "info_to_json",
     "is_layout", "read_info", "read_layout",
 ]

@@ -51,6 +51,7 @@ class FrameRecord:
     height: int
     row: int  # row of this timestep in Subject.params
     where: str  # where the record came from, for error messages ("transforms_train.json, frame 3")
+    view: str | None = None  # name of the camera placement in an extra split ("yaw+30"; "front")
 
 
 @dataclass
@@ -77,6 +78,8 @@ class Subject:
     params: dict[str, Tensor]  # per-timestep keys [T, ...]; shape [S]; static_offset [1, V, 3]
     canonical: dict[str, Tensor] = field(default_factory=dict)  # canonical_flame_param.npz, if any
     explicit_split: ExplicitSplit | None = None
+    # Extra splits (layout.EXTRA_SPLIT_FILES, e.g. "novel"): frames in none of the splits above.
+    extra_frames: dict[str, list[FrameRecord]] = field(default_factory=dict)
 
     @property
     def head_model(self) -> str:

@@ -20,6 +20,15 @@ Head parameters and the deformer's time input (render_run_frames):
   which reproduces what training saw.
 The T rule is avatar.frame_timestep; `timestep_mode` ("auto", "zero", "frame") overrides it.
 
+Novel views (`split="novel"`, the transforms_novel.json of `geoavatar synth --novel-views`): test
+timesteps seen from cameras turned about the head (plus the dataset's own camera, view "front"); each
+frame carries its view's name, and the result adds the summary per view (`by_view`).
+
+Floaters (eval/floaters.py, no ground truth needed): per frame the share of the rendered opacity outside
+the head-mesh silhouette dilated by `floater_dilate` of the image side (`outside`), and the same share of
+the ground-truth mask (`gt_outside`: hair, glasses, what the head mesh lacks); on the other splits also
+at side views (yaw +-30/60/90, pitch +-20 about the head centre) of `floater_frames` frames (`side_views`).
+
 Mouth region (per frame): the posed head mesh (with the mouth structure) is z-buffered with the mesh
 rasterizer, and a pixel belongs to the region when its visible face is a mouth-structure face
 (face_groups["mouth"], F_m) or a lips face (all 3 vertices in the "lips" region). The mask is dilated
@@ -39,13 +48,14 @@ from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from geoavatar.avatar import TimestepMode, frame_timestep, render_avatar
 from geoavatar.data import HeadAvatarDataset, evenly_spaced
 from geoavatar.errors import OptionError
 from geoavatar.eval import metrics
+from geoavatar.eval.floaters import (DEFAULT_DILATE, FloaterConfig, dilate_mask, head_silhouette, outside_share,
+                                     side_view_shares)
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import rasterize_mesh
@@ -54,8 +64,8 @@ from geoavatar.train.frame_params import FrameParams
 from geoavatar.head.params import HeadParams
 from geoavatar.render import Camera, composite_target
 
-SPLITS = ("test", "val", "train")
-METRIC_NAMES = ("mse", "psnr", "ssim", "lpips", "mouth_psnr", "mouth_lpips")
+SPLITS = ("test", "val", "train", "novel")
+METRIC_NAMES = ("mse", "psnr", "ssim", "lpips", "mouth_psnr", "mouth_lpips", "outside", "gt_outside")
 
 
 @dataclass
@@ -78,6 +88,12 @@ class EvalConfig:
     backend: str = "auto"
     keep_images: bool = False
     """Keep each frame's pred / gt / mouth mask on the result (for --save-images)."""
+    floaters: bool = True
+    """Measure the share of rendered opacity outside the dilated head-mesh silhouette (eval/floaters.py):
+    per frame from the frame's camera, and at side views of `floater_frames` frames (not on 'novel',
+    whose frames are side views already)."""
+    floater_frames: int = 4
+    floater_dilate: float = DEFAULT_DILATE
 
     def validate(self) -> "EvalConfig":
         if self.split not in SPLITS:
@@ -90,6 +106,9 @@ class EvalConfig:
             raise OptionError(f"timestep_mode must be auto, zero or frame, got {self.timestep_mode!r}")
         if self.mouth_dilate < 0:
             raise OptionError(f"mouth_dilate must be >= 0, got {self.mouth_dilate}")
+        if self.floater_frames < 0 or self.floater_dilate < 0:
+            raise OptionError(f"--floater-frames and floater_dilate must be >= 0, got {self.floater_frames}, "
+                              f"{self.floater_dilate}")
         if self.mouth_min_crop < MIN_SIZE[self.lpips_net]:
             raise OptionError(f"mouth_min_crop must be >= {MIN_SIZE[self.lpips_net]} for LPIPS {self.lpips_net}")
         return self
@@ -108,6 +127,9 @@ class FrameMetrics:
     mouth_lpips: float | None = None
     mouth_pixels: int = 0
     mouth_box: list[int] | None = None  # [y0, y1, x0, x1] of the LPIPS crop
+    view: str | None = None  # the camera placement of a novel-view frame ("front", "yaw+30", ...)
+    outside: float | None = None  # share of the render's opacity outside the dilated head silhouette
+    gt_outside: float | None = None  # the same share of the ground-truth mask (hair etc.: the floor)
 
 
 @dataclass
@@ -124,6 +146,8 @@ class EvalResult:
     settings: dict
     seconds: float
     images: list[dict[str, Tensor]] = field(default_factory=list)  # with keep_images: pred, gt, mouth
+    by_view: dict[str, dict[str, dict[str, float | int | None]]] = field(default_factory=dict)  # view -> summary
+    side_views: dict[str, float] = field(default_factory=dict)  # side view -> mean outside share (floaters)
 
 
 class RenderedFrame(NamedTuple):
@@ -132,6 +156,9 @@ class RenderedFrame(NamedTuple):
     pred: Tensor  # [H, W, 3] render on the background, clamped to [0, 1]
     target: Tensor  # [H, W, 3] image composited on the background
     vertices: Tensor  # [V, 3] posed head (with mouth deformation)
+    alpha: Tensor  # [H, W, 1] rendered opacity
+    params: HeadParams  # the frame's head parameters (refined or tracked)
+    T: int | None  # the deformer's time input (None: T = 0)
 
 
 # --- opening the data of a run -------------------------------------------------------------------
@@ -170,7 +197,7 @@ def render_run_frames(
         frame = render_avatar(run.avatar, run.head, params, camera, timestep, run.deformer, item["background"], backend)
         pred = frame.result.rgb.clamp(0.0, 1.0)
         target = composite_target(item["image"], item["mask"], item["background"])
-        yield RenderedFrame(index, item, pred, target, frame.vertices)
+        yield RenderedFrame(index, item, pred, target, frame.vertices, frame.result.alpha, params, timestep)
 
 
 # --- mouth region --------------------------------------------------------------------------------
@@ -208,10 +235,7 @@ def mouth_mask(
     frags = rasterize_mesh(world_to_camera(vertices, viewmat), faces, K, width, height)
     selected = selected.to(frags.face_id.device)
     mask = (frags.face_id >= 0) & selected[frags.face_id.clamp_min(0)]  # [H, W]
-    if dilate_px > 0 and bool(mask.any()):
-        size = 2 * dilate_px + 1
-        mask = F.max_pool2d(mask[None, None].float(), size, stride=1, padding=dilate_px)[0, 0] > 0
-    return mask
+    return dilate_mask(mask, dilate_px)
 
 
 def crop_box(mask: Tensor, min_size: int) -> list[int] | None:
@@ -271,6 +295,10 @@ def evaluate_run(
     label, preset, subject = run_label(run)
     frames: list[FrameMetrics] = []
     images: list[dict[str, Tensor]] = []
+    floater_config = FloaterConfig(dilate=config.floater_dilate)
+    side_at = set(indices[i] for i in evenly_spaced(len(indices), config.floater_frames)) \
+        if config.floaters and config.split != "novel" and config.floater_frames > 0 else set()
+    side: dict[str, list[float]] = {}
     bar = tqdm(total=len(indices), disable=not progress, dynamic_ncols=True, unit="frame", desc=f"eval {label}")
     try:
         for frame in render_run_frames(run, dataset, indices, config.timestep_mode, config.backend):
@@ -296,6 +324,17 @@ def evaluate_run(
                     if min(y1 - y0, x1 - x0) >= MIN_SIZE[config.lpips_net]:  # else the image itself is too small
                         record.mouth_lpips = float(metrics.lpips(pred[y0:y1, x0:x1], target[y0:y1, x0:x1],
                                                                  config.lpips_net, config.lpips_unit_inputs)[0])
+            record.view = dataset.frames[frame.index].view
+            if config.floaters:
+                camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+                silhouette = head_silhouette(frame.vertices, run.head.faces, camera,
+                                             floater_config.dilate_px(item["width"], item["height"]))
+                record.outside = outside_share(frame.alpha, silhouette)
+                record.gt_outside = outside_share(item["mask"], silhouette)
+                if frame.index in side_at:
+                    for name, share in side_view_shares(run, frame.params, frame.T, camera, floater_config,
+                                                        config.backend).items():
+                        side.setdefault(name, []).append(share)
             frames.append(record)
             if config.keep_images:
                 images.append({"pred": pred.cpu(), "gt": target.cpu(),
@@ -322,11 +361,21 @@ def evaluate_run(
                    "min_crop": config.mouth_min_crop} if config.mouth else None),
         "std": "population (ddof 0) over frames",
         "backend": config.backend,
+        "floaters": ({"measure": "share of rendered opacity outside the head-mesh silhouette (with the mouth "
+                                 "structure) dilated by dilate_fraction of the longer image side; gt_outside: "
+                                 "the same share of the ground-truth mask",
+                      "dilate_fraction": config.floater_dilate,
+                      "side_views": {name: [yaw, pitch] for name, yaw, pitch in floater_config.views} if side else None,
+                      "side_view_frames": sorted(int(dataset.frames[i].timestep) for i in side_at)}
+                     if config.floaters else None),
     }
+    views = [f.view for f in frames if f.view is not None]
+    by_view = {view: summarize([f for f in frames if f.view == view]) for view in dict.fromkeys(views)}
     return EvalResult(
         run_dir=run.info.run_dir, label=label, preset=preset, subject=subject, split=config.split,
         step=run.info.step, checkpoint=str(run.info.checkpoint), frames=frames, summary=summarize(frames),
-        settings=settings, seconds=time.perf_counter() - started, images=images,
+        settings=settings, seconds=time.perf_counter() - started, images=images, by_view=by_view,
+        side_views={name: float(np.mean(values)) for name, values in side.items()},
     )
 
 

@@ -106,6 +106,55 @@ def ablation_table(results: Sequence[EvalResult], with_std: bool = False) -> str
     return "\n".join(lines) + "\n"
 
 
+def view_table(results: Sequence[EvalResult]) -> str:
+    """Novel views: one row per view (in the dataset's order), per run PSNR / SSIM / LPIPS (x10^-1) and
+    the share of opacity outside the head silhouette (%, the ground truth's share in brackets)."""
+    views = list(dict.fromkeys(v for r in results for v in r.by_view))
+    if not views:
+        return ""
+    head = ["| View |"] + [f" {_escape(r.label)} PSNR ↑ | SSIM ↑ | LPIPS (×10⁻¹) ↓ | outside % (gt) |" for r in results]
+    lines = ["".join(head), "|---|" + "---:|---:|---:|---:|" * len(results)]
+    for view in views:
+        cells = []
+        for r in results:
+            stats = r.by_view.get(view)
+            if stats is None:
+                cells += ["–"] * 4
+                continue
+            mean = {k: stats.get(k, {}).get("mean") for k in ("psnr", "ssim", "lpips", "outside", "gt_outside")}
+            cells += [f"{mean['psnr']:.2f}" if mean["psnr"] is not None else "–",
+                      f"{mean['ssim']:.3f}" if mean["ssim"] is not None else "–",
+                      f"{mean['lpips'] * 10:.3f}" if mean["lpips"] is not None else "–",
+                      (f"{mean['outside'] * 100:.1f} ({mean['gt_outside'] * 100:.1f})"
+                       if mean["outside"] is not None and mean["gt_outside"] is not None else "–")]
+        lines.append(f"| {_escape(view)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def side_view_table(results: Sequence[EvalResult]) -> str:
+    """Floaters at side views: one row per run, the mean share of opacity outside the head silhouette (%)."""
+    views = list(dict.fromkeys(v for r in results for v in r.side_views))
+    if not views:
+        return ""
+    lines = ["| Run | " + " | ".join(views) + " |", "|---|" + "---:|" * len(views)]
+    for r in results:
+        cells = [f"{r.side_views[v] * 100:.1f}" if v in r.side_views else "–" for v in views]
+        lines.append(f"| {_escape(r.label)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def extra_sections(results: Sequence[EvalResult]) -> str:
+    out = ""
+    views = view_table(results)
+    if views:
+        out += "\n## Per view (novel views)\n\n" + views
+    sides = side_view_table(results)
+    if sides:
+        out += ("\n## Floaters at side views (% of rendered opacity outside the dilated head silhouette)\n\n"
+                + sides)
+    return out
+
+
 def _settings_lines(result: EvalResult) -> str:
     s = result.settings
     frames = f"{s['frames_evaluated']} of {s['frames_in_split']} frames" if s["frames_evaluated"] != s["frames_in_split"] \
@@ -125,8 +174,8 @@ def _settings_lines(result: EvalResult) -> str:
 
 
 def run_markdown(result: EvalResult) -> str:
-    return (f"# Evaluation of {result.label}\n\n" + metric_table([result], mark_best=False) + "\n"
-            + _settings_lines(result))
+    return (f"# Evaluation of {result.label}\n\n" + metric_table([result], mark_best=False) + extra_sections([result])
+            + "\n" + _settings_lines(result))
 
 
 def run_json(result: EvalResult) -> dict:
@@ -135,7 +184,8 @@ def run_json(result: EvalResult) -> dict:
         "run": str(result.run_dir), "label": result.label, "preset": result.preset, "subject": result.subject,
         "checkpoint": result.checkpoint, "step": result.step, "split": result.split,
         "seconds": round(result.seconds, 3),
-        "summary": result.summary, "settings": result.settings, "frames": frame_dicts(result),
+        "summary": result.summary, "by_view": result.by_view, "side_views": result.side_views,
+        "settings": result.settings, "frames": frame_dicts(result),
     }
 
 
@@ -170,7 +220,7 @@ def comparison_markdown(results: Sequence[EvalResult]) -> str:
     nets = sorted({r.settings["lpips_net"] for r in results})
     return (f"# Comparison on the {'/'.join(splits)} split ({len(results)} runs, LPIPS {'/'.join(nets)})\n\n"
             "## Table 1 layout (mean ± std)\n\n" + metric_table(results)
-            + "\n## Ablation layout (means)\n\n" + ablation_table(results)
+            + "\n## Ablation layout (means)\n\n" + ablation_table(results) + extra_sections(results)
             + "\n**Bold**: best, <u>underlined</u>: second. Per-run details: `RUN/eval/<split>/metrics.json`.\n")
 
 
@@ -184,5 +234,6 @@ def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[st
             "json": atomic_write_json(markdown.with_suffix(".json"), body)}
 
 
-__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "comparison_markdown", "eval_dir", "metric_table",
+__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "extra_sections", "side_view_table", "view_table",
+           "comparison_markdown", "eval_dir", "metric_table",
            "run_json", "run_markdown", "write_comparison", "write_frame_images", "write_run_report"]

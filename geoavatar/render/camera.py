@@ -172,6 +172,27 @@ def rigid_inverse(matrix: Tensor) -> Tensor:
     return out
 
 
+def orbit_viewmat(
+    viewmat: Tensor,  # [4, 4] world-to-camera, OpenCV axes
+    centre: Tensor,  # [3] the point the camera turns about (and then looks at)
+    yaw_deg: float,
+    pitch_deg: float = 0.0,
+) -> Tensor:
+    """The camera turned about `centre` by yaw (about its own up axis) then pitch (about its right
+    axis), at its distance to `centre`, aimed at `centre`: [4, 4]. Positive yaw moves the camera
+    toward its right; positive pitch moves it up. `geoavatar orbit` and the novel views of
+    `geoavatar synth` place their cameras with it."""
+    from geoavatar.geometry import axis_angle_to_matrix
+
+    c2w = rigid_inverse(viewmat.to(centre))  # [4, 4] columns: camera axes in world, then the camera centre
+    right, up = c2w[:3, 0], -c2w[:3, 1]  # OpenCV: +y is down in the image
+    offset = c2w[:3, 3] - centre  # [3]
+    if float(offset.norm()) < 1e-9:
+        raise ValueError("orbit_viewmat: the camera sits at the centre it turns about")
+    turn = axis_angle_to_matrix(up * math.radians(yaw_deg)) @ axis_angle_to_matrix(right * math.radians(-pitch_deg))
+    return look_at(centre + turn @ offset, centre, turn @ up)
+
+
 def _homogeneous(matrix: Tensor, name: str) -> Tensor:
     if matrix.shape[-2:] == (4, 4):
         return matrix
@@ -185,4 +206,5 @@ def _homogeneous(matrix: Tensor, name: str) -> Tensor:
 __all__ = [
     "Camera", "look_at", "intrinsics_from_fov", "fov_from_intrinsics", "world_to_camera", "project",
     "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "scale_intrinsics",
+    "orbit_viewmat",
 ]

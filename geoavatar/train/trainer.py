@@ -9,7 +9,9 @@ One step (GaussianAvatars' loop with GeoAvatar's additions; steps are numbered 1
                 the preset enables it) -> avatar(vertices): local -> global -> rasterize
                 on the dataset's background colour (native cpu kernel on CPU, gsplat on CUDA)
     target      image * mask + background * (1 - mask): pixels outside the foreground mask become the
-                background colour, as GaussianAvatars does, so the avatar never learns clothing/backdrop
+                background colour, as GaussianAvatars does, so the avatar never learns clothing/backdrop;
+                the background is the dataset's, or with TrainConfig.background = "random" a random colour
+                per step (step_background), the same one behind the render
     loss        avatar_loss: L_rgb + L_reg (+ L_angle, + GaussianAvatars' scale loss); NaN/Inf stops the run
                 (the terms are read back in one transfer per step; value checks that wait for the device,
                 rasterize's inputs and NaN/Inf in the learned tensors, run every VALUE_CHECK_EVERY steps,
@@ -354,6 +356,15 @@ def frame_index(step: int, count: int, seed: int) -> int:
     return int(torch.randperm(count, generator=generator)[position])
 
 
+def step_background(dataset_background: Tensor, mode: str, seed: int, step: int) -> Tensor:
+    """[3] the training background of `step` (TrainConfig.background): the dataset's colour, or a uniform
+    random colour that is a pure function of (seed, step), so a resumed run draws the same ones."""
+    if mode == "dataset":
+        return dataset_background
+    generator = torch.Generator().manual_seed(seed * 1_000_003 + 7_919 * step + 1)
+    return torch.rand(3, generator=generator).to(dataset_background)
+
+
 def psnr_of(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
@@ -377,10 +388,11 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     if check_values is None:
         check_values = step % VALUE_CHECK_EVERY == 0
     item = _item_to(data.train_set[frame_index(step, len(data.train_set), seed)], data.device)
-    target = composite_target(item["image"], item["mask"], item["background"])
+    background = step_background(item["background"], config.background, seed, step)  # [3]
+    target = composite_target(item["image"], item["mask"], background)
     params = state.frames(item["row"])
     frame = render_avatar(state.avatar, data.head, params, item_camera(item), item["timestep"], state.deformer,
-                          item["background"], data.backend, check_values=check_values)
+                          background, data.backend, check_values=check_values)
     result, g = frame.result, frame.gaussians
     p = state.avatar.params
     losses = avatar_loss(result.rgb, target, p["means"], p["scales"], state.avatar.binding, state.face_sets,

@@ -10,6 +10,12 @@ Output (written through `geoavatar.data.layout.LayoutWriter`, so it appears atom
     flame_param_gt/  the exact ground-truth parameters, same npz layout as flame_param/
                      (flame_param/ = ground truth + tracker error unless tracking noise is off)
     synth.json       generator metadata: subject, motion segments, test start, noise model, timing
+    transforms_novel.json  with novel_views: test timesteps (every `novel_every`-th) seen from extra
+                     cameras (NOVEL_VIEWS: yaw +-30, +-60, pitch +-20 deg, turned about the head centre
+                     of the frame, render.camera.orbit_viewmat), camera indices 1..6, images
+                     images/<t>_<camera>.png, plus the dataset's own view of those timesteps (camera 0,
+                     "front", the same files as the test split) as the reference; each frame carries
+                     "view": {"name", "yaw", "pitch"}. The split `geoavatar eval --split novel` scores.
     preview.png      contact sheet (with --preview)
 
 The written static_offset is zero: the hair, ears, glasses and beard of the actor are NOT in the
@@ -39,11 +45,12 @@ from geoavatar.data.layout import INFO_FILE, LayoutWriter, read_info
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.data.synth.actor import HEAD_MODEL, MOUTH_KIND, Actor, actor_for_subject
 from geoavatar.data.synth.motion import Motion, script_motion
-from geoavatar.data.synth.render import ActorRenderer, Camera, frontal_camera
+from geoavatar.data.synth.render import ActorRenderer, Camera, frontal_camera, orbit_camera
 from geoavatar.data.synth.subjects import get_subject
 from geoavatar.data.synth.tracking import TrackingNoise, apply_tracking_noise
 from geoavatar.errors import OptionError, disk_full_error, is_disk_full
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
+from geoavatar.head.regions import skull_centre
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +80,15 @@ CHANNEL_NAMES: dict[str, tuple[str, ...]] = {
 }
 REQUIRED_CHANNELS = ("smile", "blink_left", "blink_right")
 
+# Novel views (camera index, name, yaw, pitch in degrees about the head centre; + yaw: toward the camera's
+# right = the subject's left, + pitch: from above). Camera 0 is the dataset's own camera.
+NOVEL_SPLIT = "novel"
+FRONT_VIEW = "front"
+NOVEL_VIEWS: tuple[tuple[int, str, float, float], ...] = (
+    (1, "yaw+30", 30.0, 0.0), (2, "yaw-30", -30.0, 0.0), (3, "yaw+60", 60.0, 0.0), (4, "yaw-60", -60.0, 0.0),
+    (5, "pitch+20", 0.0, 20.0), (6, "pitch-20", 0.0, -20.0),
+)
+
 
 @dataclass
 class SynthConfig:
@@ -88,6 +104,8 @@ class SynthConfig:
     tracking_noise: TrackingNoise = field(default_factory=TrackingNoise)
     png_compress_level: int = 1
     workers: int = field(default_factory=lambda: default_workers())  # rendering processes (1: inline)
+    novel_views: bool = False  # also render test timesteps from the NOVEL_VIEWS cameras (transforms_novel.json)
+    novel_every: int = 2  # every this many test timesteps get the novel views
 
 
 def check_output_folder(out: Path) -> bool:
@@ -212,6 +230,8 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
         raise OptionError(f"--size must be at least 16 pixels, got {config.size}")
     if config.workers < 1:
         raise OptionError(f"workers must be at least 1, got {config.workers}")
+    if config.novel_every < 1:
+        raise OptionError(f"--novel-every must be at least 1, got {config.novel_every}")
     replace = check_output_folder(out)
 
     actor = actor_for_subject(subject.index)
@@ -235,14 +255,27 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
     try:
         (writer.tmp / GT_DIR).mkdir()
         viewmat, K = camera.viewmat, camera.K
-        bar = _progress(config.frames, progress)
+        novel = novel_jobs(actor, camera, gt, motion.test_start, config) if config.novel_views else []
+        bar = _progress(config.frames + len(novel), progress)
         try:
-            with closing(_render_frames(actor, renderer, gt, config.frames, config.workers)) as frames:
-                for t, image_u8, mask_u8 in frames:
+            jobs = [(t, 0, None) for t in range(config.frames)]
+            with closing(_render_frames(actor, renderer, gt, jobs, config.workers)) as frames:
+                for t, _, image_u8, mask_u8 in frames:
                     if t in seen:
                         kept[t] = image_u8
                     _write_frame(writer, t, image_u8, mask_u8, _frame_params(written, t), viewmat, K,
                                  _npz_arrays(gt, t, static_offset))
+                    bar.update(1)
+            views = {index: (name, yaw, pitch) for index, name, yaw, pitch in NOVEL_VIEWS}
+            for t in sorted({t for t, _, _ in novel}):
+                writer.list_frame(NOVEL_SPLIT, t, 0, view={"name": FRONT_VIEW, "yaw": 0.0, "pitch": 0.0})
+            cameras = {(t, index): cam for t, index, cam in novel}
+            with closing(_render_frames(actor, renderer, gt, novel, config.workers)) as frames:
+                for t, index, image_u8, mask_u8 in frames:
+                    name, yaw, pitch = views[index]
+                    cam = cameras[(t, index)]
+                    writer.add_frame(t, image_u8, _frame_params(written, t), cam.viewmat, cam.K, mask=mask_u8,
+                                     camera=index, split=NOVEL_SPLIT, view={"name": name, "yaw": yaw, "pitch": pitch})
                     bar.update(1)
         finally:
             bar.close()
@@ -266,6 +299,12 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
             "ground_truth": f"{GT_DIR}/<timestep>.npz (flame_param/ = ground truth + tracker error)",
             "render_seconds": round(render_seconds, 2),
         }
+        if config.novel_views:
+            meta["novel_views"] = {
+                "file": "transforms_novel.json", "timesteps": sorted({t for t, _, _ in novel}),
+                "every": config.novel_every, "pivot": "head.regions.skull_centre of the true posed head, per frame",
+                "views": [{"camera": i, "name": n, "yaw": y, "pitch": p} for i, n, y, p in NOVEL_VIEWS],
+            }
         if preview:
             sheet = contact_sheet(actor, renderer, motion, gt, kept)
             sheet.save(writer.tmp / PREVIEW_FILE, optimize=True)
@@ -283,6 +322,18 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
         writer.abort()
         raise
     log.info("synthetic dataset written to %s in %.1f s", out, time.perf_counter() - started)
+    return out
+
+
+def novel_jobs(actor: Actor, camera: Camera, params: dict[str, np.ndarray], test_start: int,
+               config: SynthConfig) -> list[tuple[int, int, Camera]]:
+    """(timestep, camera index, camera) of every novel view: every `novel_every`-th test timestep seen by
+    the dataset camera turned about the frame's head centre (head.regions.skull_centre of the true pose)."""
+    out = []
+    for t in range(test_start, config.frames, config.novel_every):
+        centre = skull_centre(_posed_vertices(actor, params, t, t + 1)[0], actor.head)  # [3]
+        for index, _, yaw, pitch in NOVEL_VIEWS:
+            out.append((t, index, orbit_camera(camera, yaw, pitch, centre)))
     return out
 
 
@@ -321,34 +372,37 @@ def _one_thread():
         torch.set_num_threads(before)
 
 
-def _render_one(t: int) -> tuple[int, np.ndarray, np.ndarray]:
+def _render_one(job: tuple[int, int, Camera | None]) -> tuple[int, int, np.ndarray, np.ndarray]:
     actor, renderer, params = _STATE["actor"], _STATE["renderer"], _STATE["params"]
+    t, index, camera = job
     vertices = _posed_vertices(actor, params, t, t + 1)[0]  # [V, 3], one frame per forward pass
-    image, mask = renderer.render(vertices)
+    image, mask = renderer.render(vertices, camera)
     image_u8 = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
     mask_u8 = (mask.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
-    return t, image_u8, mask_u8
+    return t, index, image_u8, mask_u8
 
 
 def _worker_init() -> None:
     torch.set_num_threads(1)
 
 
-def _render_frames(actor: Actor, renderer: ActorRenderer, params: dict[str, np.ndarray], frames: int, workers: int):
-    """Yield (t, image uint8 [H, W, 3], mask uint8 [H, W]) for t = 0..frames-1, in order."""
+def _render_frames(actor: Actor, renderer: ActorRenderer, params: dict[str, np.ndarray],
+                   jobs: list[tuple[int, int, Camera | None]], workers: int):
+    """Yield (t, camera index, image uint8 [H, W, 3], mask uint8 [H, W]) for each job (timestep, camera
+    index, camera; None: the dataset camera), in order."""
     _STATE.update(actor=actor, renderer=renderer, params=params)
     try:
-        if workers > 1 and frames > 1 and "fork" in multiprocessing.get_all_start_methods():
+        if workers > 1 and len(jobs) > 1 and "fork" in multiprocessing.get_all_start_methods():
             context = multiprocessing.get_context("fork")
-            pool = ProcessPoolExecutor(max_workers=min(workers, frames), mp_context=context, initializer=_worker_init)
+            pool = ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=context, initializer=_worker_init)
             try:
-                yield from pool.map(_render_one, range(frames), chunksize=1)
+                yield from pool.map(_render_one, jobs, chunksize=1)
             finally:  # on an error or Ctrl-C, drop the frames not started yet
                 pool.shutdown(wait=True, cancel_futures=True)
         else:
             with _one_thread():
-                for t in range(frames):
-                    yield _render_one(t)
+                for job in jobs:
+                    yield _render_one(job)
     finally:
         _STATE.clear()
 
@@ -378,7 +432,6 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     the bare head model with the same parameters (shows the hair volume, ears, glasses, beard)."""
     from PIL import ImageDraw
 
-    from geoavatar.data.synth.render import orbit_camera
     from geoavatar.render.camera import intrinsics_from_fov, look_at
     from geoavatar.render.mesh import Lighting, render_mesh
 
@@ -404,7 +457,7 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     vertices = _posed_vertices(actor, neutral, 0, 1)[0]
     target_y = float(torch.linalg.inv(renderer.camera.viewmat.double())[1, 3])
     for yaw in (75.0, -110.0):
-        side = orbit_camera(renderer.camera, yaw, target_y)
+        side = orbit_camera(renderer.camera, yaw, 0.0, torch.tensor([0.0, target_y, 0.0]))
         image, _ = renderer.render(vertices, side)
         tiles.append(((image * 255 + 0.5).to(torch.uint8).numpy(), f"actor, side {yaw:+.0f} deg"))
         head = vertices[: actor.num_head_vertices]
@@ -426,5 +479,5 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
 __all__ = [
     "SynthConfig", "generate_dataset", "check_output_folder", "is_synth_dataset", "motion_to_params",
     "expression_channels", "contact_sheet", "preview_frames", "META_FILE", "GT_DIR",
-    "PREVIEW_FILE",
+    "PREVIEW_FILE", "NOVEL_SPLIT", "NOVEL_VIEWS", "FRONT_VIEW", "novel_jobs",
 ]

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from geoavatar.data.synth.actor import Actor
 from geoavatar.data.synth.appearance import MATERIAL_INDEX, Appearance
-from geoavatar.render.camera import intrinsics_from_fov, look_at, world_to_camera
+from geoavatar.render.camera import intrinsics_from_fov, look_at, orbit_viewmat, world_to_camera
 from geoavatar.render.mesh import box_downsample, face_normals, rasterize_mesh, scale_intrinsics, vertex_normals
 
 _MOUTH_MATERIALS = [MATERIAL_INDEX[m] for m in ("teeth", "gums", "tongue")]
@@ -52,15 +52,9 @@ def frontal_camera(actor: Actor, size: int, fov_deg: float = 30.0, fill: float =
     return Camera(viewmat=viewmat.float(), K=K.float(), width=size, height=size)
 
 
-def orbit_camera(camera: Camera, yaw_deg: float, target_y: float) -> Camera:
-    """The same camera moved around the vertical axis through (0, target_y, 0) by yaw_deg."""
-    c2w = torch.linalg.inv(camera.viewmat.double())
-    eye = c2w[:3, 3]
-    a = math.radians(yaw_deg)
-    rot = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]], dtype=torch.float64)
-    pivot = torch.tensor([0.0, target_y, 0.0], dtype=torch.float64)
-    new_eye = rot @ (eye - pivot) + pivot
-    viewmat = look_at(new_eye, pivot)
+def orbit_camera(camera: Camera, yaw_deg: float, pitch_deg: float, centre: Tensor) -> Camera:
+    """The same camera turned about `centre` [3] (render.camera.orbit_viewmat), aimed at it."""
+    viewmat = orbit_viewmat(camera.viewmat.double(), centre.double(), yaw_deg, pitch_deg)
     return Camera(viewmat=viewmat.float(), K=camera.K, width=camera.width, height=camera.height)
 
 
