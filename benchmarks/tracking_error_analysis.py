@@ -19,6 +19,7 @@ D: `geoavatar synth` output (flame_param/ = truth + tracker-like error, flame_pa
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -91,7 +92,7 @@ def photometric_depth_response(head, frames: int = 3) -> list[str]:
 
     truth = _truth(head, frames)
     targets = _render_frames(head, truth, PATTERN_SIZE)
-    lines = [f"| level | " + " | ".join(f"{d:+d} mm" for d in DEPTHS_MM) + " |", "|---|" + "---|" * len(DEPTHS_MM)]
+    lines = ["| level | " + " | ".join(f"{d:+d} mm" for d in DEPTHS_MM) + " |", "|---|" + "---|" * len(DEPTHS_MM)]
     for size, supersample in ((32, False), (64, False), (32, True), (64, True), (PATTERN_SIZE, True)):
         losses = depth_response(head, truth, targets, size, [1e-3 * d for d in DEPTHS_MM], supersample)
         best = int(np.argmin(losses))
@@ -115,7 +116,7 @@ def landmark_depth_response(head, data: Path) -> list[str]:
             points = mesh(np.ascontiguousarray(image))
             if points is not None:
                 raw[t], found[t] = points, True
-    filtered = filter_landmarks(raw, float(subject.fps) if getattr(subject, "fps", None) else 25.0)
+    filtered = filter_landmarks(raw, float(json.loads((data / "synth.json").read_text())["fps"]))
     confidence = torch.as_tensor(landmark_confidence(raw, filtered, found.astype(float))).float().clamp(0.05, 1.0)
     ids = head.landmark_ids.cpu().numpy()
     points = torch.as_tensor(filtered[:, ids, :2]).float()
