@@ -64,6 +64,8 @@ def main() -> int:
     parser.add_argument("--frames", type=int, default=48)
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--epochs", type=int, nargs="+", default=None, help="passed to geoavatar track --epochs")
+    parser.add_argument("--sizes", type=int, nargs="+", default=None, help="passed to geoavatar track --sizes")
+    parser.add_argument("--tracked", default="tracked", help="name of the output folder in WORK (tracked<k>)")
     args = parser.parse_args()
     from geoavatar.data.dataset import open_subject
     from geoavatar.head import load_head_model
@@ -72,13 +74,15 @@ def main() -> int:
     geoavatar = [sys.executable, "-m", "geoavatar.cli"]
     results, rows = {}, []
     for subject in args.subjects:
-        synth, tracked = args.work / f"synth{subject}", args.work / f"tracked{subject}"
+        synth, tracked = args.work / f"synth{subject}", args.work / f"{args.tracked}{subject}"
         if not (synth / "flame_param_gt").is_dir():
             subprocess.run([*geoavatar, "synth", "--out", str(synth), "--subject", str(subject), "--frames",
                             str(args.frames), "--size", str(args.size), "--no-progress"], check=True)
         command = [*geoavatar, "track", str(synth), "--out", str(tracked), "--overwrite", "--no-progress"]
         if args.epochs:
             command += ["--epochs", *map(str, args.epochs)]
+        if args.sizes:
+            command += ["--sizes", *map(str, args.sizes)]
         started = time.perf_counter()
         subprocess.run(command, check=True)
         seconds = time.perf_counter() - started

@@ -27,7 +27,9 @@ smooth too. Unknowns: per frame rotation, translation, neck, jaw, eyes, expressi
 lighting (and the identity shape with `fit_shape`). Schedule: albedo initialised by projecting each
 face centroid into the frames that see it; one appearance-only epoch; then epochs over chunks at each
 pyramid level (64 -> 128 px by default), Adam per chunk (its moments kept across epochs), learning
-rates decaying within each level.
+rates decaying within each level. Coarse levels are rendered at the finest size and area-downsampled
+(`supersample`), the way their frames are made: rendered at their own size, the many sub-pixel Gaussians
+give an image term whose minimum lies 1-2 cm behind the true depth (tests/test_photometric.py).
 """
 
 from __future__ import annotations
@@ -80,6 +82,10 @@ class PhotometricConfig:
     per_face: int = 4  # Gaussians per face: 1 (centroid) or 4
     render_rings: int = 3  # faces rendered around the weighted ones (vertex rings)
     crop_margin: float = 1.25  # fitted crop side / the weighted faces' largest projected extent
+    # Coarse levels render at the finest size and area-downsample, as the frames are: a render of sub-pixel
+    # Gaussians at the coarse size is not the downsampled frame, and its image term prefers a head 1-2 cm
+    # farther away (BENCHMARKS.md, photometric tracking). The renderer's cost barely depends on the size.
+    supersample: bool = True
     tracking: TrackingConfig = field(default_factory=TrackingConfig)  # prior / smoothness weights, huber
 
     def __post_init__(self):
@@ -307,13 +313,30 @@ class SurfaceAppearance(torch.nn.Module):
                          check_values=False)
 
 
+def render_at(appearance: SurfaceAppearance, vertices: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
+              factor: int = 1, coverage: bool = False) -> tuple[Tensor, Tensor]:
+    """SurfaceAppearance.render at `factor` times the size, area-downsampled: rgb [H, W, 3], alpha [H, W, 1]."""
+    if factor <= 1:
+        result = appearance.render(vertices, viewmat, K, width, height, coverage=coverage)
+        return result.rgb, result.alpha
+    result = appearance.render(vertices, viewmat, scale_intrinsics(K, factor, factor), width * factor, height * factor,
+                               coverage=coverage)
+    both = F.avg_pool2d(torch.cat([result.rgb, result.alpha], -1).permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0)
+    return both[..., :3], both[..., 3:]
+
+
+def level_factor(config: "PhotometricConfig", size: int) -> int:
+    """The supersampling factor of the pyramid level `size` (1 at the finest or without supersampling)."""
+    return max(1, max(config.sizes) // size) if config.supersample else 1
+
+
 def photometric_loss(rgb: Tensor, image: Tensor, weight: Tensor) -> Tensor:
     """Weighted L1: rgb, image [H, W, 3], weight [H, W, 1] (the mask times the fixed face-region map)."""
     return (weight * (rgb - image).abs()).sum() / (3.0 * weight.sum().clamp_min(1.0))
 
 
 def region_weights(appearance: "SurfaceAppearance", head: HeadModel, params: HeadParams, level: "PhotometricTargets",
-                   chunk: int) -> Tensor:
+                   chunk: int, factor: int = 1) -> Tensor:
     """[T, H, W, 1] the pixels the photometric term sees: inside the mask and covered (> 0.5) by the weighted
     faces rendered at `params`, eroded by one pixel; fixed during a level so that the fit cannot choose its pixels."""
     H, W = level.images.shape[1:3]
@@ -323,7 +346,7 @@ def region_weights(appearance: "SurfaceAppearance", head: HeadModel, params: Hea
             rows = torch.arange(start, min(start + chunk, level.frames))
             vertices = head.forward_params(params.rows(rows), vertex_ids=appearance.vertex_ids).vertices
             for i, row in enumerate(rows.tolist()):
-                out[row] = appearance.render(vertices[i], level.viewmat[row], level.K[row], W, H, coverage=True).rgb[..., :1]
+                out[row] = render_at(appearance, vertices[i], level.viewmat[row], level.K[row], W, H, factor, coverage=True)[0][..., :1]
     inside = (out > 0.5).float().permute(0, 3, 1, 2)
     eroded = -F.max_pool2d(-inside, 3, stride=1, padding=1)
     return eroded.permute(0, 2, 3, 1) * level.masks
@@ -416,7 +439,8 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
                 parts[k].append(v[:1].detach())
         return HeadParams(shape=shape, static_offset=init.static_offset, **{k: torch.cat(v) for k, v in parts.items()})
 
-    def chunk_loss(index: int, level: PhotometricTargets, weights: Tensor, appearance_only: bool) -> tuple[Tensor, dict[str, float]]:
+    def chunk_loss(index: int, level: PhotometricTargets, weights: Tensor, appearance_only: bool,
+                   factor: int) -> tuple[Tensor, dict[str, float]]:
         chunk = chunks[index]
         rows = torch.arange(chunk.start, chunk.stop)
         params = frame_params(chunk, frozen=appearance_only)
@@ -424,8 +448,8 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
         H, W = level.images.shape[1:3]
         photo = vertices.new_zeros(())
         for i, row in enumerate(rows.tolist()):
-            result = appearance.render(vertices[i], level.viewmat[row], level.K[row], W, H)
-            photo = photo + photometric_loss(result.rgb, level.images[row], weights[row])
+            rgb, _ = render_at(appearance, vertices[i], level.viewmat[row], level.K[row], W, H, factor)
+            photo = photo + photometric_loss(rgb, level.images[row], weights[row])
         terms = {"photo": photo / len(rows)}
         if not appearance_only:
             if landmarks is not None and config.landmark_weight > 0:
@@ -458,19 +482,20 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
         if epochs <= 0:
             continue
         level = targets.level(size)
-        weights = region_weights(appearance, head, init, level, config.chunk)
+        factor = level_factor(config, size)
+        weights = region_weights(appearance, head, init, level, config.chunk, factor)
         steps, done = epochs * len(chunks), 0
         sums: dict[str, float] = {}
         for epoch in range(epochs):
             for index in range(len(chunks)):
-                factor = config.lr_decay ** (done / max(steps - 1, 1))
+                lr_factor = config.lr_decay ** (done / max(steps - 1, 1))
                 chunk = chunks[index]
-                chunk.set_lr(factor)
+                chunk.set_lr(lr_factor)
                 for group in shared_optimizer.param_groups:
-                    group["lr"] = group["base"][0 if appearance_only else 1] * factor
+                    group["lr"] = group["base"][0 if appearance_only else 1] * lr_factor
                 chunk.optimizer.zero_grad(set_to_none=True)
                 shared_optimizer.zero_grad(set_to_none=True)
-                total, terms = chunk_loss(index, level, weights, appearance_only)
+                total, terms = chunk_loss(index, level, weights, appearance_only, factor)
                 total.backward()
                 if not appearance_only:
                     chunk.optimizer.step()
@@ -504,4 +529,5 @@ def total_steps(config: PhotometricConfig, frames: int) -> int:
 
 __all__ = ["LandmarkTargets", "PhotometricConfig", "PhotometricResult", "PhotometricTargets", "SurfaceAppearance",
            "WEIGHTED_REGIONS", "fit_photometric", "photometric_loss", "sh_basis", "total_steps",
-           "weighted_faces", "weighted_vertex_ids", "crop_boxes", "grow_faces", "region_weights"]
+           "weighted_faces", "weighted_vertex_ids", "crop_boxes", "grow_faces", "region_weights", "render_at",
+           "level_factor"]
