@@ -97,7 +97,7 @@ def test_overrides_reach_the_run_and_config_json_records_everything(subject, tmp
     saved = ckpt.load_run(out).config
     expected = train_app.with_values(small_config(), {"aps_step": 1, "loss.lambda_angle": 0.05})
     assert saved == expected  # aps_step 1 as given (scaled it would be 2); every other milestone scaled
-    assert config_values(saved)["densify.every"] == 1 and saved.lr.position_decay_steps == STEPS
+    assert config_values(saved)["densify.every"] == 1 and saved.lr.position_decay_steps == 3 * STEPS
     assert set(config_values(TrainConfig())) == {k for k in _flat(record["config"])}  # every field recorded
     assert _flat(record["config"]) == config_values(saved)
     assert record["preset"] == "E"
