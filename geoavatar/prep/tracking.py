@@ -468,22 +468,24 @@ class OnlineFit:
         last = self.history[-1]
         self.current = {key: torch.nn.Parameter(getattr(last, key).clone()) for key in ONLINE_KEYS}
         self.sizes = [self.current[key].shape[-1] for key in ONLINE_KEYS]  # widths of the flat unknown vector
-        self.damping = 1e-3  # Levenberg-Marquardt's, carried from frame to frame
-        self.regulariser_hessian: Tensor | None = None
         if solver == "gauss_newton":
             from torch.func import hessian
 
+            self.damping = 1e-3  # Levenberg-Marquardt's, carried from frame to frame
             # The priors and temporal terms are quadratic in x (the jaw's range hinge aside, whose pull the exact
             # gradient still carries): their Hessian [P, P] is one constant, taken here so that the first live
             # frame does not wait for it (and for torch.func's set-up).
-            x0 = torch.cat([self.current[key].detach()[0] for key in ONLINE_KEYS])
-            self.regulariser_hessian = hessian(self._regularisers)(x0)
+            self.regulariser_hessian = hessian(self._regularisers)(self._flat().detach())
         if solver == "lbfgs":
             # a handful of iterations reach what Adam needs hundreds for, from a warm start
             self.optimizer = torch.optim.LBFGS(list(self.current.values()), lr=lr, max_iter=iterations,
                                                history_size=iterations, line_search_fn="strong_wolfe")
 
     # --- the energy of one frame, as a function of the flat unknowns x [P] ------------------------------
+    def _flat(self) -> Tensor:
+        """[P] the current unknowns (the graph to self.current kept, for L-BFGS)."""
+        return torch.cat([self.current[key][0] for key in ONLINE_KEYS])
+
     def _split(self, x: Tensor) -> dict[str, Tensor]:
         return {key: part[None] for key, part in zip(ONLINE_KEYS, torch.split(x, self.sizes))}  # each [1, D]
 
@@ -506,8 +508,8 @@ class OnlineFit:
         return sum(terms.values())
 
     def _energy(self, x: Tensor, K: Tensor, target: Tensor, size: Tensor) -> Tensor:
-        residual = self._residuals(x, K, target, size).norm(dim=-1)  # [L]
-        data = (_pseudo_huber(residual, self.config.huber) * self.weights).sum() / self.weights.sum()
+        data = _data_term(self.model, self._frame(x), self.viewmat, K, target, size, self.weights, torch.ones(1),
+                          self.config.huber)
         return data + self._regularisers(x)
 
     def _gauss_newton(self, x: Tensor, K: Tensor, target: Tensor, size: Tensor) -> Tensor:
@@ -549,9 +551,8 @@ class OnlineFit:
         target = torch.as_tensor(np.asarray(landmarks)[None, self.ids.numpy(), :2], dtype=torch.float32)  # [1, L, 2]
         size = torch.as_tensor(np.linalg.norm(landmarks[10, :2] - landmarks[152, :2]), dtype=torch.float32).clamp_min(1.0)[None]
         K = _intrinsics(torch.tensor(self.focal), torch.as_tensor(np.asarray(principal, np.float32))[None])
-        x0 = torch.cat([self.current[key].detach()[0] for key in ONLINE_KEYS])  # [P]
         if self.solver == "gauss_newton":
-            x = self._gauss_newton(x0, K, target, size)
+            x = self._gauss_newton(self._flat().detach(), K, target, size)
             with torch.no_grad():
                 for key, value in self._split(x).items():
                     self.current[key].copy_(value)
@@ -559,7 +560,7 @@ class OnlineFit:
             with torch.enable_grad():
                 def closure() -> Tensor:
                     self.optimizer.zero_grad(set_to_none=True)
-                    total = self._energy(torch.cat([self.current[key][0] for key in ONLINE_KEYS]), K, target, size)
+                    total = self._energy(self._flat(), K, target, size)
                     total.backward()
                     return total
 
