@@ -49,7 +49,7 @@ from geoavatar.prep.errors import PrepareError
 STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
 # ones depending on it) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 1, "write": 2}
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 1, "write": 3}
 # The stages whose outputs a stage reads: a rerun of one redoes these dependants.
 DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "frames": (),
@@ -456,7 +456,7 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
     report = {
         "video": str(config.video), "frames": int(count), "source_frames": [int(s) for s in source],
         "missing_source_frames": json.loads((work / "landmarks.json").read_text()).get("missing_source_frames", []),
-        "test_frames": int(test), "focal_px": float(fit["focal"]), "size": config.size,
+        "test_frames": int(test), "fps": float(frames["fps"]), "focal_px": float(fit["focal"]), "size": config.size,
         "reprojection_error_over_face_width": {
             "median": float(np.median(errors)), "p90": float(np.percentile(errors, 90)), "max": float(errors.max()),
             "frames_below_2pct": float((errors < 0.02).mean()), "per_frame": [round(float(e), 5) for e in errors],
