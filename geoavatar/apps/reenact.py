@@ -52,11 +52,10 @@ or the avatar alone with --no-side-by-side.
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Literal, Optional
-
 import hashlib
 import json
+from pathlib import Path
+from typing import Literal, Optional
 
 import torch
 from torch import Tensor
@@ -67,10 +66,10 @@ from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, defaul
 from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError, OptionError
-from geoavatar.prep.errors import PrepareError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from geoavatar.io.video import Mp4Writer
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
+from geoavatar.prep.errors import PrepareError
 from geoavatar.render import composite_target
 from geoavatar.train.checkpoint import LoadedRun, RunError
 
@@ -174,7 +173,8 @@ def prepare_driver(video: Path, cache: Path, head_model: str, size: int = DRIVER
     """Track a driver video with `geoavatar prepare`'s pipeline into `cache` (resumed / reused by its stage keys).
 
     Returns (the dataset folder, the video's frame rate after prepare). PrepareError naming --driver-video on bad
-    input (missing file, not a video, no face); a cache folder this call created is removed again then."""
+    input (missing file, not a video, no face); as with prepare, a folder in which no stage completed is removed
+    (and RUN/drivers when this call made it for nothing)."""
     from geoavatar.prep.pipeline import PrepareConfig, run_prepare
 
     cache = Path(cache)
