@@ -45,7 +45,7 @@ _DESCRIPTIONS = {
     "eval": "Evaluate runs on the test split: MSE, PSNR, SSIM, LPIPS (+ mouth); Table 1 / ablation tables.",
     "ablate": "Train + evaluate datasets x ablation presets on Ray; the paper's ablation table and mouth crops.",
     "render": "Self re-enactment video of a run: ground truth | render | error map (mp4).",
-    "reenact": "Cross re-enactment: drive a trained avatar with another dataset's motion (mp4).",
+    "reenact": "Cross re-enactment: drive a trained avatar with another dataset's or video's motion (mp4).",
     "drive": "Live driving from a webcam or a video: landmarks, online fit, the avatar rendered (mp4 / viewer).",
     "orbit": "Novel views: a yaw/pitch sweep around the head (mp4).",
     "export": "Export Gaussians as a standard 3DGS PLY (one frame, or a sequence as PLYs / npz).",

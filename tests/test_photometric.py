@@ -225,3 +225,79 @@ def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path):
     run_prepare(PrepareConfig(out=tmp_path / "plain", photometric=True, **options))
     assert any("stage 'photometric' is complete, skipped" in m for m in messages)
     assert any("stage 'write' is complete, skipped" in m for m in messages)
+
+
+def test_frames_without_pixels_get_no_image_term(head):
+    """A frame with an empty mask (prepare: no face found there) is never compared with its image: its residual is
+    NaN, not 0, a chunk of such frames alone does not crash the appearance steps, and what the image shows there
+    changes nothing."""
+    frames, size = 4, 48
+    truth = _truth(head, frames)
+    images, masks, viewmat, K = _render_frames(head, truth, size)
+    masks[2:] = 0  # the second chunk has no face
+    config = PhotometricConfig(sizes=(size,), epochs=(2,), chunk=2, appearance_epochs=1, per_face=1)
+    boxes = crop_boxes(head, truth, torch.as_tensor(viewmat).expand(frames, 4, 4).clone(),
+                       torch.as_tensor(K).expand(frames, 3, 3), weighted_vertex_ids(head), config.crop_margin)
+    fits = []
+    for seed in (0, 1):  # two different pictures where the face is lost
+        shown = images.copy()
+        shown[2:] = np.random.default_rng(seed).integers(0, 256, shown[2:].shape, dtype=np.uint8)
+        targets = PhotometricTargets.from_arrays(shown, masks, viewmat, K, size, boxes)
+        fits.append(fit_photometric(head, truth, targets, config))
+    result = fits[0]
+    assert np.isfinite(result.residual[:2]).all() and np.isnan(result.residual[2:]).all()
+    assert np.isnan(result.residual_before[2:]).all()
+    assert all(torch.isfinite(getattr(result.params, key)).all() for key in ("rotation", "translation", "expr"))
+    for key in ("rotation", "translation", "expr", "jaw_pose"):
+        torch.testing.assert_close(getattr(fits[1].params, key), getattr(result.params, key), atol=1e-5, rtol=0)
+    from geoavatar.prep.photometric import residual_report
+
+    summary = residual_report(result.residual, result.residual_before)
+    assert summary["per_frame"][2:] == [None, None] and summary["mean"] == pytest.approx(result.residual[:2].mean())
+
+
+@pytest.mark.skipif(not WOJTEK.is_file(), reason="test video absent")
+def test_prepare_photometric_on_a_video_that_loses_the_face(tmp_path):
+    """A real clip whose face is lost for a stretch (frames filled with a flat colour) goes through prepare
+    --photometric: those frames are interpolated, flagged in report.json, get no image term (null residual) and
+    keep parameters that run smoothly between their neighbours'."""
+    from fractions import Fraction
+
+    import av
+
+    from geoavatar.prep.pipeline import PrepareConfig, run_prepare
+    from geoavatar.prep.video import decode_frames
+
+    frames = [rgb[::2, ::2].copy() for _, rgb in decode_frames(WOJTEK, max_frames=9)]  # 256 px
+    lost = [3, 4, 5]
+    for k in lost:
+        frames[k][:] = (90, 130, 160)
+    video = tmp_path / "lost.mp4"
+    with av.open(str(video), mode="w") as container:
+        stream = container.add_stream("libx264", rate=Fraction(25))
+        stream.height, stream.width = frames[0].shape[:2]
+        stream.pix_fmt = "yuv420p"
+        for rgb in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    out = tmp_path / "out"
+    run_prepare(PrepareConfig(video=video, out=out, size=128, tracking_steps=(30, 40), photometric=True,
+                              photometric_epochs=(1, 1), overlay=False, progress=False, log=lambda message: None))
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == 9 and report["missing_source_frames"] == lost and report["interpolated_frames"] == lost
+    residual = report["photometric_residual"]
+    assert [k for k, e in enumerate(residual["per_frame"]) if e is None] == lost
+    assert all(0 < e < 0.2 for k, e in enumerate(residual["per_frame"]) if k not in lost)
+    seen = [e for e in residual["per_frame"] if e is not None]
+    assert residual["mean"] == pytest.approx(np.mean(seen), abs=1e-4)
+    fit = np.load(out / ".prepare" / "photometric.npz")
+    for key in ("param_rotation", "param_translation", "param_expr", "param_jaw_pose"):
+        values = fit[key]
+        assert np.isfinite(values).all(), key
+        # the lost stretch stays within the range its neighbours span (plus a margin of their own frame-to-frame motion)
+        around = values[[lost[0] - 1, lost[-1] + 1]]
+        step = np.maximum(np.abs(np.diff(values[:3], axis=0)).max(0), np.abs(np.diff(values[6:], axis=0)).max(0))
+        low, high = around.min(0) - 2 * step - 1e-4, around.max(0) + 2 * step + 1e-4
+        assert ((values[lost] >= low) & (values[lost] <= high)).all(), key

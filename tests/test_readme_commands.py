@@ -215,6 +215,8 @@ def _runnable(line: str, tiny: dict, workdir: Path) -> list[str] | None:
     name = command_of(argv)
     if not argv or any(line.startswith(f"geoavatar {p}") for p in PARSE_ONLY) or name == "":
         return None if argv else ["--help"]
+    if "--driver-video" in argv:
+        return None  # tracks a video with prepare's full settings (minutes); tests/test_reenact_video.py runs it
     if "talk.mp4" in argv and tiny["clip"] is None:
         pytest.skip(f"test video {VIDEO} is absent")
     fresh_run = name == "train" and "--resume" not in argv  # a new run goes to a new folder

@@ -1,4 +1,22 @@
-"""`geoavatar reenact RUN --driver DATASET`: cross-re-enactment, the driver's motion on the avatar.
+"""`geoavatar reenact RUN --driver DATASET | --driver-video VIDEO`: cross-re-enactment, the driver's motion on
+the avatar.
+
+The driver is a tracked dataset (`--driver`: any layout `geoavatar train` reads) or a video
+(`--driver-video`), which is tracked first by the code of `geoavatar prepare` (geoavatar.prep.pipeline:
+crop, landmarks, masks, the landmark fit with the avatar's head model; the photometric stage only with
+`--photometric`, as `prepare --photometric`) at `--driver-size` pixels (default 256). The driver keeps
+its own identity; only its motion is transferred, as below. Where the tracked driver goes:
+
+    RUN/drivers/<video stem>-<8 hex of its absolute path>[-photometric]/    (default)
+    --driver-cache DIR                                                       (a folder of your choice)
+
+holding what `geoavatar prepare VIDEO --out DIR` writes (DIR/dataset, DIR/report.json; no overlay).
+The next call with the same video reuses it: prepare's stages are keyed by their settings and by the
+video file's path, size and time, so nothing is redone unless one of those changed (another
+--driver-size, --photometric, or an edited video redoes the stages concerned). With --photometric the
+default folder differs, so the landmark-only and the photometric track are both kept. Frames where no
+face is found are interpolated (prepare's default) and listed in DIR/report.json. The output video
+plays at the driver video's frame rate unless --fps says otherwise.
 
 Parameters of every driver frame (FLAME npz layout; what is taken from whom):
 
@@ -34,6 +52,8 @@ or the avatar alone with --no-side-by-side.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -49,6 +69,7 @@ from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from geoavatar.io.video import Mp4Writer
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
+from geoavatar.prep.errors import PrepareError
 from geoavatar.render import composite_target
 from geoavatar.train.checkpoint import LoadedRun, RunError
 
@@ -137,6 +158,40 @@ def open_driver(driver: Path, run: LoadedRun) -> Subject:
     return subject
 
 
+DRIVERS_DIR = "drivers"  # RUN/drivers/<video stem>-<hash>/: tracked driver videos, reused by later calls
+DRIVER_SIZE = 256  # side of the driver's face crop: enough for the face mesh, cheap to track
+
+
+def driver_cache_dir(run_dir: Path, video: Path, photometric: bool = False) -> Path:
+    """RUN/drivers/<stem>-<8 hex of the video's absolute path>[-photometric]: one folder per video file."""
+    digest = hashlib.sha256(str(Path(video).resolve()).encode()).hexdigest()[:8]
+    return Path(run_dir) / DRIVERS_DIR / f"{Path(video).stem}-{digest}{'-photometric' if photometric else ''}"
+
+
+def prepare_driver(video: Path, cache: Path, head_model: str, size: int = DRIVER_SIZE, photometric: bool = False,
+                   flame_dir: Path | None = None, progress: bool = True) -> tuple[Path, float]:
+    """Track a driver video with `geoavatar prepare`'s pipeline into `cache` (resumed / reused by its stage keys).
+
+    Returns (the dataset folder, the video's frame rate after prepare). PrepareError naming --driver-video on bad
+    input (missing file, not a video, no face); as with prepare, a folder in which no stage completed is removed
+    (and RUN/drivers when this call made it for nothing)."""
+    from geoavatar.prep.pipeline import PrepareConfig, run_prepare
+
+    cache = Path(cache)
+    parent_created = not cache.parent.exists()
+    config = PrepareConfig(video=Path(video), out=cache, head=head_model, size=size, flame_dir=flame_dir,
+                           photometric=photometric, overlay=False, progress=progress,
+                           log=lambda message: print(message.replace("prepare:", "reenact: driver", 1)))
+    try:
+        dataset = run_prepare(config)
+    except PrepareError as err:
+        if parent_created and cache.parent.is_dir() and not any(cache.parent.iterdir()):
+            cache.parent.rmdir()  # RUN/drivers made for nothing
+        raise PrepareError(f"--driver-video: {err}") from err
+    report = json.loads((cache / "report.json").read_text())
+    return dataset, float(report["fps"])
+
+
 @torch.no_grad()
 def reenact_video(
     run: LoadedRun,
@@ -202,7 +257,7 @@ def reenact_video(
 
 def reenact(
     run: RunPath,
-    driver: Path,
+    driver: Optional[Path] = None,
     out: Optional[Path] = None,
     relative: bool = False,
     driver_neutral: str = "first",
@@ -211,24 +266,30 @@ def reenact(
     driver_split: Literal["all", "train", "val", "test"] = "all",
     max_frames: Optional[int] = None,
     side_by_side: bool = True,
-    fps: float = 25.0,
+    fps: Optional[float] = None,
     crf: int = 18,
     data: Optional[Path] = None,
     device: str = "auto",
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
     progress: bool = True,
+    driver_video: Optional[Path] = None,
+    driver_cache: Optional[Path] = None,
+    driver_size: Optional[int] = None,
+    photometric: bool = False,
 ) -> int:
     """Cross-re-enactment: drive the avatar with another video's expression, jaw, eyes and head motion.
 
-    The avatar keeps its identity (shape and static offsets); every frame of the driver dataset gives the
+    The avatar keeps its identity (shape and static offsets); every frame of the driver gives the
     expression, the jaw/neck/eye rotations and the head rotation; the head's translation is the avatar's
-    plus the driver's displacement. Writes an mp4 of driver | avatar.
+    plus the driver's displacement. The driver is a tracked dataset (--driver) or a video (--driver-video),
+    tracked first as `geoavatar prepare` does and cached (RUN/drivers/ by default) for the next call.
+    Writes an mp4 of driver | avatar.
 
     Args:
         run: Run folder written by `geoavatar train` (the avatar).
         driver: Dataset folder of the driving video (any layout `geoavatar train` reads), tracked with the
-            same head model as the avatar.
+            same head model as the avatar. Give this or --driver-video.
         out: Video file to write (default RUN/videos/reenact_<driver name>[_relative].mp4); atomic.
         relative: Transfer the driver's change from its neutral frame onto the avatar's neutral frame
             (expression added, rotations composed) instead of the driver's absolute values.
@@ -240,17 +301,38 @@ def reenact(
         driver_split: Frames of the driver to use: all, train, val or test (INSTA protocol: its last frames).
         max_frames: Use only this many driver frames, spread evenly (default: all).
         side_by_side: Put the driver's frame left of the avatar.
-        fps: Frames per second of the video.
+        fps: Frames per second of the video (default: the driver video's rate with --driver-video, else 25).
         crf: H.264 quality (0 lossless ... 51 worst; 18 is visually lossless).
         data: The avatar's dataset folder, when it moved since training (its camera is read from it).
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (FLAME-tracked data only).
         progress: Show progress bars.
+        driver_video: A video of the driver (any file `geoavatar prepare` reads), tracked with the avatar's head
+            model by prepare's pipeline, then used as --driver. Give this or --driver.
+        driver_cache: Folder for the tracked driver video (default RUN/drivers/<video stem>-<hash>/); a later
+            call with the same video and settings reuses it.
+        driver_size: Side in pixels of the driver's face crop (default 256); --driver-video only.
+        photometric: Refine the driver's tracking photometrically, as `prepare --photometric` (slower;
+            experimental); --driver-video only.
     """
+    if (driver is None) == (driver_video is None):
+        raise OptionError("reenact: give exactly one of --driver DATASET and --driver-video VIDEO")
+    if driver_video is None and (driver_cache is not None or driver_size is not None or photometric):
+        raise OptionError("--driver-cache, --driver-size and --photometric go with --driver-video, not --driver")
+    if driver_size is not None and driver_size < 32:
+        raise OptionError(f"--driver-size must be at least 32 pixels, got {driver_size}")
     loaded = open_run(run, device, flame_dir)
-    name = f"reenact_{Path(driver).name}{'_relative' if relative else ''}.mp4"
+    if driver_video is not None:
+        cache = driver_cache or driver_cache_dir(loaded.info.run_dir, driver_video, photometric)
+        driver, video_fps = prepare_driver(Path(driver_video), cache, loaded.info.head_model,
+                                           driver_size or DRIVER_SIZE, photometric, flame_dir, progress)
+        fps = fps or video_fps
+        print(f"driver: {driver_video} tracked in {cache}")
+    name = f"reenact_{Path(driver_video).stem if driver_video is not None else Path(driver).name}" \
+           f"{'_relative' if relative else ''}.mp4"
     target = out or default_output(loaded, VIDEO_DIR, name)
+    fps = fps or 25.0
     count = reenact_video(loaded, Path(driver), target, relative, driver_neutral, avatar_neutral, camera,
                           driver_split, max_frames, fps, crf, side_by_side, backend, data, progress)
     shown = "driver | avatar" if side_by_side else "avatar"
@@ -258,4 +340,5 @@ def reenact(
     return 0
 
 
-__all__ = ["driven_params", "reenact", "reenact_video", "reference_frame"]
+__all__ = ["DRIVERS_DIR", "driven_params", "driver_cache_dir", "prepare_driver", "reenact", "reenact_video",
+           "reference_frame"]

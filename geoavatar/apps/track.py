@@ -167,7 +167,7 @@ def track(
     import time
 
     from geoavatar.data.dataset import open_subject
-    from geoavatar.prep.photometric import PhotometricConfig
+    from geoavatar.prep.photometric import PhotometricConfig, residual_report
 
     if Path(out).resolve() == Path(dataset).resolve():
         raise OptionError("--out must differ from DATASET (the dataset is copied, never changed in place)")
@@ -187,14 +187,13 @@ def track(
     report = {
         "source": str(Path(dataset).resolve()), "frames": subject.num_timesteps, "seconds": round(seconds, 2),
         "config": {k: v for k, v in asdict(config).items() if k != "tracking"},
-        "photometric_residual": {"before_mean": float(result.residual_before.mean()), "mean": float(result.residual.mean()),
-                                 "per_frame": [round(float(e), 5) for e in result.residual],
-                                 "per_frame_before": [round(float(e), 5) for e in result.residual_before]},
+        "photometric_residual": residual_report(result.residual, result.residual_before),  # null: an empty mask
         "log": result.log,
     }
     write_tracked_copy(subject, result.params, Path(out), report)
-    print(f"tracked {subject.num_timesteps} frames in {seconds:.1f} s; residual {result.residual_before.mean():.4f} -> "
-          f"{result.residual.mean():.4f}; dataset: {out}", file=sys.stderr if not progress else sys.stdout)
+    residual = report["photometric_residual"]
+    print(f"tracked {subject.num_timesteps} frames in {seconds:.1f} s; residual {residual['mean_before']:.4f} -> "
+          f"{residual['mean']:.4f}; dataset: {out}", file=sys.stderr if not progress else sys.stdout)
     return 0
 
 

@@ -3,7 +3,7 @@
     targets = PhotometricTargets.from_arrays(images [T,H,W,3] u8, masks [T,H,W] u8, viewmat, K [T,3,3])
     result = fit_photometric(head, init: HeadParams [T], targets, PhotometricConfig(), landmarks=None)
     result.params          # HeadParams [T] (shape / static_offset of `init`, per-frame keys refined)
-    result.residual        # [T] masked L1 per frame after the fit; result.residual_before: with `init`
+    result.residual        # [T] masked L1 per frame after the fit (NaN: no pixel to compare); residual_before: with `init`
 
 The appearance model is bound to the posed mesh: one isotropic Gaussian per face of the *weighted*
 faces (the face, eyes, nose, lips and the mouth structure; never scalp, neck, ears: hair, beard and
@@ -23,7 +23,10 @@ Energy per chunk of frames (all terms means over the chunk's frames):
     photo + landmark_weight * (landmark term of prep.tracking, when landmarks are given)
           + prior_weight * (prep.tracking's per-frame priors + temporal smoothness)
 The temporal terms see the neighbouring frames of the adjacent chunks (fixed), so chunk borders are
-smooth too. Unknowns: per frame rotation, translation, neck, jaw, eyes, expression; shared albedo and
+smooth too. A frame whose mask is empty (prepare empties the masks of frames where no face was found, whose
+landmarks are interpolated) has no image term: the mean `photo` is over the chunk's frames with pixels, and
+such a frame follows its weak landmark term, the priors and the temporal smoothness with its refined
+neighbours; its residual is NaN ("nothing compared"), never 0. Unknowns: per frame rotation, translation, neck, jaw, eyes, expression; shared albedo and
 lighting (and the identity shape with `fit_shape`). Schedule: albedo initialised by projecting each
 face centroid into the frames that see it; one appearance-only epoch; then epochs over chunks at each
 pyramid level (64 -> 128 px by default), Adam per chunk (its moments kept across epochs), learning
@@ -446,11 +449,14 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
         params = frame_params(chunk, frozen=appearance_only)
         vertices = head.forward_params(params, vertex_ids=appearance.vertex_ids).vertices  # [B, K, 3]
         H, W = level.images.shape[1:3]
-        photo = vertices.new_zeros(())
+        photo, seen = vertices.new_zeros(()), 0
         for i, row in enumerate(rows.tolist()):
+            if not has_pixels[row]:  # no face in this frame: nothing to compare, no render
+                continue
             rgb, _ = render_at(appearance, vertices[i], level.viewmat[row], level.K[row], W, H, factor)
             photo = photo + photometric_loss(rgb, level.images[row], weights[row])
-        terms = {"photo": photo / len(rows)}
+            seen += 1
+        terms = {"photo": photo / max(seen, 1)}
         if not appearance_only:
             if landmarks is not None and config.landmark_weight > 0:
                 terms["landmark"] = config.landmark_weight * _data_term(
@@ -465,13 +471,15 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
         return total, {k: float(v.detach()) for k, v in terms.items()}
 
     def residuals(params_of, weights: Tensor) -> np.ndarray:
-        out = np.zeros(T)
+        out = np.full(T, np.nan)  # NaN: a frame without pixels to compare
         H, W = finest.images.shape[1:3]
         with torch.no_grad():
             for chunk in chunks:
                 params = params_of(chunk)
                 vertices = head.forward_params(params, vertex_ids=appearance.vertex_ids).vertices
                 for i, row in enumerate(range(chunk.start, chunk.stop)):
+                    if not bool(weights[row].sum() > 0):
+                        continue
                     result = appearance.render(vertices[i], finest.viewmat[row], finest.K[row], W, H)
                     out[row] = float(photometric_loss(result.rgb, finest.images[row], weights[row]))
         return out
@@ -484,6 +492,7 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
         level = targets.level(size)
         factor = level_factor(config, size)
         weights = region_weights(appearance, head, init, level, config.chunk, factor)
+        has_pixels = (weights.flatten(1).sum(1) > 0).tolist()  # [T] frames with an image term at this level
         steps, done = epochs * len(chunks), 0
         sums: dict[str, float] = {}
         for epoch in range(epochs):
@@ -496,10 +505,11 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
                 chunk.optimizer.zero_grad(set_to_none=True)
                 shared_optimizer.zero_grad(set_to_none=True)
                 total, terms = chunk_loss(index, level, weights, appearance_only, factor)
-                total.backward()
-                if not appearance_only:
-                    chunk.optimizer.step()
-                shared_optimizer.step()
+                if total.requires_grad:  # not so for an appearance step over frames that all lack a face
+                    total.backward()
+                    if not appearance_only:
+                        chunk.optimizer.step()
+                    shared_optimizer.step()
                 with torch.no_grad():
                     appearance.albedo.clamp_(0.0, 1.0)
                 done += 1
@@ -516,10 +526,26 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
     after = residuals(lambda c: frame_params(c, frozen=True), weights)
     fitted = HeadParams(shape=shape.detach().clone(), static_offset=init.static_offset,
                         **{k: torch.cat([c.values[k].detach() for c in chunks]) for k in FRAME_KEYS})
-    log.append(f"residual (masked L1, {max(config.sizes)}px): {before.mean():.4f} -> {after.mean():.4f}")
+    blank = int(np.isnan(after).sum())
+    log.append(f"residual (masked L1, {max(config.sizes)}px): {_nanmean(before):.4f} -> {_nanmean(after):.4f}"
+               + (f" ({blank} frame(s) without pixels to compare: no image term)" if blank else ""))
     return PhotometricResult(params=fitted, residual=after, residual_before=before,
                              albedo=appearance.albedo.detach().numpy().copy(), light=appearance.light.detach().numpy().copy(),
                              face_ids=appearance.face_ids, log=log)
+
+
+def _nanmean(values: np.ndarray) -> float:
+    """Mean over the finite entries (NaN when there is none), without numpy's empty-slice warning."""
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else float("nan")
+
+
+def residual_report(residual: np.ndarray, residual_before: np.ndarray) -> dict:
+    """The JSON summary of a fit's residuals [T] (prepare's report.json, track.json): means over the frames
+    that had pixels to compare, per-frame values with null for the others."""
+    listed = lambda values: [None if not np.isfinite(e) else round(float(e), 5) for e in values]  # noqa: E731
+    return {"mean": _nanmean(residual), "mean_before": _nanmean(residual_before),
+            "per_frame": listed(residual), "per_frame_before": listed(residual_before)}
 
 
 def total_steps(config: PhotometricConfig, frames: int) -> int:
@@ -530,4 +556,4 @@ def total_steps(config: PhotometricConfig, frames: int) -> int:
 __all__ = ["LandmarkTargets", "PhotometricConfig", "PhotometricResult", "PhotometricTargets", "SurfaceAppearance",
            "WEIGHTED_REGIONS", "fit_photometric", "photometric_loss", "sh_basis", "total_steps",
            "weighted_faces", "weighted_vertex_ids", "crop_boxes", "grow_faces", "region_weights", "render_at",
-           "level_factor"]
+           "level_factor", "residual_report"]

@@ -5,7 +5,8 @@
 Output folder OUT:
     OUT/dataset/          the VHAP / GaussianAvatars layout (LayoutWriter: appears atomically)
     OUT/overlay.mp4       tracked mesh + landmarks over the frames (green: MediaPipe, red: model)
-    OUT/report.json       per-frame reprojection error, missing frames, focal, timings
+    OUT/report.json       per-frame reprojection error, frames without a face (missing_source_frames: source
+                          frame numbers; interpolated_frames: dataset timesteps), focal, fps
     OUT/.prepare/         work files of the stages and their completion markers
 
 Stages (each writes `.prepare/<stage>.json` last, holding its key; a re-run skips a stage whose marker
@@ -49,7 +50,7 @@ from geoavatar.prep.errors import PrepareError
 STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
 # ones depending on it) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 1, "write": 2}
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 2, "write": 3}
 # The stages whose outputs a stage reads: a rerun of one redoes these dependants.
 DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "frames": (),
@@ -376,7 +377,7 @@ def stage_photometric(config: PrepareConfig, work: Path) -> dict:
     from geoavatar.head.mouth import add_mouth_structure
     from geoavatar.head.params import HeadParams
     from geoavatar.prep.photometric import (LandmarkTargets, PhotometricTargets, crop_boxes, fit_photometric,
-                                            total_steps, weighted_vertex_ids)
+                                            residual_report, total_steps, weighted_vertex_ids)
     from geoavatar.prep.tracking import GROUP_OF, GROUP_WEIGHTS
     from geoavatar.render.camera import project
 
@@ -395,6 +396,10 @@ def stage_photometric(config: PrepareConfig, work: Path) -> dict:
     init = HeadParams.from_npz(params)
     images = np.stack([_read_png(work / "frames" / f"{k:05d}.png") for k in keep])
     masks = np.stack([_read_png(work / "masks" / f"{k:05d}.png") for k in keep])
+    # No face found (landmarks interpolated): the image is not of the face the parameters say (a hand, a
+    # turned-away head, a blank frame), so it gets no image term; its parameters follow the interpolated
+    # landmarks (low confidence), the priors and the temporal smoothness with the refined neighbours.
+    masks[~marks["found"][keep]] = 0
     viewmat = torch.as_tensor(fit["viewmat"], dtype=torch.float32).expand(len(keep), 4, 4)
     K = torch.as_tensor(fit["K"], dtype=torch.float32)
     boxes = crop_boxes(head, init, viewmat, K, weighted_vertex_ids(head), settings.crop_margin)
@@ -424,7 +429,8 @@ def stage_photometric(config: PrepareConfig, work: Path) -> dict:
                 residual=result.residual, residual_before=result.residual_before)
     for line in result.log:
         config.log(f"prepare: photometric {line}")
-    return {"residual_before": float(result.residual_before.mean()), "residual": float(result.residual.mean()),
+    summary = residual_report(result.residual, result.residual_before)
+    return {"residual_before": summary["mean_before"], "residual": summary["mean"],
             "median_error": float(np.median(errors)), "log": result.log}
 
 
@@ -456,7 +462,9 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
     report = {
         "video": str(config.video), "frames": int(count), "source_frames": [int(s) for s in source],
         "missing_source_frames": json.loads((work / "landmarks.json").read_text()).get("missing_source_frames", []),
-        "test_frames": int(test), "focal_px": float(fit["focal"]), "size": config.size,
+        # dataset timesteps whose landmarks were interpolated (no face found; --missing interpolate)
+        "interpolated_frames": [int(t) for t in np.flatnonzero(~marks["found"][keep])],
+        "test_frames": int(test), "fps": float(frames["fps"]), "focal_px": float(fit["focal"]), "size": config.size,
         "reprojection_error_over_face_width": {
             "median": float(np.median(errors)), "p90": float(np.percentile(errors, 90)), "max": float(errors.max()),
             "frames_below_2pct": float((errors < 0.02).mean()), "per_frame": [round(float(e), 5) for e in errors],
@@ -464,11 +472,9 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
         "jaw_open_rad": {"min": float(params["jaw_pose"][:, 0].min()), "max": float(params["jaw_pose"][:, 0].max())},
     }
     if "residual" in fit.files:  # masked L1 of the photometric fit's appearance model, 128 px face crops
-        report["photometric_residual"] = {
-            "mean": float(fit["residual"].mean()), "mean_before": float(fit["residual_before"].mean()),
-            "per_frame": [round(float(e), 5) for e in fit["residual"]],
-            "per_frame_before": [round(float(e), 5) for e in fit["residual_before"]],
-        }
+        from geoavatar.prep.photometric import residual_report
+
+        report["photometric_residual"] = residual_report(fit["residual"], fit["residual_before"])  # null: no face
     atomic_write_json(Path(config.out) / "report.json", report)
     return {"dataset": str(dataset), "frames": int(count), "test_frames": int(test)}
 
