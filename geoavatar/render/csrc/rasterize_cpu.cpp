@@ -516,6 +516,20 @@ GEOAVATAR_INLINE int32_t sum_lanes(typename Vec<W>::I v) {
     return sum_lanes<W / 2>(lo + hi);
   }
 }
+
+// Sum of the W lanes of a double vector, by halves: a fixed order (a shuffle-free tree), so an entry's
+// gradient does not depend on anything but its pixels.
+template <int W>
+GEOAVATAR_INLINE double sum_lanes_f64(typename Vec<W>::D v) {
+  if constexpr (W == 2) {
+    return v[0] + v[1];
+  } else {
+    typename Vec<W / 2>::D lo, hi;
+    std::memcpy(&lo, &v, sizeof lo);
+    std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
+    return sum_lanes_f64<W / 2>(lo + hi);
+  }
+}
 #endif
 
 // A tile's entries are in depth order and their splats lie scattered in memory (a Splat<float> spans two
@@ -549,7 +563,8 @@ GEOAVATAR_INLINE void composite_tile_vec(const LaneTile& tile) {
   int32_t* __restrict__ last = tile.last;
   int32_t* __restrict__ done = tile.done;
   const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
-  const I lane = lane_index<I>(), zero_i = splat<I>(0), one_i = splat<I>(1);
+  const I zero_i = splat<I>(0), one_i = splat<I>(1);
+  const F lane_f = __builtin_convertvector(lane_index<I>(), F);
   const F half = splat<F>(0.5f), one = splat<F>(1.0f), alpha_min = splat<F>(kAlphaMinF);
   const F alpha_max = splat<F>(kAlphaMaxF), t_min = splat<F>(kTransmittanceMinF);
   int64_t n_done = 0;
@@ -572,14 +587,19 @@ GEOAVATAR_INLINE void composite_tile_vec(const LaneTile& tile) {
       int64_t xa = x0, xb = x1;
       if (!narrow && !span.columns(dy, x0, x1, xa, xb)) continue;
       const F dy_v = splat<F>(dy), c_dy_dy = splat<F>(s.c * dy * dy);
-      for (int64_t x = xa; x <= xb; x += W) {
+      // pixel centres x + 0.5 of the lanes, and of the span's last column, in float: sums of small
+      // integers and 0.5, exact, so dx is the scalar kernel's; the lanes past the span compare above
+      // x_end (integer splats cost GCC a chain of inserts per step)
+      F centre = lane_f + splat<F>(static_cast<float>(xa) + 0.5f);
+      const F x_end = splat<F>(static_cast<float>(xb) + 0.5f);
+      for (int64_t x = xa; x <= xb; x += W, centre += splat<F>(static_cast<float>(W))) {
         const int64_t base = row * tile.stride + (x - tx0);
         // the scalar kernel's expressions, in its order: the same float sigma bit for bit
-        const F dx = mx - (__builtin_convertvector(splat<I>(static_cast<int32_t>(x)) + lane, F) + half);
+        const F dx = mx - centre;
         const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
         const F alpha_raw = opacity * exp_lanes<F, I>(-sigma);
         const I done_here = load<I>(done + base);
-        const I accept = (lane <= splat<I>(static_cast<int32_t>(xb - x))) & (done_here == zero_i) &
+        const I accept = (centre <= x_end) & (done_here == zero_i) &
                          (alpha_raw >= alpha_min);
         const F alpha = alpha_raw < alpha_max ? alpha_raw : alpha_max;
         const F t_here = load<F>(trans + base);
@@ -734,7 +754,7 @@ void forward_tiles(const Splat<float>* splats, const std::vector<int64_t>& offse
 // division, what lies behind, d loss / d rgb) is float32 like the forward's, so a step is one register
 // per value (double state needs two per value on AVX2 and measured no faster than the scalar kernel).
 // Each gradient sum is kept per lane over the entry's pixels, then the lanes are added in double in a
-// fixed order, so results do not depend on the thread count. Against the double-state backward this
+// fixed order (halves: lanes l and l + W/2 first), so results do not depend on the thread count. Against the double-state backward this
 // moves gradients by a few float ulps of their terms (tests: within the lane-vs-scalar tolerances).
 struct LaneBackTile {
   const Splat<float>* splats;
@@ -751,6 +771,7 @@ template <int W>
 GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
   using F = typename Vec<W>::F;
   using I = typename Vec<W>::I;
+  using D = typename Vec<W>::D;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ behind = tile.behind;
   const float* __restrict__ grad_r = tile.grad_r;
@@ -758,7 +779,7 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
   const float* __restrict__ grad_b = tile.grad_b;
   const int32_t* __restrict__ last = tile.last;
   const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
-  const I lane = lane_index<I>();
+  const F lane_f = __builtin_convertvector(lane_index<I>(), F);
   const F zero = splat<F>(0.0f), one = splat<F>(1.0f), half = splat<F>(0.5f);
   const F alpha_min = splat<F>(kAlphaMinF), alpha_max = splat<F>(kAlphaMaxF);
   for (int64_t k = tile.begin + tile.max_last - 1; k >= tile.begin; --k) {
@@ -780,13 +801,15 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
       int64_t xa = x0, xb = x1;
       if (!narrow && !span.columns(dy, x0, x1, xa, xb)) continue;
       const F dy_v = splat<F>(dy), c_dy_dy = splat<F>(s.c * dy * dy);
-      for (int64_t x = xa; x <= xb; x += W) {
+      F centre = lane_f + splat<F>(static_cast<float>(xa) + 0.5f);  // as in the forward
+      const F x_end = splat<F>(static_cast<float>(xb) + 0.5f);
+      for (int64_t x = xa; x <= xb; x += W, centre += splat<F>(static_cast<float>(W))) {
         const int64_t base = row * tile.stride + (x - tx0);
         // alpha exactly as the lane forward computed it
-        const F dx = mx - (__builtin_convertvector(splat<I>(static_cast<int32_t>(x)) + lane, F) + half);
+        const F dx = mx - centre;
         const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
         const F alpha_raw = opacity * exp_lanes<F, I>(-sigma);
-        const I in = (lane <= splat<I>(static_cast<int32_t>(xb - x))) & (position < load<I>(last + base)) &
+        const I in = (centre <= x_end) & (position < load<I>(last + base)) &
                      (alpha_raw >= alpha_min);
         const I uncapped = in & (alpha_raw < alpha_max);  // a capped alpha depends on neither sigma nor opacity
         const F alpha = alpha_raw < alpha_max ? alpha_raw : alpha_max;  // the forward's float alpha
@@ -812,11 +835,7 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
       }
     }
     double* out = tile.entry_grads + kEntryGrads * static_cast<int64_t>(tile.slots[k]);
-    for (int j = 0; j < kEntryGrads; ++j) {
-      double total = 0.0;
-      for (int l = 0; l < W; ++l) total += static_cast<double>(sums[j][l]);
-      out[j] = total;
-    }
+    for (int j = 0; j < kEntryGrads; ++j) out[j] = sum_lanes_f64<W>(__builtin_convertvector(sums[j], D));
   }
 }
 
