@@ -194,21 +194,23 @@ class _RasterizeToPixels(torch.autograd.Function):
         args = [t.detach().contiguous() for t in (means2d, conics, opacities, colors, background)]
         radii, depths = radii.contiguous(), depths.detach().contiguous()
         simd = simd_path()
-        rgb, alpha, offsets, ids, last, t_final = ext.forward(*args, radii, depths, width, height, tile_size, simd)
-        ctx.save_for_backward(*args, radii, offsets, ids, last, t_final)
+        rgb, alpha, *state = ext.forward(*args, radii, depths, width, height, tile_size, simd)
+        # state: tile offsets, ids, last, t_final, splat records, entry slots, firsts (see forward in csrc)
+        ctx.save_for_backward(*args, *state)
         ctx.geometry = (width, height, tile_size, simd)
         return rgb, alpha
 
     @staticmethod
     def backward(ctx, grad_rgb, grad_alpha):
-        means2d, conics, opacities, colors, background, radii, offsets, ids, last, t_final = ctx.saved_tensors
+        means2d, conics, opacities, colors, background, offsets, ids, last, t_final, splats, slots, firsts = (
+            ctx.saved_tensors)
         width, height, tile_size, simd = ctx.geometry
         dtype = means2d.dtype
         grad_rgb = grad_rgb.to(dtype).contiguous()  # [H, W, 3]
         grad_alpha = grad_alpha.to(dtype).contiguous()  # [H, W, 1]
         g_means2d, g_conics, g_opacities, g_colors = load_extension().backward(
-            means2d, conics, opacities, colors, background, radii, offsets, ids, last, t_final, grad_rgb,
-            grad_alpha, width, height, tile_size, simd,
+            means2d, conics, opacities, colors, background, splats, offsets, ids, slots, firsts, last, t_final,
+            grad_rgb, grad_alpha, width, height, tile_size, simd,
         )
         g_background = (t_final.to(dtype)[..., None] * grad_rgb).sum((0, 1))  # [3]
         return g_means2d, g_conics, g_opacities, g_colors, g_background, None, None, None, None, None

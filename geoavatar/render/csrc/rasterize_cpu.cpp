@@ -30,6 +30,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <memory>
 #include <numeric>
 #include <string>
 #include <vector>
@@ -68,17 +69,24 @@ struct Grid {
 
 int threads_for_torch() { return std::max(1, at::get_num_threads()); }
 
+// OpenMP pragmas cannot sit inside AT_DISPATCH's macro argument: loops over Gaussians go through this.
+template <typename Body>
+void parallel_over(int64_t n, const Body& body) {
+#pragma omp parallel for schedule(static) num_threads(threads_for_torch())
+  for (int64_t i = 0; i < n; ++i) body(i);
+}
+
+// Fills splats [N] (the forward's buffer, handed to the backward as a byte tensor: not gathered twice).
 template <typename scalar_t>
-std::vector<Splat<scalar_t>> gather_splats(const torch::Tensor& means2d, const torch::Tensor& conics,
-                                           const torch::Tensor& opacities, const torch::Tensor& colors,
-                                           const torch::Tensor& radii, const Grid& grid) {
+void gather_splats(const torch::Tensor& means2d, const torch::Tensor& conics, const torch::Tensor& opacities,
+                   const torch::Tensor& colors, const torch::Tensor& radii, const Grid& grid,
+                   Splat<scalar_t>* splats) {
   const int64_t n = means2d.size(0);
   const scalar_t* m = means2d.data_ptr<scalar_t>();
   const scalar_t* q = conics.data_ptr<scalar_t>();
   const scalar_t* o = opacities.data_ptr<scalar_t>();
   const scalar_t* col = colors.data_ptr<scalar_t>();
   const int32_t* rad = radii.data_ptr<int32_t>();
-  std::vector<Splat<scalar_t>> splats(n);
 #pragma omp parallel for schedule(static) num_threads(threads_for_torch())
   for (int64_t i = 0; i < n; ++i) {
     Splat<scalar_t>& s = splats[i];
@@ -101,10 +109,29 @@ std::vector<Splat<scalar_t>> gather_splats(const torch::Tensor& means2d, const t
       continue;
     }
     // pixel centres j + 0.5 inside [mx - rx, mx + rx]
-    const double fx0 = std::ceil(static_cast<double>(s.mx) - rx - 0.5);
-    const double fx1 = std::floor(static_cast<double>(s.mx) + rx - 0.5);
-    const double fy0 = std::ceil(static_cast<double>(s.my) - ry - 0.5);
-    const double fy1 = std::floor(static_cast<double>(s.my) + ry - 0.5);
+    double fx0 = std::ceil(static_cast<double>(s.mx) - rx - 0.5);
+    double fx1 = std::floor(static_cast<double>(s.mx) + rx - 0.5);
+    double fy0 = std::ceil(static_cast<double>(s.my) - ry - 0.5);
+    double fy1 = std::floor(static_cast<double>(s.my) + ry - 0.5);
+    // The box is cut to the bounding box of the ellipse sigma <= sigma_cut, with RowSpan's margins
+    // (cut + 1e-3, 0.01 px): outside it alpha < 1/255, so no pixel changes. The integer radii round
+    // up and the 3-sigma square is wider than the tilted ellipse: at 256^2 with ~100k small Gaussians
+    // this halves the rows the tile loops visit and drops ~8 % of the (tile, Gaussian) entries.
+    const double ca = s.a, cb = s.b, cc = s.c, det = ca * cc - cb * cb;
+    const double cut = static_cast<double>(s.sigma_cut) + 1e-3;
+    if (ca > 0 && det > 0 && std::isfinite(cut) && std::isfinite(static_cast<double>(s.mx)) &&
+        std::isfinite(static_cast<double>(s.my))) {
+      if (cut < 0) {  // sigma >= 0 > cut everywhere
+        fx1 = fx0 - 1;
+      } else {
+        // sigma = 0.5 (a dx^2 + 2 b dx dy + c dy^2) <= cut reaches |dx| <= sqrt(2 cut c / det), |dy| likewise
+        const double hx = std::sqrt(2.0 * cut * cc / det), hy = std::sqrt(2.0 * cut * ca / det);
+        fx0 = std::max(fx0, std::ceil(static_cast<double>(s.mx) - hx - 0.5 - 0.01));
+        fx1 = std::min(fx1, std::floor(static_cast<double>(s.mx) + hx - 0.5 + 0.01));
+        fy0 = std::max(fy0, std::ceil(static_cast<double>(s.my) - hy - 0.5 - 0.01));
+        fy1 = std::min(fy1, std::floor(static_cast<double>(s.my) + hy - 0.5 + 0.01));
+      }
+    }
     s.x0 = static_cast<int32_t>(std::max(fx0, 0.0));
     s.x1 = static_cast<int32_t>(std::min(fx1, static_cast<double>(grid.width - 1)));
     s.y0 = static_cast<int32_t>(std::max(fy0, 0.0));
@@ -112,7 +139,6 @@ std::vector<Splat<scalar_t>> gather_splats(const torch::Tensor& means2d, const t
     s.tx0 = static_cast<int32_t>(s.x0 / grid.tile), s.tx1 = static_cast<int32_t>(s.x1 / grid.tile);
     s.ty0 = static_cast<int32_t>(s.y0 / grid.tile), s.ty1 = static_cast<int32_t>(s.y1 / grid.tile);
   }
-  return splats;
 }
 
 // Sorts order (ascending indices) by depth, ties by index: the torch backend's stable argsort.
@@ -147,11 +173,14 @@ void sort_by_depth(std::vector<int32_t>& order, const float* z) {
   }
 }
 
-// Tile lists: offsets [T + 1] into ids [M], each tile's ids front to back.
+// Tile lists: offsets [T + 1] into ids [M], each tile's ids front to back. For the backward, each
+// entry's slot [M] in a Gaussian-major order (Gaussian i's entries at firsts[i] .. firsts[i + 1] - 1,
+// in tile order): it writes an entry's gradients there, so that the sum per Gaussian reads contiguous
+// records and runs in parallel over Gaussians, in the same fixed order as before.
 template <typename scalar_t>
-void bin_gaussians(const std::vector<Splat<scalar_t>>& splats, const torch::Tensor& depths, const Grid& grid,
-                   std::vector<int64_t>& offsets, std::vector<int32_t>& ids) {
-  const int64_t n = static_cast<int64_t>(splats.size());
+void bin_gaussians(const Splat<scalar_t>* splats, int64_t n, const torch::Tensor& depths, const Grid& grid,
+                   std::vector<int64_t>& offsets, std::vector<int32_t>& ids, torch::Tensor& slots_t,
+                   int64_t* firsts) {
   std::vector<int32_t> order;
   order.reserve(n);
   for (int64_t i = 0; i < n; ++i) {
@@ -168,16 +197,31 @@ void bin_gaussians(const std::vector<Splat<scalar_t>>& splats, const torch::Tens
   std::partial_sum(counts.begin(), counts.end(), counts.begin());
   offsets = counts;
   ids.resize(offsets.back());
+  TORCH_CHECK(offsets.back() < INT32_MAX, "rasterize_cpu: too many (tile, Gaussian) entries");
+  slots_t.resize_({offsets.back()});
+  int32_t* slots = slots_t.data_ptr<int32_t>();
+  firsts[0] = 0;
+  for (int64_t i = 0; i < n; ++i) {
+    const auto& s = splats[i];
+    const bool in = s.x0 <= s.x1 && s.y0 <= s.y1;
+    firsts[i + 1] = firsts[i] + (in ? int64_t{s.tx1 - s.tx0 + 1} * (s.ty1 - s.ty0 + 1) : 0);
+  }
   std::vector<int64_t> cursor(offsets.begin(), offsets.end() - 1);
   for (int32_t i : order) {
     const auto& s = splats[i];
-    for (int64_t ty = s.ty0; ty <= s.ty1; ++ty)
-      for (int64_t tx = s.tx0; tx <= s.tx1; ++tx) ids[cursor[ty * grid.tiles_x + tx]++] = i;
+    int32_t slot = static_cast<int32_t>(firsts[i]);
+    for (int64_t ty = s.ty0; ty <= s.ty1; ++ty) {
+      for (int64_t tx = s.tx0; tx <= s.tx1; ++tx) {
+        const int64_t k = cursor[ty * grid.tiles_x + tx]++;
+        ids[k] = i;
+        slots[k] = slot++;
+      }
+    }
   }
 }
 
 template <typename scalar_t>
-void forward_tiles_scalar(const std::vector<Splat<scalar_t>>& splats, const std::vector<int64_t>& offsets,
+void forward_tiles_scalar(const Splat<scalar_t>* splats, const std::vector<int64_t>& offsets,
                    const std::vector<int32_t>& ids, const double* background, const Grid& grid, scalar_t* out_rgb,
                    scalar_t* out_alpha, int32_t* out_last, double* out_t_final) {
   const int64_t t = grid.tile, tp = t * t;
@@ -243,12 +287,18 @@ void forward_tiles_scalar(const std::vector<Splat<scalar_t>>& splats, const std:
 // Gradient record of one (tile, Gaussian) entry: means2d (2), conic (3), opacity, colour (3).
 constexpr int kEntryGrads = 9;
 
+// Entries behind every pixel's composited range get no gradient; their records are written here
+// (entry_grads is not zero-filled: it holds ~15 MB at 100k Gaussians and every record is written once).
+inline void zero_entries(double* entry_grads, const int32_t* slots, int64_t begin, int64_t end) {
+  for (int64_t k = begin; k < end; ++k)
+    std::fill_n(entry_grads + kEntryGrads * static_cast<int64_t>(slots[k]), kEntryGrads, 0.0);
+}
+
 // Backward of the scalar path (float32 and float64).
 template <typename scalar_t>
-void backward_tiles(const std::vector<Splat<scalar_t>>& splats, const int64_t* offsets, const int32_t* ids,
+void backward_tiles(const Splat<scalar_t>* splats, const int64_t* offsets, const int32_t* ids, const int32_t* slots,
                     const int32_t* last_in, const double* t_final, const scalar_t* grad_rgb,
-                    const scalar_t* grad_alpha, const double* background, const Grid& grid,
-                    std::vector<double>& entry_grads) {
+                    const scalar_t* grad_alpha, const double* background, const Grid& grid, double* entry_grads) {
   const int64_t t = grid.tile, tp = t * t;
 #pragma omp parallel num_threads(threads_for_torch())
   {
@@ -276,6 +326,7 @@ void backward_tiles(const std::vector<Splat<scalar_t>>& splats, const int64_t* o
           max_last = std::max(max_last, last[p]);
         }
       }
+      zero_entries(entry_grads, slots, begin + max_last, end);
       for (int64_t k = begin + max_last - 1; k >= begin; --k) {
         const Splat<scalar_t>& s = splats[ids[k]];
         const int64_t x0 = std::max<int64_t>(s.x0, tx0), x1 = std::min<int64_t>(s.x1, tx0 + tw - 1);
@@ -317,7 +368,7 @@ void backward_tiles(const std::vector<Splat<scalar_t>>& splats, const int64_t* o
             }
           }
         }
-        double* out = entry_grads.data() + kEntryGrads * k;
+        double* out = entry_grads + kEntryGrads * static_cast<int64_t>(slots[k]);
         out[0] = gm_x, out[1] = gm_y, out[2] = gc_a, out[3] = gc_b, out[4] = gc_c, out[5] = g_op;
         out[6] = gr, out[7] = gg, out[8] = gb;
       }
@@ -465,6 +516,20 @@ GEOAVATAR_INLINE int32_t sum_lanes(typename Vec<W>::I v) {
     return sum_lanes<W / 2>(lo + hi);
   }
 }
+
+// Sum of the W lanes of a double vector, by halves: a fixed order (a shuffle-free tree), so an entry's
+// gradient does not depend on anything but its pixels.
+template <int W>
+GEOAVATAR_INLINE double sum_lanes_f64(typename Vec<W>::D v) {
+  if constexpr (W == 2) {
+    return v[0] + v[1];
+  } else {
+    typename Vec<W / 2>::D lo, hi;
+    std::memcpy(&lo, &v, sizeof lo);
+    std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
+    return sum_lanes_f64<W / 2>(lo + hi);
+  }
+}
 #endif
 
 // A tile's entries are in depth order and their splats lie scattered in memory (a Splat<float> spans two
@@ -498,7 +563,8 @@ GEOAVATAR_INLINE void composite_tile_vec(const LaneTile& tile) {
   int32_t* __restrict__ last = tile.last;
   int32_t* __restrict__ done = tile.done;
   const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
-  const I lane = lane_index<I>(), zero_i = splat<I>(0), one_i = splat<I>(1);
+  const I zero_i = splat<I>(0), one_i = splat<I>(1);
+  const F lane_f = __builtin_convertvector(lane_index<I>(), F);
   const F half = splat<F>(0.5f), one = splat<F>(1.0f), alpha_min = splat<F>(kAlphaMinF);
   const F alpha_max = splat<F>(kAlphaMaxF), t_min = splat<F>(kTransmittanceMinF);
   int64_t n_done = 0;
@@ -509,23 +575,31 @@ GEOAVATAR_INLINE void composite_tile_vec(const LaneTile& tile) {
     const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
     const I position = splat<I>(static_cast<int32_t>(k - tile.begin + 1));
     const RowSpan span(s);
+    // A box row that one step covers is stepped whole (its lanes outside the span fail the alpha test
+    // anyway): solving the span (sqrt, division, rounding in double) would cost more than it saves.
+    const bool narrow = x1 - x0 < W;
     const F mx = splat<F>(s.mx), a = splat<F>(s.a), b = splat<F>(s.b), opacity = splat<F>(s.opacity);
     const F r = splat<F>(s.r), g = splat<F>(s.g), bl = splat<F>(s.bl);
     for (int64_t y = y0; y <= y1; ++y) {
       const int64_t row = y - ty0;
       if (tile.row_done[row] == tw) continue;
       const float dy = s.my - (static_cast<float>(y) + 0.5f);
-      int64_t xa, xb;
-      if (!span.columns(dy, x0, x1, xa, xb)) continue;
+      int64_t xa = x0, xb = x1;
+      if (!narrow && !span.columns(dy, x0, x1, xa, xb)) continue;
       const F dy_v = splat<F>(dy), c_dy_dy = splat<F>(s.c * dy * dy);
-      for (int64_t x = xa; x <= xb; x += W) {
+      // pixel centres x + 0.5 of the lanes, and of the span's last column, in float: sums of small
+      // integers and 0.5, exact, so dx is the scalar kernel's; the lanes past the span compare above
+      // x_end (integer splats cost GCC a chain of inserts per step)
+      F centre = lane_f + splat<F>(static_cast<float>(xa) + 0.5f);
+      const F x_end = splat<F>(static_cast<float>(xb) + 0.5f);
+      for (int64_t x = xa; x <= xb; x += W, centre += splat<F>(static_cast<float>(W))) {
         const int64_t base = row * tile.stride + (x - tx0);
         // the scalar kernel's expressions, in its order: the same float sigma bit for bit
-        const F dx = mx - (__builtin_convertvector(splat<I>(static_cast<int32_t>(x)) + lane, F) + half);
+        const F dx = mx - centre;
         const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
         const F alpha_raw = opacity * exp_lanes<F, I>(-sigma);
         const I done_here = load<I>(done + base);
-        const I accept = (lane <= splat<I>(static_cast<int32_t>(xb - x))) & (done_here == zero_i) &
+        const I accept = (centre <= x_end) & (done_here == zero_i) &
                          (alpha_raw >= alpha_min);
         const F alpha = alpha_raw < alpha_max ? alpha_raw : alpha_max;
         const F t_here = load<F>(trans + base);
@@ -612,7 +686,7 @@ Simd parse_simd(const std::string& name) {
   TORCH_CHECK(false, "rasterize_cpu: unknown SIMD path '", name, "'");
 }
 
-void forward_tiles_lanes(const std::vector<Splat<float>>& splats, const std::vector<int64_t>& offsets,
+void forward_tiles_lanes(const Splat<float>* splats, const std::vector<int64_t>& offsets,
                          const std::vector<int32_t>& ids, const double* background, const Grid& grid, Simd simd,
                          float* out_rgb, float* out_alpha, int32_t* out_last, double* out_t_final) {
   void (*composite)(const LaneTile&) = nullptr;
@@ -640,7 +714,7 @@ void forward_tiles_lanes(const std::vector<Splat<float>>& splats, const std::vec
       std::fill(last.begin(), last.end(), 0);
       std::fill(done.begin(), done.end(), 0);
       std::fill(row_done.begin(), row_done.end(), 0);
-      composite(LaneTile{splats.data(), ids.data(), offsets[tile], offsets[tile + 1], tx0, ty0, tw, th, stride,
+      composite(LaneTile{splats, ids.data(), offsets[tile], offsets[tile + 1], tx0, ty0, tw, th, stride,
                          trans.data(), red.data(), green.data(), blue.data(), last.data(), done.data(),
                          row_done.data()});
       for (int64_t y = 0; y < th; ++y) {
@@ -660,13 +734,13 @@ void forward_tiles_lanes(const std::vector<Splat<float>>& splats, const std::vec
 
 // float64 always composites on the scalar path (libm exp: gradcheck needs the accuracy).
 template <typename scalar_t>
-void forward_tiles(const std::vector<Splat<scalar_t>>& splats, const std::vector<int64_t>& offsets,
+void forward_tiles(const Splat<scalar_t>* splats, const std::vector<int64_t>& offsets,
                    const std::vector<int32_t>& ids, const double* background, const Grid& grid, Simd,
                    scalar_t* out_rgb, scalar_t* out_alpha, int32_t* out_last, double* out_t_final) {
   forward_tiles_scalar<scalar_t>(splats, offsets, ids, background, grid, out_rgb, out_alpha, out_last, out_t_final);
 }
 
-void forward_tiles(const std::vector<Splat<float>>& splats, const std::vector<int64_t>& offsets,
+void forward_tiles(const Splat<float>* splats, const std::vector<int64_t>& offsets,
                    const std::vector<int32_t>& ids, const double* background, const Grid& grid, Simd simd,
                    float* out_rgb, float* out_alpha, int32_t* out_last, double* out_t_final) {
   if (simd == Simd::kScalar)
@@ -680,11 +754,11 @@ void forward_tiles(const std::vector<Splat<float>>& splats, const std::vector<in
 // division, what lies behind, d loss / d rgb) is float32 like the forward's, so a step is one register
 // per value (double state needs two per value on AVX2 and measured no faster than the scalar kernel).
 // Each gradient sum is kept per lane over the entry's pixels, then the lanes are added in double in a
-// fixed order, so results do not depend on the thread count. Against the double-state backward this
+// fixed order (halves: lanes l and l + W/2 first), so results do not depend on the thread count. Against the double-state backward this
 // moves gradients by a few float ulps of their terms (tests: within the lane-vs-scalar tolerances).
 struct LaneBackTile {
   const Splat<float>* splats;
-  const int32_t* ids;
+  const int32_t *ids, *slots;
   int64_t begin, end, tx0, ty0, tw, th, stride;
   int32_t max_last;
   float *trans, *behind, *grad_r, *grad_g, *grad_b;
@@ -697,6 +771,7 @@ template <int W>
 GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
   using F = typename Vec<W>::F;
   using I = typename Vec<W>::I;
+  using D = typename Vec<W>::D;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ behind = tile.behind;
   const float* __restrict__ grad_r = tile.grad_r;
@@ -704,7 +779,7 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
   const float* __restrict__ grad_b = tile.grad_b;
   const int32_t* __restrict__ last = tile.last;
   const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
-  const I lane = lane_index<I>();
+  const F lane_f = __builtin_convertvector(lane_index<I>(), F);
   const F zero = splat<F>(0.0f), one = splat<F>(1.0f), half = splat<F>(0.5f);
   const F alpha_min = splat<F>(kAlphaMinF), alpha_max = splat<F>(kAlphaMaxF);
   for (int64_t k = tile.begin + tile.max_last - 1; k >= tile.begin; --k) {
@@ -714,6 +789,7 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
     const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
     const I position = splat<I>(static_cast<int32_t>(k - tile.begin));
     const RowSpan span(s);
+    const bool narrow = x1 - x0 < W;  // as in the forward: one step covers the row
     const F mx = splat<F>(s.mx), a = splat<F>(s.a), b = splat<F>(s.b), c = splat<F>(s.c);
     const F opacity = splat<F>(s.opacity), inv_opacity = splat<F>(1.0f / s.opacity);
     const F red = splat<F>(s.r), green = splat<F>(s.g), blue = splat<F>(s.bl);
@@ -722,16 +798,18 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
     for (int64_t y = y0; y <= y1; ++y) {
       const int64_t row = y - ty0;
       const float dy = s.my - (static_cast<float>(y) + 0.5f);
-      int64_t xa, xb;
-      if (!span.columns(dy, x0, x1, xa, xb)) continue;
+      int64_t xa = x0, xb = x1;
+      if (!narrow && !span.columns(dy, x0, x1, xa, xb)) continue;
       const F dy_v = splat<F>(dy), c_dy_dy = splat<F>(s.c * dy * dy);
-      for (int64_t x = xa; x <= xb; x += W) {
+      F centre = lane_f + splat<F>(static_cast<float>(xa) + 0.5f);  // as in the forward
+      const F x_end = splat<F>(static_cast<float>(xb) + 0.5f);
+      for (int64_t x = xa; x <= xb; x += W, centre += splat<F>(static_cast<float>(W))) {
         const int64_t base = row * tile.stride + (x - tx0);
         // alpha exactly as the lane forward computed it
-        const F dx = mx - (__builtin_convertvector(splat<I>(static_cast<int32_t>(x)) + lane, F) + half);
+        const F dx = mx - centre;
         const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
         const F alpha_raw = opacity * exp_lanes<F, I>(-sigma);
-        const I in = (lane <= splat<I>(static_cast<int32_t>(xb - x))) & (position < load<I>(last + base)) &
+        const I in = (centre <= x_end) & (position < load<I>(last + base)) &
                      (alpha_raw >= alpha_min);
         const I uncapped = in & (alpha_raw < alpha_max);  // a capped alpha depends on neither sigma nor opacity
         const F alpha = alpha_raw < alpha_max ? alpha_raw : alpha_max;  // the forward's float alpha
@@ -756,12 +834,8 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
         sums[8] += in ? w * gb : zero;
       }
     }
-    double* out = tile.entry_grads + kEntryGrads * k;
-    for (int j = 0; j < kEntryGrads; ++j) {
-      double total = 0.0;
-      for (int l = 0; l < W; ++l) total += static_cast<double>(sums[j][l]);
-      out[j] = total;
-    }
+    double* out = tile.entry_grads + kEntryGrads * static_cast<int64_t>(tile.slots[k]);
+    for (int j = 0; j < kEntryGrads; ++j) out[j] = sum_lanes_f64<W>(__builtin_convertvector(sums[j], D));
   }
 }
 
@@ -777,10 +851,10 @@ GEOAVATAR_TARGET_AVX2 void backward_tile_avx2(const LaneBackTile& tile) {
 }
 #endif
 
-void backward_tiles_lanes(const std::vector<Splat<float>>& splats, const int64_t* offsets, const int32_t* ids,
-                          const int32_t* last_in, const double* t_final, const float* grad_rgb,
-                          const float* grad_alpha, const double* background, const Grid& grid, Simd simd,
-                          std::vector<double>& entry_grads) {
+void backward_tiles_lanes(const Splat<float>* splats, const int64_t* offsets, const int32_t* ids,
+                          const int32_t* slots, const int32_t* last_in, const double* t_final,
+                          const float* grad_rgb, const float* grad_alpha, const double* background,
+                          const Grid& grid, Simd simd, double* entry_grads) {
   void (*backward_tile)(const LaneBackTile&) = nullptr;
 #if defined(__GNUC__)
   if (simd == Simd::kVector) backward_tile = backward_tile_vector;
@@ -819,28 +893,30 @@ void backward_tiles_lanes(const std::vector<Splat<float>>& splats, const int64_t
           max_last = std::max(max_last, last[p]);
         }
       }
-      backward_tile(LaneBackTile{splats.data(), ids, begin, end, tx0, ty0, tw, th, stride, max_last, trans.data(),
+      zero_entries(entry_grads, slots, begin + max_last, end);
+      backward_tile(LaneBackTile{splats, ids, slots, begin, end, tx0, ty0, tw, th, stride, max_last, trans.data(),
                                  behind.data(), grad_r.data(), grad_g.data(), grad_b.data(), last.data(),
-                                 entry_grads.data()});
+                                 entry_grads});
     }
   }
 }
 
 template <typename scalar_t>
-void backward_tiles_for(Simd, const std::vector<Splat<scalar_t>>& splats, const int64_t* offsets, const int32_t* ids,
-                        const int32_t* last, const double* t_final, const scalar_t* grad_rgb,
-                        const scalar_t* grad_alpha, const double* background, const Grid& grid,
-                        std::vector<double>& entry_grads) {
-  backward_tiles<scalar_t>(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid, entry_grads);
+void backward_tiles_for(Simd, const Splat<scalar_t>* splats, const int64_t* offsets, const int32_t* ids,
+                        const int32_t* slots, const int32_t* last, const double* t_final, const scalar_t* grad_rgb,
+                        const scalar_t* grad_alpha, const double* background, const Grid& grid, double* entry_grads) {
+  backward_tiles<scalar_t>(splats, offsets, ids, slots, last, t_final, grad_rgb, grad_alpha, background, grid,
+                           entry_grads);
 }
 
-void backward_tiles_for(Simd simd, const std::vector<Splat<float>>& splats, const int64_t* offsets, const int32_t* ids,
-                        const int32_t* last, const double* t_final, const float* grad_rgb, const float* grad_alpha,
-                        const double* background, const Grid& grid, std::vector<double>& entry_grads) {
+void backward_tiles_for(Simd simd, const Splat<float>* splats, const int64_t* offsets, const int32_t* ids,
+                        const int32_t* slots, const int32_t* last, const double* t_final, const float* grad_rgb,
+                        const float* grad_alpha, const double* background, const Grid& grid, double* entry_grads) {
   if (simd == Simd::kScalar)
-    backward_tiles<float>(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid, entry_grads);
+    backward_tiles<float>(splats, offsets, ids, slots, last, t_final, grad_rgb, grad_alpha, background, grid,
+                          entry_grads);
   else
-    backward_tiles_lanes(splats, offsets, ids, last, t_final, grad_rgb, grad_alpha, background, grid, simd,
+    backward_tiles_lanes(splats, offsets, ids, slots, last, t_final, grad_rgb, grad_alpha, background, grid, simd,
                          entry_grads);
 }
 
@@ -859,7 +935,8 @@ Grid make_grid(int64_t width, int64_t height, int64_t tile) {
 
 // Returns rgb [H, W, 3], alpha [H, W, 1] and the state backward needs: tile offsets [T + 1] int64,
 // tile ids [M] int32, last [H, W] int32 (end of each pixel's composited range in its tile list),
-// t_final [H, W] float64.
+// t_final [H, W] float64, the splat records (bytes), entry slots [M] int32 and firsts [N + 1] int64
+// (see bin_gaussians).
 std::vector<torch::Tensor> forward(const torch::Tensor& means2d, const torch::Tensor& conics,
                                    const torch::Tensor& opacities, const torch::Tensor& colors,
                                    const torch::Tensor& background, const torch::Tensor& radii,
@@ -880,26 +957,32 @@ std::vector<torch::Tensor> forward(const torch::Tensor& means2d, const torch::Te
   torch::Tensor alpha = torch::empty({height, width, 1}, opts);
   torch::Tensor last = torch::empty({height, width}, opts.dtype(torch::kInt32));
   torch::Tensor t_final = torch::empty({height, width}, opts.dtype(torch::kFloat64));
-  torch::Tensor offsets_t, ids_t;
+  torch::Tensor offsets_t, ids_t, splats_t, slots_t;
+  const int64_t n = means2d.size(0);
+  torch::Tensor firsts_t = torch::empty({n + 1}, opts.dtype(torch::kInt64));
   const torch::Tensor bg64 = background.to(torch::kFloat64).contiguous();
   AT_DISPATCH_FLOATING_TYPES(dtype, "rasterize_cpu_forward", [&] {
-    auto splats = gather_splats<scalar_t>(means2d, conics, opacities, colors, radii, grid);
+    splats_t = torch::empty({n * static_cast<int64_t>(sizeof(Splat<scalar_t>))}, opts.dtype(torch::kUInt8));
+    auto* splats = reinterpret_cast<Splat<scalar_t>*>(splats_t.data_ptr<uint8_t>());
+    gather_splats<scalar_t>(means2d, conics, opacities, colors, radii, grid, splats);
     std::vector<int64_t> offsets;
     std::vector<int32_t> ids;
-    bin_gaussians<scalar_t>(splats, depths, grid, offsets, ids);
+    slots_t = torch::empty({0}, opts.dtype(torch::kInt32));
+    bin_gaussians<scalar_t>(splats, n, depths, grid, offsets, ids, slots_t, firsts_t.data_ptr<int64_t>());
     forward_tiles(splats, offsets, ids, bg64.data_ptr<double>(), grid, simd, rgb.data_ptr<scalar_t>(),
                   alpha.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), t_final.data_ptr<double>());
     offsets_t = torch::from_blob(offsets.data(), {static_cast<int64_t>(offsets.size())}, torch::kInt64).clone();
     ids_t = torch::from_blob(ids.data(), {static_cast<int64_t>(ids.size())}, torch::kInt32).clone();
   });
-  return {rgb, alpha, offsets_t, ids_t, last, t_final};
+  return {rgb, alpha, offsets_t, ids_t, last, t_final, splats_t, slots_t, firsts_t};
 }
 
 // Returns the gradients of means2d [N, 2], conics [N, 3], opacities [N], colors [N, 3].
 std::vector<torch::Tensor> backward(const torch::Tensor& means2d, const torch::Tensor& conics,
                                     const torch::Tensor& opacities, const torch::Tensor& colors,
-                                    const torch::Tensor& background, const torch::Tensor& radii,
+                                    const torch::Tensor& background, const torch::Tensor& splats_t,
                                     const torch::Tensor& offsets, const torch::Tensor& ids,
+                                    const torch::Tensor& slots, const torch::Tensor& firsts,
                                     const torch::Tensor& last, const torch::Tensor& t_final,
                                     const torch::Tensor& grad_rgb, const torch::Tensor& grad_alpha, int64_t width,
                                     int64_t height, int64_t tile, const std::string& simd_name) {
@@ -910,9 +993,11 @@ std::vector<torch::Tensor> backward(const torch::Tensor& means2d, const torch::T
   check_input(opacities, "opacities", 1, dtype);
   check_input(colors, "colors", 2, dtype);
   check_input(background, "background", 1, dtype);
-  check_input(radii, "radii", 2, torch::kInt32);
+  check_input(splats_t, "splats", 1, torch::kUInt8);
   check_input(offsets, "offsets", 1, torch::kInt64);
   check_input(ids, "ids", 1, torch::kInt32);
+  check_input(slots, "slots", 1, torch::kInt32);
+  check_input(firsts, "firsts", 1, torch::kInt64);
   check_input(last, "last", 2, torch::kInt32);
   check_input(t_final, "t_final", 2, torch::kFloat64);
   check_input(grad_rgb, "grad_rgb", 3, dtype);
@@ -920,35 +1005,36 @@ std::vector<torch::Tensor> backward(const torch::Tensor& means2d, const torch::T
   const Grid grid = make_grid(width, height, tile);
   TORCH_CHECK(offsets.numel() == grid.n_tiles() + 1, "rasterize_cpu: 'offsets' does not match the tile grid");
   const int64_t n = means2d.size(0), m = ids.numel();
+  TORCH_CHECK(slots.numel() == m && firsts.numel() == n + 1, "rasterize_cpu: 'slots' or 'firsts' do not match");
   auto opts = means2d.options();
-  torch::Tensor g_means2d = torch::zeros({n, 2}, opts), g_conics = torch::zeros({n, 3}, opts);
-  torch::Tensor g_opacities = torch::zeros({n}, opts), g_colors = torch::zeros({n, 3}, opts);
+  // every entry is written below: empty, not zeros
+  torch::Tensor g_means2d = torch::empty({n, 2}, opts), g_conics = torch::empty({n, 3}, opts);
+  torch::Tensor g_opacities = torch::empty({n}, opts), g_colors = torch::empty({n, 3}, opts);
   const torch::Tensor bg64 = background.to(torch::kFloat64).contiguous();
   AT_DISPATCH_FLOATING_TYPES(dtype, "rasterize_cpu_backward", [&] {
-    auto splats = gather_splats<scalar_t>(means2d, conics, opacities, colors, radii, grid);
-    std::vector<double> entry_grads(static_cast<size_t>(kEntryGrads) * m, 0.0);
-    backward_tiles_for(simd, splats, offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(), last.data_ptr<int32_t>(),
-                       t_final.data_ptr<double>(), grad_rgb.data_ptr<scalar_t>(), grad_alpha.data_ptr<scalar_t>(),
-                       bg64.data_ptr<double>(), grid, entry_grads);
-    // Sum the entries of each Gaussian in tile order: a fixed order, whatever the thread count.
-    std::vector<double> sums(static_cast<size_t>(kEntryGrads) * n, 0.0);
-    const int32_t* id = ids.data_ptr<int32_t>();
-    for (int64_t k = 0; k < m; ++k) {
-      const double* e = entry_grads.data() + kEntryGrads * k;
-      double* s = sums.data() + kEntryGrads * static_cast<int64_t>(id[k]);
-      for (int j = 0; j < kEntryGrads; ++j) s[j] += e[j];
-    }
+    TORCH_CHECK(splats_t.numel() == n * static_cast<int64_t>(sizeof(Splat<scalar_t>)),
+                "rasterize_cpu: 'splats' does not match the Gaussians");
+    const auto* splats = reinterpret_cast<const Splat<scalar_t>*>(splats_t.data_ptr<uint8_t>());
+    std::unique_ptr<double[]> entry_grads(new double[static_cast<size_t>(kEntryGrads) * m]);
+    backward_tiles_for(simd, splats, offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(), slots.data_ptr<int32_t>(),
+                       last.data_ptr<int32_t>(), t_final.data_ptr<double>(), grad_rgb.data_ptr<scalar_t>(),
+                       grad_alpha.data_ptr<scalar_t>(), bg64.data_ptr<double>(), grid, entry_grads.get());
+    // Sum the entries of each Gaussian in tile order (its slots): a fixed order, whatever the thread count.
+    const double* e = entry_grads.get();
+    const int64_t* first = firsts.data_ptr<int64_t>();
     scalar_t* gm = g_means2d.data_ptr<scalar_t>();
     scalar_t* gc = g_conics.data_ptr<scalar_t>();
     scalar_t* go = g_opacities.data_ptr<scalar_t>();
     scalar_t* gcol = g_colors.data_ptr<scalar_t>();
-    for (int64_t i = 0; i < n; ++i) {
-      const double* s = sums.data() + kEntryGrads * i;
+    parallel_over(n, [&](int64_t i) {
+      double s[kEntryGrads] = {};
+      for (int64_t k = first[i]; k < first[i + 1]; ++k)
+        for (int j = 0; j < kEntryGrads; ++j) s[j] += e[kEntryGrads * k + j];
       gm[2 * i] = s[0], gm[2 * i + 1] = s[1];
       gc[3 * i] = s[2], gc[3 * i + 1] = s[3], gc[3 * i + 2] = s[4];
       go[i] = s[5];
       gcol[3 * i] = s[6], gcol[3 * i + 1] = s[7], gcol[3 * i + 2] = s[8];
-    }
+    });
   });
   return {g_means2d, g_conics, g_opacities, g_colors};
 }
@@ -1032,13 +1118,6 @@ void project_one(const Camera& cam, const scalar_t* mean, const scalar_t* quat, 
   g.cov_b = g.u[0] * g.v[0] + g.u[1] * g.v[1] + g.u[2] * g.v[2];
   g.cov_c = g.v[0] * g.v[0] + g.v[1] * g.v[1] + g.v[2] * g.v[2] + kEps2d;
   g.det = g.cov_a * g.cov_c - g.cov_b * g.cov_b;
-}
-
-// OpenMP pragmas cannot sit inside AT_DISPATCH's macro argument: loops over Gaussians go through this.
-template <typename Body>
-void parallel_over(int64_t n, const Body& body) {
-#pragma omp parallel for schedule(static) num_threads(threads_for_torch())
-  for (int64_t i = 0; i < n; ++i) body(i);
 }
 
 // Returns means2d [N, 2], conics [N, 3], depths [N], radii [N, 2] int32, visible [N] bool.
