@@ -69,6 +69,11 @@ class ModelConfig:
 
     sh_degree: int = 0  # GeoAvatar uses SH degree 0 (view-independent colour)
     init_opacity: float = 0.1  # one Gaussian per face at the start, opacity 0.1 (GaussianAvatars)
+    # Colour += a linear function (3x3 per Gaussian, zero at the start) of the Gaussian's face normal in world
+    # axes: diffuse shading by lights fixed to the world, as when a fixed camera films a turning head. An SH-0
+    # colour cannot follow that shading and fakes it with view-dependent layering, which novel views under the
+    # same lights expose (BENCHMARKS.md, issue #18). Assumes a fixed camera (not INSTA's per-frame cameras).
+    normal_shading: bool = False
     mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
     face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
     mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation

@@ -279,6 +279,42 @@ def test_checkpoint_round_trip_after_densification():
         GaussianAvatar(faces).load_state_dict(bad)
 
 
+def test_normal_shading_follows_the_world_normal_and_survives_densify_and_checkpoints():
+    """model.normal_shading: colour = SH-0 colour + F n with n the face normal in world axes, so turning the
+    mesh changes the colour (lights fixed to the world); zero F is the plain colour; F rows move with
+    clone / split / prune and through a checkpoint; Adam trains F."""
+    verts, faces = grid_mesh()
+    avatar = GaussianAvatar(faces, normal_shading=True)
+    assert avatar.normal_shading and not GaussianAvatar(faces).normal_shading
+    assert torch.allclose(avatar(verts).colors, torch.full((len(faces), 3), 0.5))  # F = 0 at the start
+    with torch.no_grad():
+        avatar.params["f_normal"].copy_(torch.tensor([0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, -0.2]).expand(len(faces), 9))
+    rot = axis_angle_to_matrix(torch.tensor([math.pi / 2, 0.0, 0.0]))  # turns the sheet's normal from z to -y
+    normal = face_frames(verts, faces).rotation[:, :, 1]  # [F, 3]
+    expected = 0.5 + 0.2 * normal[:, 2:3] * torch.tensor([1.0, 0.0, -1.0])
+    assert torch.allclose(avatar(verts).colors, expected, atol=1e-6)
+    turned = avatar(verts @ rot.T).colors
+    assert torch.allclose(turned, 0.5 + 0.2 * (normal @ rot.T)[:, 2:3] * torch.tensor([1.0, 0.0, -1.0]), atol=1e-5)
+    assert (turned - avatar(verts).colors).abs().max() > 0.1
+    # densify keeps the rows with their Gaussians; Adam trains F
+    with torch.no_grad():
+        avatar.params["f_normal"].add_(torch.arange(len(faces), dtype=torch.float32)[:, None])
+    opt = torch.optim.Adam(gaussian_param_groups(avatar.params, LearningRates(), 1.0), eps=1e-15)
+    assert any(g["name"] == "f_normal" for g in opt.param_groups)
+    pick = torch.zeros(len(faces), dtype=torch.bool)
+    pick[[1, 4]] = True
+    avatar.binding = D.clone_gaussians(avatar.params, opt, avatar.binding, pick)
+    avatar.binding = D.split_gaussians(avatar.params, opt, avatar.binding, torch.cat([pick, torch.zeros(2, dtype=torch.bool)]))
+    rows = avatar.params["f_normal"][:, 0]  # column 0 holds the face index added above
+    assert avatar.params["f_normal"].shape == (avatar.num_gaussians, 9)
+    assert torch.equal(rows.round().long(), avatar.binding)
+    fresh = GaussianAvatar(faces, normal_shading=True)
+    fresh.load_state_dict(avatar.state_dict())
+    assert torch.equal(fresh(verts).colors, avatar(verts).colors)
+    avatar(verts @ rot.T).colors.sum().backward()
+    assert avatar.params["f_normal"].grad.abs().sum() > 0
+
+
 def test_scene_extent_has_a_floor_for_one_camera():
     assert D.scene_extent(torch.zeros(1, 3), minimum=0.7) == 0.7
     centres = torch.tensor([[1.0, 0, 0], [-1.0, 0, 0]])

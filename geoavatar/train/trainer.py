@@ -232,7 +232,7 @@ def new_state(data: TrainingData, config: TrainConfig, seed: int) -> TrainingSta
     """A fresh avatar (one Gaussian per face), deformer, per-frame parameters and optimizers."""
     seed_everything(seed)
     device = data.device
-    avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity).to(device)
+    avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity, config.model.normal_shading).to(device)
     deformer = None
     if config.model.mouth_deform.enabled:
         deformer = MouthDeformer.for_head(data.head, data.num_frames, config.model.mouth_deform).to(device)
@@ -312,7 +312,7 @@ def restore_state(payload: dict, data: TrainingData, config: TrainConfig, where:
     """The TrainingState saved in `payload` (a loaded checkpoint), on data.device."""
     device = data.device
     try:
-        avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity)
+        avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity, config.model.normal_shading)
         avatar.load_state_dict(payload["avatar"])
         avatar = avatar.to(device)
         deformer = None
