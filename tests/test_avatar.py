@@ -465,3 +465,38 @@ def test_positional_encoding_and_errors():
 def toy_head() -> HeadModel:
     data = toy_head_with_mouth().data
     return HeadModel(data.copy_with(vertex_groups={}))
+
+
+def test_face_colours_come_from_the_pixels_that_show_each_face():
+    """model.init_colour = "images": a sheet in front of a camera, the image red on the left and blue on the
+    right: faces take the colour of their side; a face hidden behind the sheet, seen by no pixel, takes
+    the colour of the nearest seen face; pixels outside the mask do not count."""
+    from geoavatar.avatar.colour_init import face_colours
+    from geoavatar.render.camera import intrinsics_from_fov, look_at
+
+    verts, faces = grid_mesh(n=8)  # 7 cm sheet in the z = 0 plane, x and y in [0, 0.07]
+    verts = verts - torch.tensor([0.035, 0.035, 0.0])
+    hidden = torch.tensor([[0.030, 0.030, -0.02], [0.034, 0.030, -0.02], [0.030, 0.034, -0.02]])  # behind, right side
+    all_verts = torch.cat([verts, hidden])
+    all_faces = torch.cat([faces, torch.tensor([[64, 65, 66]])])
+    size = 32
+    viewmat = look_at(torch.tensor([0.0, 0.0, 0.3]), torch.zeros(3)).float()
+    K = intrinsics_from_fov(20.0, size, size)
+    image = torch.zeros(size, size, 3)
+    image[:, : size // 2, 0] = 1.0  # image left: red (the sheet's -x side seen from +z)
+    image[:, size // 2 :, 2] = 1.0  # image right: blue
+    mask = torch.ones(size, size, 1)
+    mask[: size // 2] = 0.0  # the top half is outside the mask
+    colour, seen = face_colours(all_faces, [(all_verts, image, mask, viewmat, K)])
+    centres = all_verts[all_faces].mean(1)  # [F, 3]
+    visible = seen[:-1]
+    assert not bool(seen[-1]) and int(visible.sum()) > 10
+    left = visible & (centres[:-1, 0] < -0.005)
+    right = visible & (centres[:-1, 0] > 0.005)
+    assert bool(left.any()) and bool(right.any())
+    assert torch.allclose(colour[:-1][left], torch.tensor([1.0, 0.0, 0.0]).expand(int(left.sum()), 3), atol=1e-5)
+    assert torch.allclose(colour[:-1][right], torch.tensor([0.0, 0.0, 1.0]).expand(int(right.sum()), 3), atol=1e-5)
+    assert torch.allclose(colour[-1], torch.tensor([0.0, 0.0, 1.0]))  # the nearest seen face is blue
+    # faces that only the masked-out half shows are not seen (their colour comes from a neighbour)
+    top = centres[:-1, 1] > 0.01  # +y is up in the world, the image's top half
+    assert not bool(seen[:-1][top].any())

@@ -262,3 +262,21 @@ def test_normal_shading_run_trains_loads_and_exports_shaded_colours(subject, tmp
     bare = sh_dc_to_rgb(loaded.avatar.params["f_dc"]).detach().numpy()
     shaded = sh_dc_to_rgb(torch.from_numpy(ply.f_dc)).numpy()
     assert np.abs(shaded - bare).max() > 1e-4  # the export carries the shading of its frame
+
+
+def test_init_colour_images_starts_from_the_training_frames_colours(subject, tmp_path):
+    """model.init_colour = "images": the fresh avatar's colours are the frames' (skin-toned, varied), not grey."""
+    from geoavatar.avatar.model import sh_dc_to_rgb
+
+    config = small_config()
+    config = replace(config, model=replace(config.model, init_colour="images"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        data = open_training_data(options(subject, tmp_path / "ic"), config)
+    colours = sh_dc_to_rgb(new_state(data, config, seed=0).avatar.params["f_dc"]).detach()  # [N, 3]
+    grey = sh_dc_to_rgb(new_state(data, small_config(), seed=0).avatar.params["f_dc"]).detach()
+    assert torch.allclose(grey, torch.full_like(grey, 0.5))
+    assert float((colours - 0.5).abs().mean()) > 0.05 and float(colours.std(0).mean()) > 0.05
+    assert float(colours[:, 0].mean()) > float(colours[:, 2].mean())  # skin and hair are redder than blue
+    with pytest.raises(ValueError, match="init_colour"):
+        replace(config, model=replace(config.model, init_colour="white")).validate()
