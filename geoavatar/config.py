@@ -44,6 +44,7 @@ FaceSetMode = Literal["aps", "rigid", "flexible", "gaussianavatars"]
 #   "none" no interior, "gaussianavatars" frontal teeth only, "geoavatar" teeth+molars+palate+floor
 MouthKind = Literal["none", "gaussianavatars", "geoavatar"]
 BackgroundMode = Literal["dataset", "random"]
+InitColour = Literal["grey", "images"]
 
 PAPER_STEPS = 200_000
 # The fields of TrainConfig counted in steps (dotted names): TrainConfig.scaled_to scales them.
@@ -69,6 +70,14 @@ class ModelConfig:
 
     sh_degree: int = 0  # GeoAvatar uses SH degree 0 (view-independent colour)
     init_opacity: float = 0.1  # one Gaussian per face at the start, opacity 0.1 (GaussianAvatars)
+    # Colour += a linear function (3x3 per Gaussian, zero at the start) of the Gaussian's face normal in world
+    # axes: diffuse shading by lights fixed to the world, as when a fixed camera films a turning head. An SH-0
+    # colour cannot follow that shading and fakes it with view-dependent layering, which novel views under the
+    # same lights expose (BENCHMARKS.md, issue #18). Assumes a fixed camera (not INSTA's per-frame cameras).
+    normal_shading: bool = False
+    # Initial colour of the Gaussians: grey (GaussianAvatars), or "images": each face's colour in the training
+    # frames, head-on views weighted most, unseen faces from the nearest seen one (avatar/colour_init.py).
+    init_colour: InitColour = "grey"
     mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
     face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
     mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation
@@ -201,6 +210,8 @@ class TrainConfig:
             problems.append(f"background must be 'dataset' or 'random' (got {self.background!r})")
         if self.model.sh_degree != 0:
             problems.append(f"model.sh_degree: only 0 is supported (GeoAvatar uses 0), got {self.model.sh_degree}")
+        if self.model.init_colour not in ("grey", "images"):
+            problems.append(f"model.init_colour must be 'grey' or 'images' (got {self.model.init_colour!r})")
         if not 0.0 < self.model.init_opacity < 1.0:
             problems.append(f"model.init_opacity must lie in (0, 1) (got {self.model.init_opacity})")
         if self.model.mouth_deform.enabled and self.model.mouth == "none":

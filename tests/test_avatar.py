@@ -279,6 +279,42 @@ def test_checkpoint_round_trip_after_densification():
         GaussianAvatar(faces).load_state_dict(bad)
 
 
+def test_normal_shading_follows_the_world_normal_and_survives_densify_and_checkpoints():
+    """model.normal_shading: colour = SH-0 colour + F n with n the face normal in world axes, so turning the
+    mesh changes the colour (lights fixed to the world); zero F is the plain colour; F rows move with
+    clone / split / prune and through a checkpoint; Adam trains F."""
+    verts, faces = grid_mesh()
+    avatar = GaussianAvatar(faces, normal_shading=True)
+    assert avatar.normal_shading and not GaussianAvatar(faces).normal_shading
+    assert torch.allclose(avatar(verts).colors, torch.full((len(faces), 3), 0.5))  # F = 0 at the start
+    with torch.no_grad():
+        avatar.params["f_normal"].copy_(torch.tensor([0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, -0.2]).expand(len(faces), 9))
+    rot = axis_angle_to_matrix(torch.tensor([math.pi / 2, 0.0, 0.0]))  # turns the sheet's normal from z to -y
+    normal = face_frames(verts, faces).rotation[:, :, 1]  # [F, 3]
+    expected = 0.5 + 0.2 * normal[:, 2:3] * torch.tensor([1.0, 0.0, -1.0])
+    assert torch.allclose(avatar(verts).colors, expected, atol=1e-6)
+    turned = avatar(verts @ rot.T).colors
+    assert torch.allclose(turned, 0.5 + 0.2 * (normal @ rot.T)[:, 2:3] * torch.tensor([1.0, 0.0, -1.0]), atol=1e-5)
+    assert (turned - avatar(verts).colors).abs().max() > 0.1
+    # densify keeps the rows with their Gaussians; Adam trains F
+    with torch.no_grad():
+        avatar.params["f_normal"].add_(torch.arange(len(faces), dtype=torch.float32)[:, None])
+    opt = torch.optim.Adam(gaussian_param_groups(avatar.params, LearningRates(), 1.0), eps=1e-15)
+    assert any(g["name"] == "f_normal" for g in opt.param_groups)
+    pick = torch.zeros(len(faces), dtype=torch.bool)
+    pick[[1, 4]] = True
+    avatar.binding = D.clone_gaussians(avatar.params, opt, avatar.binding, pick)
+    avatar.binding = D.split_gaussians(avatar.params, opt, avatar.binding, torch.cat([pick, torch.zeros(2, dtype=torch.bool)]))
+    rows = avatar.params["f_normal"][:, 0]  # column 0 holds the face index added above
+    assert avatar.params["f_normal"].shape == (avatar.num_gaussians, 9)
+    assert torch.equal(rows.round().long(), avatar.binding)
+    fresh = GaussianAvatar(faces, normal_shading=True)
+    fresh.load_state_dict(avatar.state_dict())
+    assert torch.equal(fresh(verts).colors, avatar(verts).colors)
+    avatar(verts @ rot.T).colors.sum().backward()
+    assert avatar.params["f_normal"].grad.abs().sum() > 0
+
+
 def test_scene_extent_has_a_floor_for_one_camera():
     assert D.scene_extent(torch.zeros(1, 3), minimum=0.7) == 0.7
     centres = torch.tensor([[1.0, 0, 0], [-1.0, 0, 0]])
@@ -429,3 +465,38 @@ def test_positional_encoding_and_errors():
 def toy_head() -> HeadModel:
     data = toy_head_with_mouth().data
     return HeadModel(data.copy_with(vertex_groups={}))
+
+
+def test_face_colours_come_from_the_pixels_that_show_each_face():
+    """model.init_colour = "images": a sheet in front of a camera, the image red on the left and blue on the
+    right: faces take the colour of their side; a face hidden behind the sheet, seen by no pixel, takes
+    the colour of the nearest seen face; pixels outside the mask do not count."""
+    from geoavatar.avatar.colour_init import face_colours
+    from geoavatar.render.camera import intrinsics_from_fov, look_at
+
+    verts, faces = grid_mesh(n=8)  # 7 cm sheet in the z = 0 plane, x and y in [0, 0.07]
+    verts = verts - torch.tensor([0.035, 0.035, 0.0])
+    hidden = torch.tensor([[0.030, 0.030, -0.02], [0.034, 0.030, -0.02], [0.030, 0.034, -0.02]])  # behind, right side
+    all_verts = torch.cat([verts, hidden])
+    all_faces = torch.cat([faces, torch.tensor([[64, 65, 66]])])
+    size = 32
+    viewmat = look_at(torch.tensor([0.0, 0.0, 0.3]), torch.zeros(3)).float()
+    K = intrinsics_from_fov(20.0, size, size)
+    image = torch.zeros(size, size, 3)
+    image[:, : size // 2, 0] = 1.0  # image left: red (the sheet's -x side seen from +z)
+    image[:, size // 2 :, 2] = 1.0  # image right: blue
+    mask = torch.ones(size, size, 1)
+    mask[: size // 2] = 0.0  # the top half is outside the mask
+    colour, seen = face_colours(all_faces, [(all_verts, image, mask, viewmat, K)])
+    centres = all_verts[all_faces].mean(1)  # [F, 3]
+    visible = seen[:-1]
+    assert not bool(seen[-1]) and int(visible.sum()) > 10
+    left = visible & (centres[:-1, 0] < -0.005)
+    right = visible & (centres[:-1, 0] > 0.005)
+    assert bool(left.any()) and bool(right.any())
+    assert torch.allclose(colour[:-1][left], torch.tensor([1.0, 0.0, 0.0]).expand(int(left.sum()), 3), atol=1e-5)
+    assert torch.allclose(colour[:-1][right], torch.tensor([0.0, 0.0, 1.0]).expand(int(right.sum()), 3), atol=1e-5)
+    assert torch.allclose(colour[-1], torch.tensor([0.0, 0.0, 1.0]))  # the nearest seen face is blue
+    # faces that only the masked-out half shows are not seen (their colour comes from a neighbour)
+    top = centres[:-1, 1] > 0.01  # +y is up in the world, the image's top half
+    assert not bool(seen[:-1][top].any())

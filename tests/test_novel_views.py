@@ -20,8 +20,11 @@ from geoavatar.config import preset
 from geoavatar.data import HeadAvatarDataset, open_subject
 from geoavatar.data.errors import DatasetError
 from geoavatar.data.splits import ShortVideoWarning
+from geoavatar.data.synth.actor import actor_for_subject
 from geoavatar.data.synth.generate import FRONT_VIEW, NOVEL_VIEWS, SynthConfig, generate_dataset
+from geoavatar.data.synth.render import ActorRenderer, frontal_camera, orbit_camera
 from geoavatar.eval.floaters import FloaterConfig, head_silhouette, outside_share
+from geoavatar.head.regions import skull_centre
 from geoavatar.render import Camera, rasterize
 from geoavatar.render.camera import intrinsics_from_fov, look_at, orbit_viewmat, project, rigid_inverse
 from geoavatar.train.trainer import step_background
@@ -96,6 +99,25 @@ def test_novel_cameras_turn_about_the_head(novel_data):
             assert float(eye[1]) > float(eye0[1])  # from above
         if yaw > 0:
             assert float(eye[0]) > float(eye0[0])  # toward the camera's right (+x: the subject's left)
+
+
+def test_novel_views_keep_the_lights_in_the_room():
+    """A novel camera sees the actor lit by the dataset camera's lights, as a second camera of a capture rig
+    would, not by lights that turn with it: seen from behind, the back of the head gets the ambient only."""
+    actor = actor_for_subject(0)
+    camera = frontal_camera(actor, 32)
+    renderer = ActorRenderer(actor, camera, (0.0, 0.0, 0.0), ssaa=1)
+    params = actor.model.zero_params(1)
+    params["shape"] = torch.from_numpy(actor.shape)
+    with torch.no_grad():
+        vertices = actor.model.forward_params(params).vertices[0]  # [V, 3]
+    behind = orbit_camera(camera, 180.0, 0.0, skull_centre(vertices, actor.head))
+    room, mask = renderer.render(vertices, behind)
+    lamp, lamp_mask = renderer.render(vertices, behind, lights_on_camera=True)
+    assert torch.equal(mask, lamp_mask) and float(mask.mean()) > 0.1
+    assert float(room.sum()) < 0.5 * float(lamp.sum())
+    # The dataset camera itself is lit as before either way.
+    assert torch.equal(renderer.render(vertices)[0], renderer.render(vertices, camera, lights_on_camera=True)[0])
 
 
 def test_dataset_without_novel_split_says_how_to_make_one(tmp_path):

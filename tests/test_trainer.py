@@ -14,6 +14,7 @@ import warnings
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -238,3 +239,44 @@ def test_bad_inputs_fail_clearly(subject, straight_run, tmp_path, capsys):
     (tmp_path / "bad" / "checkpoints" / "last.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ckpt.RunError, match="not a readable GeoAvatar checkpoint"):
         ckpt.load_run(tmp_path / "bad")
+
+
+def test_normal_shading_run_trains_loads_and_exports_shaded_colours(subject, tmp_path):
+    """model.normal_shading end to end: the shading matrix learns, the run loads with it, and the PLY export
+    holds the frame's shaded colour (not the bare SH-0 coefficient)."""
+    from geoavatar.apps.export import export_frame
+    from geoavatar.avatar.model import sh_dc_to_rgb
+    from geoavatar.io.ply import read_gaussian_ply
+
+    config = small_config()
+    config = replace(config, model=replace(config.model, normal_shading=True))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        result = train(options(subject, tmp_path / "ns"), config)
+    assert result.status == "finished"
+    loaded = ckpt.load_run(tmp_path / "ns")
+    assert loaded.config.model.normal_shading and loaded.avatar.normal_shading
+    f_normal = loaded.avatar.params["f_normal"].detach()
+    assert f_normal.shape == (loaded.avatar.num_gaussians, 9) and float(f_normal.abs().max()) > 0.0
+    ply = read_gaussian_ply(export_frame(loaded, tmp_path / "frame.ply"))
+    bare = sh_dc_to_rgb(loaded.avatar.params["f_dc"]).detach().numpy()
+    shaded = sh_dc_to_rgb(torch.from_numpy(ply.f_dc)).numpy()
+    assert np.abs(shaded - bare).max() > 1e-4  # the export carries the shading of its frame
+
+
+def test_init_colour_images_starts_from_the_training_frames_colours(subject, tmp_path):
+    """model.init_colour = "images": the fresh avatar's colours are the frames' (skin-toned, varied), not grey."""
+    from geoavatar.avatar.model import sh_dc_to_rgb
+
+    config = small_config()
+    config = replace(config, model=replace(config.model, init_colour="images"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        data = open_training_data(options(subject, tmp_path / "ic"), config)
+    colours = sh_dc_to_rgb(new_state(data, config, seed=0).avatar.params["f_dc"]).detach()  # [N, 3]
+    grey = sh_dc_to_rgb(new_state(data, small_config(), seed=0).avatar.params["f_dc"]).detach()
+    assert torch.allclose(grey, torch.full_like(grey, 0.5))
+    assert float((colours - 0.5).abs().mean()) > 0.05 and float(colours.std(0).mean()) > 0.05
+    assert float(colours[:, 0].mean()) > float(colours[:, 2].mean())  # skin and hair are redder than blue
+    with pytest.raises(ValueError, match="init_colour"):
+        replace(config, model=replace(config.model, init_colour="white")).validate()

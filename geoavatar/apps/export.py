@@ -5,7 +5,8 @@ parameters (the run's refined ones for a training frame), with the mouth deforma
 of apps/common.py (a training frame with its own T, any other frame with T = 0). A splat viewer shows
 exactly what `geoavatar render` shows for that frame. Scales are log standard deviations in metres
 (local log-scale + log of the face scale k), rotations the global quaternions (face rotation composed
-with the local one), colour and opacity are the learned SH-0 coefficient and opacity logit.
+with the local one), colour and opacity are the learned SH-0 coefficient and opacity logit (a run with
+model.normal_shading: the SH-0 coefficient of that frame's shaded colour).
 
 `--sequence` exports every frame of a split:
 - `--format ply` (default): a folder FRAME_<timestep>.ply, one per frame, built in a temporary folder
@@ -13,7 +14,8 @@ with the local one), colour and opacity are the learned SH-0 coefficient and opa
 - `--format npz`: one npz, written atomically, with
     timesteps [T] int64, means [T, N, 3], quats [T, N, 4] (w, x, y, z), log_scales [T, N, 3],
     opacity_logits [N], f_dc [N, 3], binding [N] (face of each Gaussian), faces [F, 3];
-  the per-Gaussian colour and opacity do not change over time, so they are stored once.
+  the per-Gaussian colour and opacity do not change over time, so they are stored once (a run with
+  model.normal_shading: f_dc [T, N, 3], the colour is shaded per frame).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import torch
 
 from geoavatar.apps.common import EXPORT_DIR, RunFrames, RunPath, default_output, open_run, pose_gaussians, progress
 from geoavatar.avatar import GlobalGaussians
+from geoavatar.avatar.model import rgb_to_sh_dc
 from geoavatar.errors import OptionError
 from geoavatar.io.atomic import atomic_folder, atomic_write_npz
 from geoavatar.io.ply import GaussianPly, write_gaussian_ply
@@ -43,7 +46,7 @@ def to_ply_gaussians(run: LoadedRun, g: GlobalGaussians) -> GaussianPly:
 
     return GaussianPly(
         means=numpy(g.means),
-        f_dc=numpy(p["f_dc"]),
+        f_dc=numpy(rgb_to_sh_dc(g.colors) if run.avatar.normal_shading else p["f_dc"]),  # shaded: this frame's
         opacity_logits=numpy(p["opacities"]),
         log_scales=numpy(torch.log(g.scales.clamp_min(1e-30))),
         quats=numpy(torch.nn.functional.normalize(g.quats, dim=-1)),
@@ -90,17 +93,19 @@ def export_sequence_npz(run: LoadedRun, out: Path, split: str = "all", show_prog
     """Per-frame Gaussian parameters of a split in one npz (see the module docstring for the keys)."""
     frames = RunFrames(run)
     timesteps = sequence_timesteps(run, split)
-    means, quats, log_scales = [], [], []
+    means, quats, log_scales, colours = [], [], [], []
     for t in progress(timesteps, enabled=show_progress, desc="export"):
         g = to_ply_gaussians(run, frame_gaussians(run, frames, t))
         means.append(g.means)
         quats.append(g.quats)
         log_scales.append(g.log_scales)
+        colours.append(g.f_dc)
     return atomic_write_npz(
         out,
         timesteps=np.asarray(timesteps, dtype=np.int64),
         means=np.stack(means), quats=np.stack(quats), log_scales=np.stack(log_scales),  # [T, N, ...]
-        opacity_logits=g.opacity_logits, f_dc=g.f_dc,  # the same in every frame
+        opacity_logits=g.opacity_logits,  # the same in every frame
+        f_dc=np.stack(colours) if run.avatar.normal_shading else g.f_dc,  # [T, N, 3] when shaded per frame
         binding=run.avatar.binding.cpu().numpy(), faces=run.avatar.faces.cpu().numpy(),
     )
 

@@ -29,7 +29,7 @@ from typing import Callable, Iterable, MutableMapping, Optional, Union
 import torch
 from torch import Tensor, nn
 
-from geoavatar.avatar.model import GAUSSIAN_PARAM_NAMES
+from geoavatar.avatar.model import GAUSSIAN_PARAM_NAMES, param_names
 from geoavatar.config import DensifyConfig
 from geoavatar.geometry import quaternion_to_matrix
 
@@ -97,7 +97,7 @@ def _num(params: Params) -> int:
 
 def _check(params: Params, binding: Tensor, state: dict[str, Tensor] | None) -> None:
     n = int(binding.shape[0])
-    for name in GAUSSIAN_PARAM_NAMES:
+    for name in param_names(params):
         if name not in params:
             raise KeyError(f"densify: parameter '{name}' missing (have {sorted(params)})")
         if params[name].shape[0] != n:
@@ -117,7 +117,7 @@ def append_gaussians(
 ) -> Tensor:
     """Append Gaussians (zero Adam moments, zero statistics). Returns the new binding [N + M]."""
     opts = _optimizers(optimizers)
-    for name in GAUSSIAN_PARAM_NAMES:
+    for name in param_names(params):
         extra = new_values[name].to(params[name])
         _replace_param(
             params, opts, name, torch.cat([params[name].detach(), extra]),
@@ -134,7 +134,7 @@ def keep_gaussians(
 ) -> Tensor:
     """Keep the Gaussians where keep [N] is True (parameters, Adam moments, statistics). Returns binding."""
     opts = _optimizers(optimizers)
-    for name in GAUSSIAN_PARAM_NAMES:
+    for name in param_names(params):
         _replace_param(params, opts, name, params[name].detach()[keep], lambda moment: moment[keep])
     if state is not None:
         for key in list(state):
@@ -151,7 +151,7 @@ def clone_gaussians(
 ) -> Tensor:
     """Duplicate the Gaussians in mask [N] (same local parameters, same face). Returns binding [N + M]."""
     _check(params, binding, state)
-    new = {name: params[name].detach()[mask] for name in GAUSSIAN_PARAM_NAMES}
+    new = {name: params[name].detach()[mask] for name in param_names(params)}
     return append_gaussians(params, optimizers, binding, new, binding[mask], state)
 
 
@@ -184,7 +184,7 @@ def split_gaussians(
         "means": (parent_means[None] + offsets).reshape(-1, 3),
         "scales": (parent_scales - math.log(shrink * children)).repeat(children, 1),
     }
-    for name in ("quats", "f_dc", "opacities"):
+    for name in (n for n in param_names(params) if n not in ("means", "scales")):
         value = params[name].detach()[mask]
         new[name] = value.repeat(children, *([1] * (value.dim() - 1)))
     binding = append_gaussians(params, optimizers, binding, new, binding[mask].repeat(children), state)

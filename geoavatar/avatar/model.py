@@ -9,6 +9,9 @@ Parameters (a ParameterDict `params`, every entry [N, ...], names as in the stan
     scales     [N, 3]  local log standard deviation
     f_dc       [N, 3]  SH degree-0 coefficient of the colour (RGB = 0.5 + C0 * f_dc)
     opacities  [N]     opacity logit
+    f_normal   [N, 9]  only with normal_shading: colour += F n, F = f_normal as [3, 3] (RGB x xyz) and n the
+                       world direction of the Gaussian's face normal (diffuse shading by lights fixed to the
+                       world, i.e. to a fixed dataset camera while the head turns)
 Buffers: binding [N] (face index, int64), faces [F, 3].
 """
 
@@ -23,6 +26,12 @@ from geoavatar.avatar.binding import GlobalGaussians, face_frames, local_to_glob
 
 SH_C0 = 0.28209479177387814  # Y_0^0
 GAUSSIAN_PARAM_NAMES = ("means", "quats", "scales", "f_dc", "opacities")
+OPTIONAL_PARAM_NAMES = ("f_normal",)  # present only when the avatar has them (normal_shading)
+
+
+def param_names(params) -> tuple[str, ...]:
+    """The Gaussian parameters `params` holds, in a fixed order (GAUSSIAN_PARAM_NAMES, then optional ones)."""
+    return GAUSSIAN_PARAM_NAMES + tuple(name for name in OPTIONAL_PARAM_NAMES if name in params)
 
 
 def rgb_to_sh_dc(rgb: Tensor) -> Tensor:
@@ -53,13 +62,15 @@ def initial_gaussian_params(num_faces: int, init_opacity: float = 0.1, device=No
 class GaussianAvatar(nn.Module):
     """Gaussians rigged to the faces of a head model."""
 
-    def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1):
+    def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1, normal_shading: bool = False):
         super().__init__()
         faces = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces, dtype=torch.long)
         if faces.dim() != 2 or faces.shape[1] != 3:
             raise ValueError(f"GaussianAvatar: faces must be [F, 3], got {tuple(faces.shape)}")
         self.register_buffer("faces", faces)  # [F, 3]
         init = initial_gaussian_params(faces.shape[0], init_opacity)
+        if normal_shading:  # no shading at the start: the SH-0 colour alone
+            init["f_normal"] = torch.zeros(faces.shape[0], 9)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in init.items()})
         self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
 
@@ -80,14 +91,25 @@ class GaussianAvatar(nn.Module):
         frames = face_frames(vertices, self.faces)
         p = self.params
         means, quats, scales = local_to_global(p["means"], p["quats"], p["scales"], self.binding, frames)
+        if "f_normal" in p:
+            # The face normal in world axes (detached: shading must not pull the geometry or the tracking).
+            normal = frames.rotation[..., self.binding, :, 1].detach()  # [(B,) N, 3]
+            shading = (p["f_normal"].view(-1, 3, 3) * normal[..., None, :]).sum(-1)  # [(B,) N, 3]
+            colors = (SH_C0 * p["f_dc"] + 0.5 + shading).clamp_min(0.0)
+        else:
+            colors = sh_dc_to_rgb(p["f_dc"])
         return GlobalGaussians(
             means=means,
             quats=quats,
             scales=scales,
             opacities=torch.sigmoid(p["opacities"]),
-            colors=sh_dc_to_rgb(p["f_dc"]),
+            colors=colors,
             frames=frames,
         )
+
+    @property
+    def normal_shading(self) -> bool:
+        return "f_normal" in self.params
 
     def polar(self, two_sided: bool = False) -> tuple[Tensor, Tensor]:
         """r [N], phi [N] of the local means (see binding.polar_coordinates)."""
@@ -100,7 +122,7 @@ class GaussianAvatar(nn.Module):
         if key in state_dict:
             n = int(state_dict[key].shape[0])
             device = self.binding.device
-            for name in GAUSSIAN_PARAM_NAMES:
+            for name in param_names(self.params):
                 saved = state_dict.get(f"params.{name}")
                 if saved is None:
                     continue
@@ -128,8 +150,9 @@ def gaussian_param_groups(params: dict[str, Tensor] | nn.ParameterDict, lr, scen
         "scales": lr.scaling,
         "f_dc": lr.features,
         "opacities": lr.opacity,
+        "f_normal": lr.features,
     }
-    return [{"params": [params[name]], "lr": rates[name], "name": name} for name in GAUSSIAN_PARAM_NAMES]
+    return [{"params": [params[name]], "lr": rates[name], "name": name} for name in param_names(params)]
 
 
 def position_lr(step: int, lr, scene_extent: float) -> float:

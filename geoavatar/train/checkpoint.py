@@ -221,7 +221,7 @@ def load_run(
                 f"{path}: the avatar is bound to a mesh with {faces.shape[0]} faces, but the head model "
                 f"'{dataset['head_model']}' (mouth '{config.model.mouth}') here has {head.num_faces} different ones"
             )
-        avatar = GaussianAvatar(head.faces, config.model.init_opacity)
+        avatar = GaussianAvatar(head.faces, config.model.init_opacity, config.model.normal_shading)
         avatar.load_state_dict(ckpt["avatar"])
         deformer = None
         if ckpt.get("deformer") is not None:

@@ -48,8 +48,12 @@ from torch import Tensor
 
 from geoavatar.avatar import APSState, GaussianAvatar, MouthDeformer, gaussian_param_groups, position_lr, render_avatar
 from geoavatar.avatar import densify as densify_ops
+from geoavatar.avatar import posed_head
+from geoavatar.avatar.colour_init import face_colours
+from geoavatar.avatar.model import rgb_to_sh_dc
 from geoavatar.config import PresetName, TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
+from geoavatar.data.splits import evenly_spaced
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png
@@ -232,11 +236,15 @@ def new_state(data: TrainingData, config: TrainConfig, seed: int) -> TrainingSta
     """A fresh avatar (one Gaussian per face), deformer, per-frame parameters and optimizers."""
     seed_everything(seed)
     device = data.device
-    avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity).to(device)
+    avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity, config.model.normal_shading).to(device)
     deformer = None
     if config.model.mouth_deform.enabled:
         deformer = MouthDeformer.for_head(data.head, data.num_frames, config.model.mouth_deform).to(device)
     frames = FrameParams(data.subject.params, refine=config.refine_tracking).to(device)
+    if config.model.init_colour == "images":
+        colour, _ = face_colours(data.head.faces, training_views(data, frames))  # [F, 3]
+        with torch.no_grad():
+            avatar.params["f_dc"].copy_(rgb_to_sh_dc(colour.to(device))[avatar.binding])
     aps = APSState(part_names=data.part_names)
     generator = torch.Generator(device=device)
     generator.manual_seed(seed)
@@ -248,6 +256,18 @@ def new_state(data: TrainingData, config: TrainConfig, seed: int) -> TrainingSta
                                     mouth_set=config.model.mouth == "geoavatar").to(device),
         generator=generator,
     )
+
+
+INIT_COLOUR_FRAMES = 32  # training frames, evenly spread, that model.init_colour = "images" reads
+
+
+@torch.no_grad()
+def training_views(data: TrainingData, frames: FrameParams, count: int = INIT_COLOUR_FRAMES):
+    """(vertices [V, 3], image, mask, viewmat, K) of evenly spread training frames, posed by their parameters."""
+    for index in evenly_spaced(len(data.train_set), count):
+        item = data.train_set[index]
+        vertices = posed_head(data.head, frames(item["row"])).vertices[0]  # [V, 3]
+        yield vertices, item["image"], item["mask"], item["viewmat"], item["K"]
 
 
 def seed_everything(seed: int) -> None:
@@ -312,7 +332,7 @@ def restore_state(payload: dict, data: TrainingData, config: TrainConfig, where:
     """The TrainingState saved in `payload` (a loaded checkpoint), on data.device."""
     device = data.device
     try:
-        avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity)
+        avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity, config.model.normal_shading)
         avatar.load_state_dict(payload["avatar"])
         avatar = avatar.to(device)
         deformer = None

@@ -11,7 +11,7 @@ Materials (columns of the weight matrix, in this order):
 Hair and beard cover the skin beneath them by how far the sample is from the border of their shell
 (an interpolated per-vertex distance), with a noisy threshold: the hairline is a smooth, irregular
 curve rather than the staircase of the shell's triangle border.
-Shading: Lambert from two lights fixed to the camera + ambient + a Blinn-Phong highlight whose
+Shading: Lambert from two lights fixed to the room (given in the dataset camera's axes) + ambient + a Blinn-Phong highlight whose
 strength depends on the material (wet eyes and teeth shine, skin a little, hair and beard little).
 """
 

@@ -16,6 +16,8 @@ Output (written through `geoavatar.data.layout.LayoutWriter`, so it appears atom
                      images/<t>_<camera>.png, plus the dataset's own view of those timesteps (camera 0,
                      "front", the same files as the test split) as the reference; each frame carries
                      "view": {"name", "yaw", "pitch"}. The split `geoavatar eval --split novel` scores.
+                     The lights stay in the room (fixed to the dataset camera) as in a capture rig: a
+                     novel camera sees the shading the training frames show, from another side.
     preview.png      contact sheet (with --preview)
 
 The written static_offset is zero: the hair, ears, glasses and beard of the actor are NOT in the
@@ -303,6 +305,7 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
             meta["novel_views"] = {
                 "file": "transforms_novel.json", "timesteps": sorted({t for t, _, _ in novel}),
                 "every": config.novel_every, "pivot": "head.regions.skull_centre of the true posed head, per frame",
+                "lights": "fixed to the room (the dataset camera's axes), not to the novel camera",
                 "views": [{"camera": i, "name": n, "yaw": y, "pitch": p} for i, n, y, p in NOVEL_VIEWS],
             }
         if preview:
@@ -449,7 +452,7 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
         K=intrinsics_from_fov(18.0, renderer.camera.width, renderer.camera.height), width=renderer.camera.width,
         height=renderer.camera.height,
     )
-    image, _ = renderer.render(posed, close)
+    image, _ = renderer.render(posed, close, lights_on_camera=True)
     tiles.append(((image * 255 + 0.5).to(torch.uint8).numpy(), f"#{t_open} mouth close-up, jaw {motion.jaw[t_open]:.2f}"))
     # Side views of the neutral actor vs the bare head model (hair volume, ears, glasses, beard).
     neutral = {k: (v if k == "shape" else np.zeros_like(v[:1])) for k, v in params.items()}
@@ -458,7 +461,7 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     target_y = float(torch.linalg.inv(renderer.camera.viewmat.double())[1, 3])
     for yaw in (75.0, -110.0):
         side = orbit_camera(renderer.camera, yaw, 0.0, torch.tensor([0.0, target_y, 0.0]))
-        image, _ = renderer.render(vertices, side)
+        image, _ = renderer.render(vertices, side, lights_on_camera=True)
         tiles.append(((image * 255 + 0.5).to(torch.uint8).numpy(), f"actor, side {yaw:+.0f} deg"))
         head = vertices[: actor.num_head_vertices]
         bare = render_mesh(head, torch.from_numpy(actor.head.faces), side.viewmat, side.K, side.width, side.height,

@@ -89,8 +89,15 @@ class ActorRenderer:
         self.K_hi = scale_intrinsics(camera.K, ssaa)
 
     @torch.no_grad()
-    def render(self, vertices: Tensor, camera: Camera | None = None) -> tuple[Tensor, Tensor]:
-        """vertices [V, 3] world -> image [H, W, 3] in [0, 1] (over the background) and mask [H, W] in [0, 1]."""
+    def render(self, vertices: Tensor, camera: Camera | None = None, lights_on_camera: bool = False
+               ) -> tuple[Tensor, Tensor]:
+        """vertices [V, 3] world -> image [H, W, 3] in [0, 1] (over the background) and mask [H, W] in [0, 1].
+
+        The lights (appearance.LIGHTING, given in camera axes) are fixed to the room, i.e. to the dataset
+        camera `self.camera`: another camera (a novel view) sees the actor lit as the dataset camera's
+        frames light it, as a second camera of a capture rig would. With `lights_on_camera` they move with
+        `camera` instead (a lamp on the camera; the contact sheet's side views).
+        """
         camera = camera or self.camera
         s = self.ssaa
         width, height = camera.width * s, camera.height * s
@@ -113,6 +120,9 @@ class ActorRenderer:
         view_dirs = F.normalize(-position, dim=-1)
         geometric = face_normals(verts_cam, self.faces)[fid]  # [P, 3]
         back_facing = ((geometric * view_dirs).sum(-1) < 0) & self.cavity[fid]
+        if camera is not self.camera and not lights_on_camera:  # shade in the room's (dataset camera's) axes
+            turn = (self.camera.viewmat[:3, :3].double() @ camera.viewmat[:3, :3].double().T).float()  # [3, 3]
+            normals, view_dirs = normals @ turn.T, view_dirs @ turn.T
         # Ambient occlusion inside the mouth: darker the further behind the front teeth.
         depth_in = (self.mouth_z - canonical[:, 2]).clamp_min(0.0)  # [P] metres
         mouth_weight = weights[:, _MOUTH_MATERIALS].sum(-1).clamp(0, 1)
