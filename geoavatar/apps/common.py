@@ -93,7 +93,7 @@ def torch_threads(threads: int):
     The video commands pose and render one frame at a time: ~70k Gaussians at 256-512 px are small
     tensors, and on a busy 2-core machine 2 OpenMP threads spin-wait for each other at every parallel
     region. reenact at 256 px (load 4-6) took 0.36 CPU s and 0.74 wall s per frame on 2 threads, 0.06 and
-    0.08-0.13 on 1 (BENCHMARKS.md). Ask for more threads on a quiet machine (--threads)."""
+    0.08-0.13 on 1 (BENCHMARKS.md, "Video commands"). Ask for more threads on a quiet machine (--threads)."""
     check_threads(threads)
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
