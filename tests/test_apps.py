@@ -27,7 +27,7 @@ from geoavatar.apps import reenact as reenact_app
 from geoavatar.apps import render_video
 from geoavatar.apps import view as view_app
 from geoavatar.apps.common import (Camera, RunFrames, colormap_lut, error_map, open_run, open_run_dataset,
-                                   pose_gaussians, record_camera, render_params)
+                                   pose_gaussians, record_camera, render_params, torch_threads)
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
 from geoavatar.io.ply import PLY_PROPERTIES, read_gaussian_ply
@@ -257,6 +257,39 @@ def test_orbit_video(run_dir, tmp_path):
     frames = decode(out)  # yaw 0, +60, 0, -60
     assert len(frames) == 4 and frames[0].shape == (SIZE, SIZE, 3)
     assert np.abs(frames[0].astype(float) - frames[1]).mean() > 0.1  # the view changes
+
+
+def test_video_loops_run_on_threads_asked_and_restore_the_process_count(run_dir, driver, tmp_path, monkeypatch):
+    """--threads (default 1) holds inside the frame loops of render, reenact and orbit, the process's count after;
+    the frames do not depend on it."""
+    seen: list[int] = []
+    real = render_video.render_params
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(render_video, "render_params", spy)
+    monkeypatch.setattr(reenact_app, "render_params", spy)
+    before = torch.get_num_threads()
+    with torch_threads(3):
+        assert torch.get_num_threads() == 3
+    assert torch.get_num_threads() == before
+    videos = {}
+    for threads in (1, 2):
+        seen.clear()
+        out = tmp_path / f"render_{threads}.mp4"
+        render_video.render(run_dir, out=out, max_frames=2, device="cpu", progress=False, threads=threads)
+        reenact_app.reenact(run_dir, driver, out=tmp_path / f"reenact_{threads}.mp4", max_frames=2, device="cpu",
+                            progress=False, threads=threads)
+        assert seen == [threads] * 4 and torch.get_num_threads() == before
+        videos[threads] = [decode(out), decode(tmp_path / f"reenact_{threads}.mp4")]
+    assert all(np.array_equal(a, b) for one, two in zip(videos[1], videos[2]) for a, b in zip(one, two))
+    assert orbit_app.orbit(run_dir, out=tmp_path / "orbit.mp4", frames=2, pitch=0.0, device="cpu", progress=False,
+                           threads=2) == 0
+    assert torch.get_num_threads() == before
+    with pytest.raises(OptionError, match="--threads"):
+        reenact_app.reenact(run_dir, driver, out=tmp_path / "x.mp4", threads=0)
 
 
 # --- bench, CLI, errors --------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Iterable
@@ -73,6 +74,33 @@ def open_run(run_dir: str | os.PathLike, device: str = "auto", flame_dir: str | 
 
 def run_device(run: LoadedRun) -> torch.device:
     return run.avatar.binding.device
+
+
+RENDER_THREADS = 1  # default --threads of the video commands (render, reenact, orbit), as `geoavatar drive`
+
+
+def check_threads(threads: int) -> int:
+    """`threads` when it is a positive int, else OptionError naming --threads."""
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise OptionError(f"--threads must be a positive number of threads, got {threads!r}")
+    return threads
+
+
+@contextmanager
+def torch_threads(threads: int):
+    """Run a block with `threads` CPU threads for torch and the native rasterizer; the old count after.
+
+    The video commands pose and render one frame at a time: ~70k Gaussians at 256-512 px are small
+    tensors, and on a busy 2-core machine 2 OpenMP threads spin-wait for each other at every parallel
+    region. reenact at 256 px (load 4-6) took 0.36 CPU s and 0.74 wall s per frame on 2 threads, 0.06 and
+    0.08-0.13 on 1 (BENCHMARKS.md, "Video commands"). Ask for more threads on a quiet machine (--threads)."""
+    check_threads(threads)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 # --- cameras and per-frame parameters ---------------------------------------------------------------
@@ -246,9 +274,9 @@ class Timer:
 
 
 __all__ = [
-    "Camera", "EXPORT_DIR", "RunFrames", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut",
+    "Camera", "EXPORT_DIR", "check_threads", "RunFrames", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut",
     "default_output", "error_map", "evenly_spaced", "fit_height", "head_centre", "open_run", "open_run_dataset",
     "pose_gaussians", "posed_head_vertices", "progress", "rasterize_gaussians", "record_camera", "render_params",
-    "run_background", "run_device",
-    "side_by_side", "synchronize", "to_uint8",
+    "RENDER_THREADS", "run_background", "run_device",
+    "side_by_side", "synchronize", "to_uint8", "torch_threads",
 ]

@@ -23,9 +23,9 @@ from typing import Literal, NamedTuple, Optional
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, head_centre, open_run,
-                                   progress, rasterize_gaussians, record_camera, run_background, side_by_side,
-                                   to_uint8)
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, Camera, RunFrames, RunPath, default_output, head_centre,
+                                   open_run, progress, rasterize_gaussians, record_camera, run_background,
+                                   side_by_side, to_uint8, torch_threads)
 from geoavatar.avatar import pose_avatar
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
@@ -75,8 +75,10 @@ def orbit_video(
     data: Path | None = None,
     show_progress: bool = True,
     stills: Path | None = None,
+    threads: int = RENDER_THREADS,
 ) -> OrbitResult:
-    """Write the orbit video of one frame (and with `stills` a PNG of its extreme views)."""
+    """Write the orbit video of one frame (and with `stills` a PNG of its extreme views). `threads`: CPU threads of
+    the frame loop (common.torch_threads)."""
     if not 0 <= yaw < 180 or not 0 <= pitch < 90:
         raise OptionError(f"--yaw must be in [0, 180) and --pitch in [0, 90) degrees, got {yaw}, {pitch}")
     run_frames = RunFrames(run)
@@ -96,7 +98,7 @@ def orbit_video(
     posed = pose_avatar(run.avatar, run.head, params, t, run.deformer)  # one pose, many cameras
     background = run_background(run).to(centre.device)
     outside, images = [], []
-    with Mp4Writer(out, fps=fps, crf=crf) as video:
+    with torch_threads(threads), Mp4Writer(out, fps=fps, crf=crf) as video:
         for camera in progress(cameras, enabled=show_progress, desc="orbit"):
             result = rasterize_gaussians(posed.gaussians, camera, background, backend)
             image = to_uint8(result.rgb.clamp(0.0, 1.0))
@@ -136,6 +138,7 @@ def orbit(
     flame_dir: Optional[Path] = None,
     stills: Optional[Path] = None,
     progress: bool = True,
+    threads: int = RENDER_THREADS,
 ) -> int:
     """Novel views: orbit the camera around the head of one frame (a yaw sweep, then a pitch sweep).
 
@@ -155,6 +158,9 @@ def orbit(
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         stills: Also write this PNG: the front view and the sweep's extreme views side by side.
         progress: Show progress bars.
+        threads: CPU threads of the rendering loop. 1 by default, as `geoavatar drive`: a frame's tensors are small,
+            and on a busy 2-core machine 2 threads made each frame several times slower (OpenMP threads waiting
+            for each other); more may pay on a quiet machine.
     """
     if resolution is not None and resolution <= 0:
         raise OptionError(f"--resolution must be positive, got {resolution}")
@@ -162,7 +168,7 @@ def orbit(
     timestep = RunFrames(loaded).resolve(frame)
     target = out or default_output(loaded, VIDEO_DIR, f"orbit_{timestep:05d}.mp4")
     result = orbit_video(loaded, target, timestep, frames, yaw, pitch, resolution, fps, crf, backend, data, progress,
-                         stills)
+                         stills, threads)
     print(f"wrote {target} ({result.frames} frames, yaw +-{yaw:g} deg, pitch +-{pitch:g} deg)"
           + (f" and {stills}" if stills is not None else ""))
     worst = max(range(len(result.outside)), key=result.outside.__getitem__)

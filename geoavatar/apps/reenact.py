@@ -60,9 +60,9 @@ from typing import Literal, Optional
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, evenly_spaced, fit_height,
-                                   open_run, progress, record_camera, render_params, run_background, side_by_side,
-                                   to_uint8)
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, Camera, RunFrames, RunPath, check_threads,
+                                   default_output, evenly_spaced, fit_height, open_run, progress, record_camera, render_params,
+                                   run_background, side_by_side, to_uint8, torch_threads)
 from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError, OptionError
@@ -209,8 +209,9 @@ def reenact_video(
     backend: str = "auto",
     data: Path | None = None,
     show_progress: bool = True,
+    threads: int = RENDER_THREADS,
 ) -> int:
-    """Write the re-enactment video; returns the number of frames."""
+    """Write the re-enactment video; returns the number of frames. `threads`: CPU threads of the frame loop."""
     if camera_mode not in ("avatar", "driver"):
         raise OptionError(f"--camera must be avatar or driver, got {camera_mode!r}")
     frames = RunFrames(run)
@@ -237,7 +238,7 @@ def reenact_video(
         fixed_camera = record_camera(open_subject(avatar_root), camera_timestep, run.info.resolution)
     background = run_background(run).to(device)
     row_of = {t: i for i, t in enumerate(driver_timesteps)}
-    with Mp4Writer(out, fps=fps, crf=crf) as video:
+    with torch_threads(threads), Mp4Writer(out, fps=fps, crf=crf) as video:
         for index in progress(evenly_spaced(len(driver_set), max_frames), enabled=show_progress, desc="reenact"):
             item = driver_set[index]
             if camera_mode == "avatar":
@@ -277,6 +278,7 @@ def reenact(
     driver_cache: Optional[Path] = None,
     driver_size: Optional[int] = None,
     photometric: bool = False,
+    threads: int = RENDER_THREADS,
 ) -> int:
     """Cross-re-enactment: drive the avatar with another video's expression, jaw, eyes and head motion.
 
@@ -315,6 +317,10 @@ def reenact(
         driver_size: Side in pixels of the driver's face crop (default 256); --driver-video only.
         photometric: Refine the driver's tracking photometrically, as `prepare --photometric` (slower;
             experimental); --driver-video only.
+        threads: CPU threads of the rendering loop (posing and rasterizing). 1 by default, as `geoavatar drive`:
+            a frame's tensors are small, and on a busy 2-core machine 2 threads made each frame 5-7x slower
+            (OpenMP threads waiting for each other); more may pay on a quiet machine. Tracking a --driver-video
+            keeps the process's threads.
     """
     if (driver is None) == (driver_video is None):
         raise OptionError("reenact: give exactly one of --driver DATASET and --driver-video VIDEO")
@@ -322,6 +328,7 @@ def reenact(
         raise OptionError("--driver-cache, --driver-size and --photometric go with --driver-video, not --driver")
     if driver_size is not None and driver_size < 32:
         raise OptionError(f"--driver-size must be at least 32 pixels, got {driver_size}")
+    check_threads(threads)  # before a --driver-video is tracked
     loaded = open_run(run, device, flame_dir)
     if driver_video is not None:
         cache = driver_cache or driver_cache_dir(loaded.info.run_dir, driver_video, photometric)
@@ -334,7 +341,7 @@ def reenact(
     target = out or default_output(loaded, VIDEO_DIR, name)
     fps = fps or 25.0
     count = reenact_video(loaded, Path(driver), target, relative, driver_neutral, avatar_neutral, camera,
-                          driver_split, max_frames, fps, crf, side_by_side, backend, data, progress)
+                          driver_split, max_frames, fps, crf, side_by_side, backend, data, progress, threads)
     shown = "driver | avatar" if side_by_side else "avatar"
     print(f"wrote {target} ({count} frames: {shown}, {'relative' if relative else 'absolute'} transfer)")
     return 0

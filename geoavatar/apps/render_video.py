@@ -14,8 +14,9 @@ from typing import Literal, Optional
 
 import torch
 
-from geoavatar.apps.common import (VIDEO_DIR, Camera, RunFrames, RunPath, default_output, error_map, evenly_spaced,
-                                   open_run, open_run_dataset, progress, render_params, side_by_side, to_uint8)
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, Camera, RunFrames, RunPath, default_output, error_map,
+                                   evenly_spaced, open_run, open_run_dataset, progress, render_params, side_by_side,
+                                   to_uint8, torch_threads)
 from geoavatar.errors import OptionError
 from geoavatar.io.video import Mp4Writer
 from geoavatar.render import composite_target
@@ -37,15 +38,17 @@ def render_split_video(
     backend: str = "auto",
     data: Path | None = None,
     show_progress: bool = True,
+    threads: int = RENDER_THREADS,
 ) -> int:
-    """Write the gt | render | error video of a split to `out`; returns the number of frames."""
+    """Write the gt | render | error video of a split to `out`; returns the number of frames. `threads`: CPU threads
+    of the frame loop (common.torch_threads)."""
     dataset = open_run_dataset(run, split, data)
     if len(dataset) == 0:
         raise OptionError(f"--split {split}: the run's dataset has no frames in this split")
     frames = RunFrames(run)
     device = frames.device
     indices = evenly_spaced(len(dataset), max_frames)
-    with Mp4Writer(out, fps=fps, crf=crf) as video:
+    with torch_threads(threads), Mp4Writer(out, fps=fps, crf=crf) as video:
         for index in progress(indices, enabled=show_progress, desc=f"render {split}"):
             item = dataset[index]
             params, timestep = frames.params(item["timestep"])
@@ -72,6 +75,7 @@ def render(
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
     progress: bool = True,
+    threads: int = RENDER_THREADS,
 ) -> int:
     """Render a split of the run's dataset into an mp4: ground truth | render | error map.
 
@@ -89,11 +93,14 @@ def render(
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         progress: Show progress bars.
+        threads: CPU threads of the rendering loop. 1 by default, as `geoavatar drive`: a frame's tensors are small,
+            and on a busy 2-core machine 2 threads made each frame several times slower (OpenMP threads waiting
+            for each other); more may pay on a quiet machine.
     """
     loaded = open_run(run, device, flame_dir)
     target = out or default_output(loaded, VIDEO_DIR, f"render_{split}.mp4")
     count = render_split_video(loaded, target, split, max_frames, fps, crf, error_max, colormap, backend, data,
-                               progress)
+                               progress, threads)
     print(f"wrote {target} ({count} frames: ground truth | render | error)")
     return 0
 

@@ -129,6 +129,21 @@ def _clear_stale_lock(build_dir: Path, max_age_s: float = 900.0) -> None:
         pass
 
 
+def _source_copy(build_dir: Path) -> Path:
+    """SOURCE copied into its build folder (the key hashes it, so one content per folder), the path compiled.
+
+    ninja rebuilds when a build command changes, and the command names the source's path: compiled from each
+    checkout's own csrc/, a cache shared by several checkouts (worktrees, an installed copy and a clone) was
+    rebuilt, about a minute, whenever the last build came from another one."""
+    from geoavatar.io.atomic import atomic_write_bytes
+
+    copy = build_dir / SOURCE.name
+    data = SOURCE.read_bytes()
+    if not copy.is_file() or copy.read_bytes() != data:  # untouched when equal: its time stays, ninja is content
+        atomic_write_bytes(copy, data)
+    return copy
+
+
 def _build(verbose: bool) -> ModuleType:
     from torch.utils import cpp_extension
 
@@ -150,7 +165,7 @@ def _build(verbose: bool) -> ModuleType:
                   f"{build_dir} ...", file=sys.stderr, flush=True)
         return cpp_extension.load(
             name=name,
-            sources=[str(SOURCE)],
+            sources=[str(_source_copy(build_dir))],
             extra_cflags=CFLAGS,
             extra_ldflags=LDFLAGS,
             build_directory=str(build_dir),
