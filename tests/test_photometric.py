@@ -261,10 +261,7 @@ def test_prepare_photometric_on_a_video_that_loses_the_face(tmp_path):
     """A real clip whose face is lost for a stretch (frames filled with a flat colour) goes through prepare
     --photometric: those frames are interpolated, flagged in report.json, get no image term (null residual) and
     keep parameters that run smoothly between their neighbours'."""
-    from fractions import Fraction
-
-    import av
-
+    from geoavatar.io.video import Mp4Writer
     from geoavatar.prep.pipeline import PrepareConfig, run_prepare
     from geoavatar.prep.video import decode_frames
 
@@ -273,15 +270,9 @@ def test_prepare_photometric_on_a_video_that_loses_the_face(tmp_path):
     for k in lost:
         frames[k][:] = (90, 130, 160)
     video = tmp_path / "lost.mp4"
-    with av.open(str(video), mode="w") as container:
-        stream = container.add_stream("libx264", rate=Fraction(25))
-        stream.height, stream.width = frames[0].shape[:2]
-        stream.pix_fmt = "yuv420p"
+    with Mp4Writer(video, fps=25, crf=23) as writer:  # x264's default quality: the bounds below were set on it
         for rgb in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+            writer.write(rgb)
     out = tmp_path / "out"
     run_prepare(PrepareConfig(video=video, out=out, size=128, tracking_steps=(30, 40), photometric=True,
                               photometric_epochs=(1, 1), overlay=False, progress=False, log=lambda message: None))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -17,17 +16,11 @@ needs_video = pytest.mark.skipif(not WOJTEK.is_file(), reason=f"test video folde
 
 
 def _write_video(path: Path, frames: list[np.ndarray], fps: int = 25) -> Path:
-    import av
+    from geoavatar.io.video import Mp4Writer
 
-    with av.open(str(path), mode="w") as container:
-        stream = container.add_stream("libx264", rate=Fraction(fps))
-        stream.height, stream.width = frames[0].shape[:2]
-        stream.pix_fmt = "yuv420p"
+    with Mp4Writer(path, fps=fps) as video:
         for rgb in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+            video.write(rgb)
     return path
 
 

@@ -8,7 +8,6 @@ cores."""
 from __future__ import annotations
 
 import json
-from fractions import Fraction
 from pathlib import Path
 
 import av
@@ -19,6 +18,7 @@ from apps_fixtures import make_subject, make_untrained_run
 from geoavatar import cli
 from geoavatar.apps import reenact as reenact_app
 from geoavatar.errors import OptionError
+from geoavatar.io.video import Mp4Writer
 from geoavatar.prep.errors import PrepareError
 
 VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "wojtek.mp4"
@@ -27,15 +27,9 @@ FRAMES = 6
 
 
 def write_clip(path: Path, frames: list[np.ndarray], fps: int = 25) -> Path:
-    with av.open(str(path), mode="w") as container:
-        stream = container.add_stream("libx264", rate=Fraction(fps))
-        stream.height, stream.width = frames[0].shape[:2]
-        stream.pix_fmt = "yuv420p"
+    with Mp4Writer(path, fps=fps) as video:
         for rgb in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+            video.write(rgb)
     return path
 
 
