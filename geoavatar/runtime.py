@@ -11,6 +11,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+from contextlib import contextmanager
 
 # mallopt parameter numbers from <malloc.h>
 _M_TRIM_THRESHOLD = -1
@@ -57,6 +58,20 @@ def configure_threads() -> int:
             threads = os.cpu_count() or 1
     torch.set_num_threads(threads)
     return threads
+
+
+@contextmanager
+def num_threads(threads: int):
+    """Run a block with `threads` CPU threads for torch (and the native rasterizer, which reads torch's count);
+    the previous count after it."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def resolve_device(name: str):

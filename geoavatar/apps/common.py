@@ -41,7 +41,7 @@ from geoavatar.errors import OptionError
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
 from geoavatar.head.regions import skull_centre
 from geoavatar.render.camera import Camera
-from geoavatar.runtime import resolve_device
+from geoavatar.runtime import num_threads, resolve_device
 from geoavatar.train.checkpoint import LoadedRun, RunError, load_run, open_run_dataset
 
 # The RUN folder: the first, positional argument of every command (`geoavatar render RUN`).
@@ -94,13 +94,8 @@ def torch_threads(threads: int):
     tensors, and on a busy 2-core machine 2 OpenMP threads spin-wait for each other at every parallel
     region. reenact at 256 px (load 4-6) took 0.36 CPU s and 0.74 wall s per frame on 2 threads, 0.06 and
     0.08-0.13 on 1 (BENCHMARKS.md, "Video commands"). Ask for more threads on a quiet machine (--threads)."""
-    check_threads(threads)
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
+    with num_threads(check_threads(threads)):
         yield
-    finally:
-        torch.set_num_threads(before)
 
 
 # --- cameras and per-frame parameters ---------------------------------------------------------------

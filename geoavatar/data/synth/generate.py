@@ -34,7 +34,7 @@ import os
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import closing, contextmanager
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -53,6 +53,7 @@ from geoavatar.data.synth.tracking import TrackingNoise, apply_tracking_noise
 from geoavatar.errors import OptionError, disk_full_error, is_disk_full
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
 from geoavatar.head.regions import skull_centre
+from geoavatar.runtime import num_threads
 
 log = logging.getLogger(__name__)
 
@@ -365,16 +366,6 @@ def default_workers() -> int:
     return max(1, min(8, cores))
 
 
-@contextmanager
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def _render_one(job: tuple[int, int, Camera | None]) -> tuple[int, int, np.ndarray, np.ndarray]:
     actor, renderer, params = _STATE["actor"], _STATE["renderer"], _STATE["params"]
     t, index, camera = job
@@ -403,7 +394,7 @@ def _render_frames(actor: Actor, renderer: ActorRenderer, params: dict[str, np.n
             finally:  # on an error or Ctrl-C, drop the frames not started yet
                 pool.shutdown(wait=True, cancel_futures=True)
         else:
-            with _one_thread():
+            with num_threads(1):
                 for job in jobs:
                     yield _render_one(job)
     finally:
