@@ -15,10 +15,11 @@
 // Two implementations of forward and backward, chosen per call (cpu_backend.simd_path()):
 //   scalar         - pixel by pixel with libm's exp, per-pixel state (T, colour sums, the running sums
 //                    of backward) in double; float64 inputs always take it (gradcheck).
-//   avx512 / avx2 / vector - float32 only: a Gaussian over W pixels of a row span of its tile per step
+//   avx512 / avx2 / vector - float32 only: a Gaussian over W pixels of a row of its tile per step
 //                    (see "float32 lanes" below), one source with GCC/Clang vector types compiled for
-//                    AVX-512, AVX2 and the baseline ISA (NEON on aarch64, SSE2 on x86-64), picked at
-//                    run time; forward and backward state is float32.
+//                    AVX2 and the baseline ISA (NEON on aarch64, SSE2 on x86-64), and the same
+//                    arithmetic in AVX-512 intrinsics (16 lanes, k-register masks: "AVX-512 lanes");
+//                    picked at run time; forward and backward state is float32.
 // Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels count.
 
 #include <torch/extension.h>
@@ -34,6 +35,10 @@
 #include <numeric>
 #include <string>
 #include <vector>
+
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+#include <immintrin.h>  // the AVX-512 lane kernels (masks in k registers)
+#endif
 
 namespace {
 
@@ -397,14 +402,14 @@ enum class Simd { kScalar, kVector, kAvx2, kAvx512 };
 constexpr float kAlphaMinF = static_cast<float>(kAlphaMin);
 constexpr float kAlphaMaxF = static_cast<float>(kAlphaMax);
 constexpr float kTransmittanceMinF = static_cast<float>(kTransmittanceMin);
-// Lanes per step of each path (forward, backward): one native register of floats (forward) or of
-// doubles (backward, whose state is double). Wider vectors than the ISA's registers are split by the
-// compiler, and GCC then selects lane by lane (measured: 16 lanes on AVX-512 or 8 doubles on AVX2 ran
-// slower than the scalar kernel).
+// Lanes per step of each path (forward, backward): one native register of floats. Wider vectors
+// than the ISA's registers are split by the compiler, and GCC then selects lane by lane (measured:
+// 16 lanes on AVX-512 in vector types ran slower than the scalar kernel; the AVX-512 path is written
+// with intrinsics for that reason, and takes 16 or 8).
 constexpr int kMaxLanes = 16;
 #ifndef GEOAVATAR_LANES_AVX512_FWD
-#define GEOAVATAR_LANES_AVX512_FWD 8   // ymm with AVX-512VL: at 256^2 a row span is rarely over 8 pixels
-#define GEOAVATAR_LANES_AVX512_BWD 8
+#define GEOAVATAR_LANES_AVX512_FWD 16  // zmm, masks in k registers (composite_tile_k)
+#define GEOAVATAR_LANES_AVX512_BWD 16
 #define GEOAVATAR_LANES_AVX2_FWD 8     // ymm
 #define GEOAVATAR_LANES_AVX2_BWD 8
 #define GEOAVATAR_LANES_VECTOR_FWD 4   // 128-bit: NEON q, SSE2 xmm
@@ -630,8 +635,190 @@ void composite_tile_vector(const LaneTile& tile) { composite_tile_vec<GEOAVATAR_
 #define GEOAVATAR_X86_DISPATCH 1
 #define GEOAVATAR_TARGET_AVX512 __attribute__((target("avx512f,avx512dq,avx512vl,avx512bw,prefer-vector-width=512")))
 #define GEOAVATAR_TARGET_AVX2 __attribute__((target("avx2,fma")))
+// ----------------------------------------------------------------------------- AVX-512 lanes
+// The AVX-512 path with intrinsics. GCC 12 lowers comparisons and selects on 64-byte vector types lane
+// by lane (a vcomiss and setae per lane), so the generic kernel above could only use 8 lanes (ymm)
+// here; with k-register masks a step covers 16 pixels. The steps are also laid differently: each
+// covers W tile columns starting at a multiple of W (one step per box row at tile 16 and W = 16), so
+//   - no row span is solved (a double sqrt and division per row in the generic kernel), the alpha
+//     test masks the lanes outside the ellipse, as it does for the scalar kernel's box pixels;
+//   - every load of a plane reads what an earlier step stored at the same address and width: steps
+//     starting at the box's first column overlapped earlier stores at other offsets, and such a
+//     load waits for the store to retire (failed store-to-load forwarding);
+//   - the forward's per-pixel "done" flags are one bit mask per row step, the accepted lanes a
+//     k register (steps with none skip the loads, stores and the backward's gradient terms).
+// Per lane the arithmetic is the generic kernel's, in its order (same alpha, T and colour sums: images
+// bit for bit); the backward's per-lane partial sums hold other pixels (gradients within the lane-path
+// tolerances).
+template <int W>
+struct Avx512Lanes;
+
+// 16 float lanes (zmm) and 8 (ymm, AVX-512VL), the same operations; arithmetic is written with the
+// vector operators (no contraction: -ffp-contract=off), comparisons give masks.
+#define GEOAVATAR_LANE_OP GEOAVATAR_TARGET_AVX512 static GEOAVATAR_INLINE
+template <>
+struct Avx512Lanes<16> {
+  using F = __m512;
+  using I = __m512i;
+  using M = __mmask16;
+  using D = __m512d;
+  GEOAVATAR_LANE_OP F splat(float v) { return _mm512_set1_ps(v); }
+  GEOAVATAR_LANE_OP I splat_i(int32_t v) { return _mm512_set1_epi32(v); }
+  GEOAVATAR_LANE_OP F load(const float* p) { return _mm512_loadu_ps(p); }
+  GEOAVATAR_LANE_OP I load_i(const int32_t* p) { return _mm512_loadu_si512(p); }
+  GEOAVATAR_LANE_OP void store(float* p, F v) { _mm512_storeu_ps(p, v); }
+  GEOAVATAR_LANE_OP void store_i(int32_t* p, M m, I v) { _mm512_mask_storeu_epi32(p, m, v); }
+  GEOAVATAR_LANE_OP M lt(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_LT_OQ); }
+  GEOAVATAR_LANE_OP M le(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_LE_OQ); }
+  GEOAVATAR_LANE_OP M ge(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_GE_OQ); }
+  GEOAVATAR_LANE_OP M lt_i(M m, I a, I b) { return _mm512_mask_cmplt_epi32_mask(m, a, b); }
+  // a < b ? a : b and a > b ? a : b (NaN: b), as the generic kernel's selects
+  GEOAVATAR_LANE_OP F min(F a, F b) { return _mm512_min_ps(a, b); }
+  GEOAVATAR_LANE_OP F max(F a, F b) { return _mm512_max_ps(a, b); }
+  GEOAVATAR_LANE_OP F select(M m, F if_set, F if_not) { return _mm512_mask_mov_ps(if_not, m, if_set); }
+  GEOAVATAR_LANE_OP F add_where(M m, F sum, F term) { return _mm512_mask_add_ps(sum, m, sum, term); }
+  GEOAVATAR_LANE_OP F pow2(F n) {  // 2^n for integral n in [-127, 127]: the exponent bits
+    return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_add_epi32(_mm512_cvttps_epi32(n), _mm512_set1_epi32(127)), 23));
+  }
+  GEOAVATAR_LANE_OP F lanes() {
+    return _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+  }
+  // lanes l and l + 8 first, then by halves: the generic kernel's order for 16 lanes
+  GEOAVATAR_LANE_OP double sum(F v) {
+    const D s8 = _mm512_cvtps_pd(_mm512_castps512_ps256(v)) + _mm512_cvtps_pd(_mm512_extractf32x8_ps(v, 1));
+    const __m256d s4 = _mm512_castpd512_pd256(s8) + _mm512_extractf64x4_pd(s8, 1);
+    const __m128d s2 = _mm256_castpd256_pd128(s4) + _mm256_extractf128_pd(s4, 1);
+    return s2[0] + s2[1];
+  }
+};
+
+template <>
+struct Avx512Lanes<8> {
+  using F = __m256;
+  using I = __m256i;
+  using M = __mmask8;
+  using D = __m512d;
+  GEOAVATAR_LANE_OP F splat(float v) { return _mm256_set1_ps(v); }
+  GEOAVATAR_LANE_OP I splat_i(int32_t v) { return _mm256_set1_epi32(v); }
+  GEOAVATAR_LANE_OP F load(const float* p) { return _mm256_loadu_ps(p); }
+  GEOAVATAR_LANE_OP I load_i(const int32_t* p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)); }
+  GEOAVATAR_LANE_OP void store(float* p, F v) { _mm256_storeu_ps(p, v); }
+  GEOAVATAR_LANE_OP void store_i(int32_t* p, M m, I v) { _mm256_mask_storeu_epi32(p, m, v); }
+  GEOAVATAR_LANE_OP M lt(M m, F a, F b) { return _mm256_mask_cmp_ps_mask(m, a, b, _CMP_LT_OQ); }
+  GEOAVATAR_LANE_OP M le(M m, F a, F b) { return _mm256_mask_cmp_ps_mask(m, a, b, _CMP_LE_OQ); }
+  GEOAVATAR_LANE_OP M ge(M m, F a, F b) { return _mm256_mask_cmp_ps_mask(m, a, b, _CMP_GE_OQ); }
+  GEOAVATAR_LANE_OP M lt_i(M m, I a, I b) { return _mm256_mask_cmplt_epi32_mask(m, a, b); }
+  GEOAVATAR_LANE_OP F min(F a, F b) { return _mm256_min_ps(a, b); }
+  GEOAVATAR_LANE_OP F max(F a, F b) { return _mm256_max_ps(a, b); }
+  GEOAVATAR_LANE_OP F select(M m, F if_set, F if_not) { return _mm256_mask_mov_ps(if_not, m, if_set); }
+  GEOAVATAR_LANE_OP F add_where(M m, F sum, F term) { return _mm256_mask_add_ps(sum, m, sum, term); }
+  GEOAVATAR_LANE_OP F pow2(F n) {
+    return _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(n), _mm256_set1_epi32(127)), 23));
+  }
+  GEOAVATAR_LANE_OP F lanes() { return _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7); }
+  GEOAVATAR_LANE_OP double sum(F v) {
+    const D s8 = _mm512_cvtps_pd(v);
+    const __m256d s4 = _mm512_castpd512_pd256(s8) + _mm512_extractf64x4_pd(s8, 1);
+    const __m128d s2 = _mm256_castpd256_pd128(s4) + _mm256_extractf128_pd(s4, 1);
+    return s2[0] + s2[1];
+  }
+};
+#undef GEOAVATAR_LANE_OP
+
+// exp_lanes with max / min for its clamps (the same values, NaN included).
+template <typename L>
+GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE typename L::F exp_k(typename L::F x) {
+  using F = typename L::F;
+  x = L::max(L::splat(-80.0f), x);  // -80 > x ? -80 : x
+  x = L::min(L::splat(88.0f), x);   // 88 < x ? 88 : x
+  const F round = L::splat(12582912.0f);
+  const F n = (x * L::splat(1.44269504088896341f) + round) - round;
+  const F r = (x - n * L::splat(0.693359375f)) - n * L::splat(-2.12194440e-4f);
+  F p = L::splat(1.9875691500e-4f);
+  p = p * r + L::splat(1.3981999507e-3f);
+  p = p * r + L::splat(8.3334519073e-3f);
+  p = p * r + L::splat(4.1665795894e-2f);
+  p = p * r + L::splat(1.6666665459e-1f);
+  p = p * r + L::splat(5.0000001201e-1f);
+  p = p * r * r + r + L::splat(1.0f);
+  return p * L::pow2(n);
+}
+
+// Lanes of a step (tile columns col .. col + W - 1) inside the box columns [lo, hi] (tile columns).
+template <int W>
+GEOAVATAR_INLINE uint32_t box_lanes(int64_t lo, int64_t hi, int64_t col) {
+  const int64_t first = std::max<int64_t>(lo - col, 0), last = std::min<int64_t>(hi - col, W - 1);
+  return first > last ? 0u : ((2u << last) - 1u) & ~((1u << first) - 1u);
+}
+
+template <int W>
+GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_k(const LaneTile& tile) {
+  using L = Avx512Lanes<W>;
+  using F = typename L::F;
+  using M = typename L::M;
+  float* __restrict__ trans = tile.trans;
+  float* __restrict__ red = tile.red;
+  float* __restrict__ green = tile.green;
+  float* __restrict__ blue = tile.blue;
+  int32_t* __restrict__ last = tile.last;
+  // done pixels: one bit mask per step (row, W columns), in the caller's zeroed done plane
+  uint32_t* __restrict__ done = reinterpret_cast<uint32_t*>(tile.done);
+  const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
+  const F lane_f = L::lanes();
+  const F half = L::splat(0.5f), one = L::splat(1.0f), alpha_min = L::splat(kAlphaMinF);
+  const F alpha_max = L::splat(kAlphaMaxF), t_min = L::splat(kTransmittanceMinF);
+  int64_t n_done = 0;
+  for (int64_t k = tile.begin; k < tile.end && n_done < tw * th; ++k) {
+    if (k + kPrefetch < tile.end) prefetch_splat(tile.splats + tile.ids[k + kPrefetch]);
+    const Splat<float>& s = tile.splats[tile.ids[k]];
+    // box in tile columns / rows
+    const int64_t x0 = std::max<int64_t>(s.x0 - tx0, 0), x1 = std::min<int64_t>(s.x1 - tx0, tw - 1);
+    const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
+    const auto position = L::splat_i(static_cast<int32_t>(k - tile.begin + 1));
+    const F mx = L::splat(s.mx), a = L::splat(s.a), b = L::splat(s.b), opacity = L::splat(s.opacity);
+    const F r = L::splat(s.r), g = L::splat(s.g), bl = L::splat(s.bl);
+    const int64_t col0 = x0 / W * W;
+    for (int64_t y = y0; y <= y1; ++y) {
+      const int64_t row = y - ty0;
+      if (tile.row_done[row] == tw) continue;
+      const float dy = s.my - (static_cast<float>(y) + 0.5f);
+      const F dy_v = L::splat(dy), c_dy_dy = L::splat(s.c * dy * dy);
+      for (int64_t col = col0; col <= x1; col += W) {
+        const int64_t base = row * tile.stride + col;
+        uint32_t& done_here = done[base];
+        const M open = static_cast<M>(box_lanes<W>(x0, x1, col) & ~done_here);
+        if (!open) continue;
+        // pixel centres x + 0.5: sums of small integers and 0.5, exact (the scalar kernel's dx)
+        const F centre = lane_f + L::splat(static_cast<float>(tx0 + col) + 0.5f);
+        const F dx = mx - centre;
+        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
+        const F alpha_raw = opacity * exp_k<L>(-sigma);
+        const M accept = L::ge(open, alpha_raw, alpha_min);
+        if (!accept) continue;
+        const F alpha = L::min(alpha_raw, alpha_max);
+        const F t_here = L::load(trans + base);
+        const F next_t = t_here * (one - alpha);
+        const M stop = L::le(accept, next_t, t_min);
+        const M add = accept & ~stop;
+        const F w = alpha * t_here;
+        L::store(red + base, L::add_where(add, L::load(red + base), w * r));
+        L::store(green + base, L::add_where(add, L::load(green + base), w * g));
+        L::store(blue + base, L::add_where(add, L::load(blue + base), w * bl));
+        L::store(trans + base, L::select(add, next_t, t_here));
+        L::store_i(last + base, add, position);
+        if (stop) {
+          done_here |= stop;
+          const int stopped = __builtin_popcount(stop);
+          tile.row_done[row] += stopped;
+          n_done += stopped;
+        }
+      }
+    }
+  }
+}
+
 GEOAVATAR_TARGET_AVX512 void composite_tile_avx512(const LaneTile& tile) {
-  composite_tile_vec<GEOAVATAR_LANES_AVX512_FWD>(tile);
+  composite_tile_k<GEOAVATAR_LANES_AVX512_FWD>(tile);
 }
 GEOAVATAR_TARGET_AVX2 void composite_tile_avx2(const LaneTile& tile) {
   composite_tile_vec<GEOAVATAR_LANES_AVX2_FWD>(tile);
@@ -843,8 +1030,79 @@ void backward_tile_vector(const LaneBackTile& tile) { backward_tile_vec<GEOAVATA
 #endif
 
 #ifdef GEOAVATAR_X86_DISPATCH
+// The lane backward on AVX-512: backward_tile_vec's arithmetic in the steps of composite_tile_k.
+template <int W>
+GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_k(const LaneBackTile& tile) {
+  using L = Avx512Lanes<W>;
+  using F = typename L::F;
+  using M = typename L::M;
+  float* __restrict__ trans = tile.trans;
+  float* __restrict__ behind = tile.behind;
+  const float* __restrict__ grad_r = tile.grad_r;
+  const float* __restrict__ grad_g = tile.grad_g;
+  const float* __restrict__ grad_b = tile.grad_b;
+  const int32_t* __restrict__ last = tile.last;
+  const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
+  const F lane_f = L::lanes();
+  const F zero = L::splat(0.0f), one = L::splat(1.0f), half = L::splat(0.5f);
+  const F alpha_min = L::splat(kAlphaMinF), alpha_max = L::splat(kAlphaMaxF);
+  for (int64_t k = tile.begin + tile.max_last - 1; k >= tile.begin; --k) {
+    if (k - kPrefetch >= tile.begin) prefetch_splat(tile.splats + tile.ids[k - kPrefetch]);
+    const Splat<float>& s = tile.splats[tile.ids[k]];
+    const int64_t x0 = std::max<int64_t>(s.x0 - tx0, 0), x1 = std::min<int64_t>(s.x1 - tx0, tw - 1);
+    const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
+    const auto position = L::splat_i(static_cast<int32_t>(k - tile.begin));
+    const F mx = L::splat(s.mx), a = L::splat(s.a), b = L::splat(s.b), c = L::splat(s.c);
+    const F opacity = L::splat(s.opacity), inv_opacity = L::splat(1.0f / s.opacity);
+    const F red = L::splat(s.r), green = L::splat(s.g), blue = L::splat(s.bl);
+    F sums[kEntryGrads];
+    for (F& sum : sums) sum = zero;
+    const int64_t col0 = x0 / W * W;
+    for (int64_t y = y0; y <= y1; ++y) {
+      const int64_t row = y - ty0;
+      const float dy = s.my - (static_cast<float>(y) + 0.5f);
+      const F dy_v = L::splat(dy), c_dy_dy = L::splat(s.c * dy * dy);
+      for (int64_t col = col0; col <= x1; col += W) {
+        const int64_t base = row * tile.stride + col;
+        // lanes of the box in front of the pixel's last composited entry
+        const M open = L::lt_i(static_cast<M>(box_lanes<W>(x0, x1, col)), position, L::load_i(last + base));
+        if (!open) continue;
+        const F centre = lane_f + L::splat(static_cast<float>(tx0 + col) + 0.5f);
+        const F dx = mx - centre;
+        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
+        const F alpha_raw = opacity * exp_k<L>(-sigma);
+        const M in = L::ge(open, alpha_raw, alpha_min);
+        if (!in) continue;
+        const M uncapped = L::lt(in, alpha_raw, alpha_max);  // a capped alpha depends on neither sigma nor opacity
+        const F alpha = L::min(alpha_raw, alpha_max);
+        const F keep = one - alpha;
+        const F t_after = L::load(trans + base), behind_here = L::load(behind + base);
+        const F t_before = t_after / keep;
+        const F gr = L::load(grad_r + base), gg = L::load(grad_g + base), gb = L::load(grad_b + base);
+        const F color_dot = gr * red + gg * green + gb * blue;
+        const F grad_alpha_pair = t_before * color_dot - behind_here / keep;
+        const F w = alpha * t_before;
+        L::store(trans + base, L::select(in, t_before, t_after));
+        L::store(behind + base, L::add_where(in, behind_here, color_dot * w));
+        const F g_sigma = -alpha * grad_alpha_pair;
+        sums[0] = L::add_where(uncapped, sums[0], g_sigma * (a * dx + b * dy_v));
+        sums[1] = L::add_where(uncapped, sums[1], g_sigma * (b * dx + c * dy_v));
+        sums[2] = L::add_where(uncapped, sums[2], half * g_sigma * dx * dx);
+        sums[3] = L::add_where(uncapped, sums[3], g_sigma * dx * dy_v);
+        sums[4] = L::add_where(uncapped, sums[4], half * g_sigma * dy_v * dy_v);
+        sums[5] = L::add_where(uncapped, sums[5], alpha * inv_opacity * grad_alpha_pair);
+        sums[6] = L::add_where(in, sums[6], w * gr);
+        sums[7] = L::add_where(in, sums[7], w * gg);
+        sums[8] = L::add_where(in, sums[8], w * gb);
+      }
+    }
+    double* out = tile.entry_grads + kEntryGrads * static_cast<int64_t>(tile.slots[k]);
+    for (int j = 0; j < kEntryGrads; ++j) out[j] = L::sum(sums[j]);
+  }
+}
+
 GEOAVATAR_TARGET_AVX512 void backward_tile_avx512(const LaneBackTile& tile) {
-  backward_tile_vec<GEOAVATAR_LANES_AVX512_BWD>(tile);
+  backward_tile_k<GEOAVATAR_LANES_AVX512_BWD>(tile);
 }
 GEOAVATAR_TARGET_AVX2 void backward_tile_avx2(const LaneBackTile& tile) {
   backward_tile_vec<GEOAVATAR_LANES_AVX2_BWD>(tile);
