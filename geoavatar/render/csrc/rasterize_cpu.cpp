@@ -18,7 +18,8 @@
 //   avx512 / avx2 / vector - float32 only: a Gaussian over W pixels of a row of its tile per step
 //                    (see "float32 lanes" below), one source with GCC/Clang vector types compiled for
 //                    AVX2 and the baseline ISA (NEON on aarch64, SSE2 on x86-64), and the same
-//                    arithmetic in AVX-512 intrinsics (16 lanes, k-register masks: "AVX-512 lanes");
+//                    arithmetic in AVX-512 intrinsics (a 4 x 4 pixel block per step, k-register masks:
+//                    "AVX-512 lanes");
 //                    picked at run time; forward and backward state is float32.
 // Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels count.
 
@@ -407,9 +408,7 @@ constexpr float kTransmittanceMinF = static_cast<float>(kTransmittanceMin);
 // 16 lanes on AVX-512 in vector types ran slower than the scalar kernel; the AVX-512 path is written
 // with intrinsics for that reason, and takes 16 or 8).
 constexpr int kMaxLanes = 16;
-#ifndef GEOAVATAR_LANES_AVX512_FWD
-#define GEOAVATAR_LANES_AVX512_FWD 16  // zmm, masks in k registers (composite_tile_k)
-#define GEOAVATAR_LANES_AVX512_BWD 16
+#ifndef GEOAVATAR_LANES_AVX2_FWD
 #define GEOAVATAR_LANES_AVX2_FWD 8     // ymm
 #define GEOAVATAR_LANES_AVX2_BWD 8
 #define GEOAVATAR_LANES_VECTOR_FWD 4   // 128-bit: NEON q, SSE2 xmm
@@ -419,6 +418,19 @@ constexpr int kMaxLanes = 16;
 // Pixel rows of the tile planes on the lane paths: a step may start at any column of the tile, so
 // rows are padded by kMaxLanes columns that its masked lanes can read and write back unchanged.
 inline int64_t lane_stride(int64_t tile) { return tile + kMaxLanes; }
+
+// Where pixel (y, x) of a tile lies in the lane kernels' scratch planes: rows of lane_stride(tile)
+// (the generic kernel), or 4 x 4 blocks of 16 values, block rows of blocks_x blocks (the AVX-512 kernel:
+// one zmm per block).
+struct PlaneLayout {
+  int64_t stride, blocks_x;  // blocks_x = 0: rows
+  static PlaneLayout rows(int64_t tile) { return {lane_stride(tile), 0}; }
+  static PlaneLayout blocks(int64_t tile) { return {0, (tile + 3) / 4}; }
+  int64_t size(int64_t tile) const { return blocks_x ? 16 * blocks_x * blocks_x : tile * stride; }
+  int64_t index(int64_t y, int64_t x) const {
+    return blocks_x ? 16 * ((y >> 2) * blocks_x + (x >> 2)) + 4 * (y & 3) + (x & 3) : y * stride + x;
+  }
+};
 
 // The columns of one pixel row where sigma <= cut can hold: sigma is a quadratic in dx = mx - (x + 0.5)
 // (0.5 a dx^2 + b dy dx + 0.5 c dy^2), solved in double. cut is sigma_cut (already 1e-3 above where
@@ -547,11 +559,11 @@ GEOAVATAR_INLINE void prefetch_splat(const T* splat) {
   __builtin_prefetch(reinterpret_cast<const char*>(splat) + 64);
 }
 
-// One tile of the lane forward: geometry, its entries and per-thread scratch planes (lane_stride).
+// One tile of the lane forward: geometry, its entries and per-thread scratch planes (PlaneLayout).
 struct LaneTile {
   const Splat<float>* splats;
   const int32_t* ids;
-  int64_t begin, end, tx0, ty0, tw, th, stride;
+  int64_t begin, end, tx0, ty0, tw, th, stride, blocks_x;
   float *trans, *red, *green, *blue;
   int32_t *last, *done, *row_done;
 };
@@ -638,26 +650,27 @@ void composite_tile_vector(const LaneTile& tile) { composite_tile_vec<GEOAVATAR_
 // ----------------------------------------------------------------------------- AVX-512 lanes
 // The AVX-512 path with intrinsics. GCC 12 lowers comparisons and selects on 64-byte vector types lane
 // by lane (a vcomiss and setae per lane), so the generic kernel above could only use 8 lanes (ymm)
-// here; with k-register masks a step covers 16 pixels. The steps are also laid differently: each
-// covers W tile columns starting at a multiple of W (one step per box row at tile 16 and W = 16), so
-//   - no row span is solved (a double sqrt and division per row in the generic kernel), the alpha
-//     test masks the lanes outside the ellipse, as it does for the scalar kernel's box pixels;
-//   - every load of a plane reads what an earlier step stored at the same address and width: steps
-//     starting at the box's first column overlapped earlier stores at other offsets, and such a
-//     load waits for the store to retire (failed store-to-load forwarding);
-//   - the forward's per-pixel "done" flags are one bit mask per row step, the accepted lanes a
-//     k register (steps with none skip the loads, stores and the backward's gradient terms).
+// here; with k-register masks a step covers 16 pixels: a 4 x 4 block of the tile, whose scratch
+// planes are stored block by block (PlaneLayout::blocks), one zmm per block. Against the generic
+// kernel's row spans:
+//   - a box within a tile is ~6 x 6 pixels at 256^2 / 100k Gaussians: it meets ~4.2 blocks on average,
+//     where one step per row takes ~6 steps of 16 lanes and row spans of 8 lanes more (measured on
+//     frame 0: 849k blocks, 1.22M rows);
+//   - no row span is solved (a double sqrt and division per row), the alpha test masks the lanes
+//     outside the ellipse, as it does for the scalar kernel's box pixels;
+//   - every load of a plane reads what an earlier step stored at the same address and width (steps
+//     starting at a box's first column overlapped earlier stores at other offsets, and such a load
+//     waits for the store to retire: failed store-to-load forwarding);
+//   - the forward's per-pixel "done" flags are one bit mask per block; a step with no lane left
+//     skips exp, and one with no accepted lane the loads, stores and gradient terms.
 // Per lane the arithmetic is the generic kernel's, in its order (same alpha, T and colour sums: images
 // bit for bit); the backward's per-lane partial sums hold other pixels (gradients within the lane-path
 // tolerances).
-template <int W>
-struct Avx512Lanes;
-
-// 16 float lanes (zmm) and 8 (ymm, AVX-512VL), the same operations; arithmetic is written with the
-// vector operators (no contraction: -ffp-contract=off), comparisons give masks.
+//
+// 16 float lanes (zmm); arithmetic is written with the vector operators (no contraction:
+// -ffp-contract=off), comparisons give masks.
 #define GEOAVATAR_LANE_OP GEOAVATAR_TARGET_AVX512 static GEOAVATAR_INLINE
-template <>
-struct Avx512Lanes<16> {
+struct Avx512Lanes {
   using F = __m512;
   using I = __m512i;
   using M = __mmask16;
@@ -680,9 +693,9 @@ struct Avx512Lanes<16> {
   GEOAVATAR_LANE_OP F pow2(F n) {  // 2^n for integral n in [-127, 127]: the exponent bits
     return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_add_epi32(_mm512_cvttps_epi32(n), _mm512_set1_epi32(127)), 23));
   }
-  GEOAVATAR_LANE_OP F lanes() {
-    return _mm512_setr_ps(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-  }
+  // column and row of each lane within its 4 x 4 block
+  GEOAVATAR_LANE_OP F lane_x() { return _mm512_setr_ps(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3); }
+  GEOAVATAR_LANE_OP F lane_y() { return _mm512_setr_ps(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3); }
   // lanes l and l + 8 first, then by halves: the generic kernel's order for 16 lanes
   GEOAVATAR_LANE_OP double sum(F v) {
     const D s8 = _mm512_cvtps_pd(_mm512_castps512_ps256(v)) + _mm512_cvtps_pd(_mm512_extractf32x8_ps(v, 1));
@@ -691,44 +704,12 @@ struct Avx512Lanes<16> {
     return s2[0] + s2[1];
   }
 };
-
-template <>
-struct Avx512Lanes<8> {
-  using F = __m256;
-  using I = __m256i;
-  using M = __mmask8;
-  using D = __m512d;
-  GEOAVATAR_LANE_OP F splat(float v) { return _mm256_set1_ps(v); }
-  GEOAVATAR_LANE_OP I splat_i(int32_t v) { return _mm256_set1_epi32(v); }
-  GEOAVATAR_LANE_OP F load(const float* p) { return _mm256_loadu_ps(p); }
-  GEOAVATAR_LANE_OP I load_i(const int32_t* p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)); }
-  GEOAVATAR_LANE_OP void store(float* p, F v) { _mm256_storeu_ps(p, v); }
-  GEOAVATAR_LANE_OP void store_i(int32_t* p, M m, I v) { _mm256_mask_storeu_epi32(p, m, v); }
-  GEOAVATAR_LANE_OP M lt(M m, F a, F b) { return _mm256_mask_cmp_ps_mask(m, a, b, _CMP_LT_OQ); }
-  GEOAVATAR_LANE_OP M le(M m, F a, F b) { return _mm256_mask_cmp_ps_mask(m, a, b, _CMP_LE_OQ); }
-  GEOAVATAR_LANE_OP M ge(M m, F a, F b) { return _mm256_mask_cmp_ps_mask(m, a, b, _CMP_GE_OQ); }
-  GEOAVATAR_LANE_OP M lt_i(M m, I a, I b) { return _mm256_mask_cmplt_epi32_mask(m, a, b); }
-  GEOAVATAR_LANE_OP F min(F a, F b) { return _mm256_min_ps(a, b); }
-  GEOAVATAR_LANE_OP F max(F a, F b) { return _mm256_max_ps(a, b); }
-  GEOAVATAR_LANE_OP F select(M m, F if_set, F if_not) { return _mm256_mask_mov_ps(if_not, m, if_set); }
-  GEOAVATAR_LANE_OP F add_where(M m, F sum, F term) { return _mm256_mask_add_ps(sum, m, sum, term); }
-  GEOAVATAR_LANE_OP F pow2(F n) {
-    return _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(n), _mm256_set1_epi32(127)), 23));
-  }
-  GEOAVATAR_LANE_OP F lanes() { return _mm256_setr_ps(0, 1, 2, 3, 4, 5, 6, 7); }
-  GEOAVATAR_LANE_OP double sum(F v) {
-    const D s8 = _mm512_cvtps_pd(v);
-    const __m256d s4 = _mm512_castpd512_pd256(s8) + _mm512_extractf64x4_pd(s8, 1);
-    const __m128d s2 = _mm256_castpd256_pd128(s4) + _mm256_extractf128_pd(s4, 1);
-    return s2[0] + s2[1];
-  }
-};
 #undef GEOAVATAR_LANE_OP
 
 // exp_lanes with max / min for its clamps (the same values, NaN included).
-template <typename L>
-GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE typename L::F exp_k(typename L::F x) {
-  using F = typename L::F;
+GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE __m512 exp_avx512(__m512 x) {
+  using L = Avx512Lanes;
+  using F = L::F;
   x = L::max(L::splat(-80.0f), x);  // -80 > x ? -80 : x
   x = L::min(L::splat(88.0f), x);   // 88 < x ? 88 : x
   const F round = L::splat(12582912.0f);
@@ -744,55 +725,62 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE typename L::F exp_k(typename L::F x) {
   return p * L::pow2(n);
 }
 
-// Lanes of a step (tile columns col .. col + W - 1) inside the box columns [lo, hi] (tile columns).
-template <int W>
-GEOAVATAR_INLINE uint32_t box_lanes(int64_t lo, int64_t hi, int64_t col) {
-  const int64_t first = std::max<int64_t>(lo - col, 0), last = std::min<int64_t>(hi - col, W - 1);
+// Bits first .. last (clipped to 0 .. 3) of a 4-bit mask: the block's columns (or rows) in [lo, hi].
+GEOAVATAR_INLINE uint32_t bits4(int64_t lo, int64_t hi) {
+  const int64_t first = std::max<int64_t>(lo, 0), last = std::min<int64_t>(hi, 3);
   return first > last ? 0u : ((2u << last) - 1u) & ~((1u << first) - 1u);
 }
 
-template <int W>
-GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_k(const LaneTile& tile) {
-  using L = Avx512Lanes<W>;
-  using F = typename L::F;
-  using M = typename L::M;
+// Lanes of a block whose row is in `rows` and column in `cols` (4-bit masks; lane = 4 row + column).
+GEOAVATAR_INLINE uint32_t block_lanes(uint32_t rows, uint32_t cols) {
+  const uint32_t spread = (rows & 1u) | (rows & 2u) << 3 | (rows & 4u) << 6 | (rows & 8u) << 9;
+  return spread * cols;  // one copy of cols per row: no carries
+}
+
+// Blocks of one entry's box (tile coordinates), front of the loops of both kernels.
+struct BlockBox {
+  int64_t x0, x1, y0, y1;  // box within the tile, inclusive
+  GEOAVATAR_INLINE BlockBox(const Splat<float>& s, int64_t tx0, int64_t ty0, int64_t tw, int64_t th)
+      : x0(std::max<int64_t>(s.x0 - tx0, 0)), x1(std::min<int64_t>(s.x1 - tx0, tw - 1)),
+        y0(std::max<int64_t>(s.y0 - ty0, 0)), y1(std::min<int64_t>(s.y1 - ty0, th - 1)) {}
+};
+
+GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_avx512_blocks(const LaneTile& tile) {
+  using L = Avx512Lanes;
+  using F = L::F;
+  using M = L::M;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ red = tile.red;
   float* __restrict__ green = tile.green;
   float* __restrict__ blue = tile.blue;
   int32_t* __restrict__ last = tile.last;
-  // done pixels: one bit mask per step (row, W columns), in the caller's zeroed done plane
+  // done pixels: one bit mask per block, in the caller's zeroed done plane
   uint32_t* __restrict__ done = reinterpret_cast<uint32_t*>(tile.done);
-  const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
-  const F lane_f = L::lanes();
+  const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th, blocks_x = tile.blocks_x;
+  const F lane_x = L::lane_x(), lane_y = L::lane_y();
   const F half = L::splat(0.5f), one = L::splat(1.0f), alpha_min = L::splat(kAlphaMinF);
   const F alpha_max = L::splat(kAlphaMaxF), t_min = L::splat(kTransmittanceMinF);
   int64_t n_done = 0;
   for (int64_t k = tile.begin; k < tile.end && n_done < tw * th; ++k) {
     if (k + kPrefetch < tile.end) prefetch_splat(tile.splats + tile.ids[k + kPrefetch]);
     const Splat<float>& s = tile.splats[tile.ids[k]];
-    // box in tile columns / rows
-    const int64_t x0 = std::max<int64_t>(s.x0 - tx0, 0), x1 = std::min<int64_t>(s.x1 - tx0, tw - 1);
-    const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
+    const BlockBox box(s, tx0, ty0, tw, th);
     const auto position = L::splat_i(static_cast<int32_t>(k - tile.begin + 1));
-    const F mx = L::splat(s.mx), a = L::splat(s.a), b = L::splat(s.b), opacity = L::splat(s.opacity);
-    const F r = L::splat(s.r), g = L::splat(s.g), bl = L::splat(s.bl);
-    const int64_t col0 = x0 / W * W;
-    for (int64_t y = y0; y <= y1; ++y) {
-      const int64_t row = y - ty0;
-      if (tile.row_done[row] == tw) continue;
-      const float dy = s.my - (static_cast<float>(y) + 0.5f);
-      const F dy_v = L::splat(dy), c_dy_dy = L::splat(s.c * dy * dy);
-      for (int64_t col = col0; col <= x1; col += W) {
-        const int64_t base = row * tile.stride + col;
-        uint32_t& done_here = done[base];
-        const M open = static_cast<M>(box_lanes<W>(x0, x1, col) & ~done_here);
+    const F mx = L::splat(s.mx), my = L::splat(s.my), a = L::splat(s.a), b = L::splat(s.b), c = L::splat(s.c);
+    const F opacity = L::splat(s.opacity), r = L::splat(s.r), g = L::splat(s.g), bl = L::splat(s.bl);
+    for (int64_t by = box.y0 >> 2; by <= box.y1 >> 2; ++by) {
+      const uint32_t rows = bits4(box.y0 - 4 * by, box.y1 - 4 * by);
+      // pixel centres y + 0.5, x + 0.5: sums of small integers and 0.5, exact (the scalar kernel's dy, dx)
+      const F dy = my - (lane_y + L::splat(static_cast<float>(ty0 + 4 * by) + 0.5f));
+      const F c_dy_dy = c * dy * dy;
+      for (int64_t bx = box.x0 >> 2; bx <= box.x1 >> 2; ++bx) {
+        const int64_t block = by * blocks_x + bx, base = 16 * block;
+        const M open = static_cast<M>(block_lanes(rows, bits4(box.x0 - 4 * bx, box.x1 - 4 * bx)) & ~done[block]);
         if (!open) continue;
-        // pixel centres x + 0.5: sums of small integers and 0.5, exact (the scalar kernel's dx)
-        const F centre = lane_f + L::splat(static_cast<float>(tx0 + col) + 0.5f);
-        const F dx = mx - centre;
-        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
-        const F alpha_raw = opacity * exp_k<L>(-sigma);
+        const F dx = mx - (lane_x + L::splat(static_cast<float>(tx0 + 4 * bx) + 0.5f));
+        // the scalar kernel's expressions, in its order: the same float sigma bit for bit
+        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy;
+        const F alpha_raw = opacity * exp_avx512(-sigma);
         const M accept = L::ge(open, alpha_raw, alpha_min);
         if (!accept) continue;
         const F alpha = L::min(alpha_raw, alpha_max);
@@ -807,10 +795,8 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_k(const LaneTile& t
         L::store(trans + base, L::select(add, next_t, t_here));
         L::store_i(last + base, add, position);
         if (stop) {
-          done_here |= stop;
-          const int stopped = __builtin_popcount(stop);
-          tile.row_done[row] += stopped;
-          n_done += stopped;
+          done[block] |= stop;
+          n_done += __builtin_popcount(stop);
         }
       }
     }
@@ -818,7 +804,7 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_k(const LaneTile& t
 }
 
 GEOAVATAR_TARGET_AVX512 void composite_tile_avx512(const LaneTile& tile) {
-  composite_tile_k<GEOAVATAR_LANES_AVX512_FWD>(tile);
+  composite_tile_avx512_blocks(tile);
 }
 GEOAVATAR_TARGET_AVX2 void composite_tile_avx2(const LaneTile& tile) {
   composite_tile_vec<GEOAVATAR_LANES_AVX2_FWD>(tile);
@@ -885,7 +871,9 @@ void forward_tiles_lanes(const Splat<float>* splats, const std::vector<int64_t>&
   if (simd == Simd::kAvx2) composite = composite_tile_avx2;
 #endif
   TORCH_CHECK(composite != nullptr, "rasterize_cpu: no SIMD compositing on this CPU");
-  const int64_t t = grid.tile, stride = lane_stride(t), plane = t * stride;
+  const int64_t t = grid.tile;
+  const PlaneLayout layout = simd == Simd::kAvx512 ? PlaneLayout::blocks(t) : PlaneLayout::rows(t);
+  const int64_t plane = layout.size(t);
 #pragma omp parallel num_threads(threads_for_torch())
   {
     std::vector<float> trans(plane), red(plane), green(plane), blue(plane);
@@ -901,12 +889,13 @@ void forward_tiles_lanes(const Splat<float>* splats, const std::vector<int64_t>&
       std::fill(last.begin(), last.end(), 0);
       std::fill(done.begin(), done.end(), 0);
       std::fill(row_done.begin(), row_done.end(), 0);
-      composite(LaneTile{splats, ids.data(), offsets[tile], offsets[tile + 1], tx0, ty0, tw, th, stride,
+      composite(LaneTile{splats, ids.data(), offsets[tile], offsets[tile + 1], tx0, ty0, tw, th, layout.stride,
+                         layout.blocks_x,
                          trans.data(), red.data(), green.data(), blue.data(), last.data(), done.data(),
                          row_done.data()});
       for (int64_t y = 0; y < th; ++y) {
         for (int64_t x = 0; x < tw; ++x) {
-          const int64_t p = y * stride + x, pix = (ty0 + y) * grid.width + (tx0 + x);
+          const int64_t p = layout.index(y, x), pix = (ty0 + y) * grid.width + (tx0 + x);
           out_rgb[3 * pix] = static_cast<float>(red[p] + trans[p] * background[0]);
           out_rgb[3 * pix + 1] = static_cast<float>(green[p] + trans[p] * background[1]);
           out_rgb[3 * pix + 2] = static_cast<float>(blue[p] + trans[p] * background[2]);
@@ -946,7 +935,7 @@ void forward_tiles(const Splat<float>* splats, const std::vector<int64_t>& offse
 struct LaneBackTile {
   const Splat<float>* splats;
   const int32_t *ids, *slots;
-  int64_t begin, end, tx0, ty0, tw, th, stride;
+  int64_t begin, end, tx0, ty0, tw, th, stride, blocks_x;
   int32_t max_last;
   float *trans, *behind, *grad_r, *grad_g, *grad_b;
   const int32_t* last;
@@ -1030,47 +1019,46 @@ void backward_tile_vector(const LaneBackTile& tile) { backward_tile_vec<GEOAVATA
 #endif
 
 #ifdef GEOAVATAR_X86_DISPATCH
-// The lane backward on AVX-512: backward_tile_vec's arithmetic in the steps of composite_tile_k.
-template <int W>
-GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_k(const LaneBackTile& tile) {
-  using L = Avx512Lanes<W>;
-  using F = typename L::F;
-  using M = typename L::M;
+// The lane backward on AVX-512: backward_tile_vec's arithmetic over the blocks of
+// composite_tile_avx512_blocks.
+GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_avx512_blocks(const LaneBackTile& tile) {
+  using L = Avx512Lanes;
+  using F = L::F;
+  using M = L::M;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ behind = tile.behind;
   const float* __restrict__ grad_r = tile.grad_r;
   const float* __restrict__ grad_g = tile.grad_g;
   const float* __restrict__ grad_b = tile.grad_b;
   const int32_t* __restrict__ last = tile.last;
-  const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th;
-  const F lane_f = L::lanes();
+  const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th, blocks_x = tile.blocks_x;
+  const F lane_x = L::lane_x(), lane_y = L::lane_y();
   const F zero = L::splat(0.0f), one = L::splat(1.0f), half = L::splat(0.5f);
   const F alpha_min = L::splat(kAlphaMinF), alpha_max = L::splat(kAlphaMaxF);
   for (int64_t k = tile.begin + tile.max_last - 1; k >= tile.begin; --k) {
     if (k - kPrefetch >= tile.begin) prefetch_splat(tile.splats + tile.ids[k - kPrefetch]);
     const Splat<float>& s = tile.splats[tile.ids[k]];
-    const int64_t x0 = std::max<int64_t>(s.x0 - tx0, 0), x1 = std::min<int64_t>(s.x1 - tx0, tw - 1);
-    const int64_t y0 = std::max<int64_t>(s.y0, ty0), y1 = std::min<int64_t>(s.y1, ty0 + th - 1);
+    const BlockBox box(s, tx0, ty0, tw, th);
     const auto position = L::splat_i(static_cast<int32_t>(k - tile.begin));
-    const F mx = L::splat(s.mx), a = L::splat(s.a), b = L::splat(s.b), c = L::splat(s.c);
+    const F mx = L::splat(s.mx), my = L::splat(s.my), a = L::splat(s.a), b = L::splat(s.b), c = L::splat(s.c);
     const F opacity = L::splat(s.opacity), inv_opacity = L::splat(1.0f / s.opacity);
     const F red = L::splat(s.r), green = L::splat(s.g), blue = L::splat(s.bl);
     F sums[kEntryGrads];
     for (F& sum : sums) sum = zero;
-    const int64_t col0 = x0 / W * W;
-    for (int64_t y = y0; y <= y1; ++y) {
-      const int64_t row = y - ty0;
-      const float dy = s.my - (static_cast<float>(y) + 0.5f);
-      const F dy_v = L::splat(dy), c_dy_dy = L::splat(s.c * dy * dy);
-      for (int64_t col = col0; col <= x1; col += W) {
-        const int64_t base = row * tile.stride + col;
+    for (int64_t by = box.y0 >> 2; by <= box.y1 >> 2; ++by) {
+      const uint32_t rows = bits4(box.y0 - 4 * by, box.y1 - 4 * by);
+      const F dy = my - (lane_y + L::splat(static_cast<float>(ty0 + 4 * by) + 0.5f));  // as in the forward
+      const F c_dy_dy = c * dy * dy;
+      for (int64_t bx = box.x0 >> 2; bx <= box.x1 >> 2; ++bx) {
+        const int64_t base = 16 * (by * blocks_x + bx);
         // lanes of the box in front of the pixel's last composited entry
-        const M open = L::lt_i(static_cast<M>(box_lanes<W>(x0, x1, col)), position, L::load_i(last + base));
+        const M open = L::lt_i(static_cast<M>(block_lanes(rows, bits4(box.x0 - 4 * bx, box.x1 - 4 * bx))),
+                               position, L::load_i(last + base));
         if (!open) continue;
-        const F centre = lane_f + L::splat(static_cast<float>(tx0 + col) + 0.5f);
-        const F dx = mx - centre;
-        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy_v;
-        const F alpha_raw = opacity * exp_k<L>(-sigma);
+        const F dx = mx - (lane_x + L::splat(static_cast<float>(tx0 + 4 * bx) + 0.5f));
+        // alpha exactly as the forward computed it
+        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy;
+        const F alpha_raw = opacity * exp_avx512(-sigma);
         const M in = L::ge(open, alpha_raw, alpha_min);
         if (!in) continue;
         const M uncapped = L::lt(in, alpha_raw, alpha_max);  // a capped alpha depends on neither sigma nor opacity
@@ -1085,11 +1073,11 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_k(const LaneBackTile
         L::store(trans + base, L::select(in, t_before, t_after));
         L::store(behind + base, L::add_where(in, behind_here, color_dot * w));
         const F g_sigma = -alpha * grad_alpha_pair;
-        sums[0] = L::add_where(uncapped, sums[0], g_sigma * (a * dx + b * dy_v));
-        sums[1] = L::add_where(uncapped, sums[1], g_sigma * (b * dx + c * dy_v));
+        sums[0] = L::add_where(uncapped, sums[0], g_sigma * (a * dx + b * dy));
+        sums[1] = L::add_where(uncapped, sums[1], g_sigma * (b * dx + c * dy));
         sums[2] = L::add_where(uncapped, sums[2], half * g_sigma * dx * dx);
-        sums[3] = L::add_where(uncapped, sums[3], g_sigma * dx * dy_v);
-        sums[4] = L::add_where(uncapped, sums[4], half * g_sigma * dy_v * dy_v);
+        sums[3] = L::add_where(uncapped, sums[3], g_sigma * dx * dy);
+        sums[4] = L::add_where(uncapped, sums[4], half * g_sigma * dy * dy);
         sums[5] = L::add_where(uncapped, sums[5], alpha * inv_opacity * grad_alpha_pair);
         sums[6] = L::add_where(in, sums[6], w * gr);
         sums[7] = L::add_where(in, sums[7], w * gg);
@@ -1102,7 +1090,7 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_k(const LaneBackTile
 }
 
 GEOAVATAR_TARGET_AVX512 void backward_tile_avx512(const LaneBackTile& tile) {
-  backward_tile_k<GEOAVATAR_LANES_AVX512_BWD>(tile);
+  backward_tile_avx512_blocks(tile);
 }
 GEOAVATAR_TARGET_AVX2 void backward_tile_avx2(const LaneBackTile& tile) {
   backward_tile_vec<GEOAVATAR_LANES_AVX2_BWD>(tile);
@@ -1122,7 +1110,9 @@ void backward_tiles_lanes(const Splat<float>* splats, const int64_t* offsets, co
   if (simd == Simd::kAvx2) backward_tile = backward_tile_avx2;
 #endif
   TORCH_CHECK(backward_tile != nullptr, "rasterize_cpu: no SIMD backward on this CPU");
-  const int64_t t = grid.tile, stride = lane_stride(t), plane = t * stride;
+  const int64_t t = grid.tile;
+  const PlaneLayout layout = simd == Simd::kAvx512 ? PlaneLayout::blocks(t) : PlaneLayout::rows(t);
+  const int64_t plane = layout.size(t);
 #pragma omp parallel num_threads(threads_for_torch())
   {
     // lanes outside a tile's pixels keep finite values (T = 1, zeros, or an earlier tile's): their
@@ -1139,7 +1129,7 @@ void backward_tiles_lanes(const Splat<float>* splats, const int64_t* offsets, co
       int32_t max_last = 0;
       for (int64_t y = 0; y < th; ++y) {
         for (int64_t x = 0; x < tw; ++x) {
-          const int64_t p = y * stride + x, pix = (ty0 + y) * grid.width + (tx0 + x);
+          const int64_t p = layout.index(y, x), pix = (ty0 + y) * grid.width + (tx0 + x);
           grad_r[p] = grad_rgb[3 * pix], grad_g[p] = grad_rgb[3 * pix + 1], grad_b[p] = grad_rgb[3 * pix + 2];
           const double dot_bg = static_cast<double>(grad_r[p]) * background[0] +
                                 static_cast<double>(grad_g[p]) * background[1] +
@@ -1152,9 +1142,9 @@ void backward_tiles_lanes(const Splat<float>* splats, const int64_t* offsets, co
         }
       }
       zero_entries(entry_grads, slots, begin + max_last, end);
-      backward_tile(LaneBackTile{splats, ids, slots, begin, end, tx0, ty0, tw, th, stride, max_last, trans.data(),
-                                 behind.data(), grad_r.data(), grad_g.data(), grad_b.data(), last.data(),
-                                 entry_grads});
+      backward_tile(LaneBackTile{splats, ids, slots, begin, end, tx0, ty0, tw, th, layout.stride, layout.blocks_x,
+                                 max_last, trans.data(), behind.data(), grad_r.data(), grad_g.data(), grad_b.data(),
+                                 last.data(), entry_grads});
     }
   }
 }
