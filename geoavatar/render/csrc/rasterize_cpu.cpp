@@ -187,33 +187,40 @@ template <typename scalar_t>
 void bin_gaussians(const Splat<scalar_t>* splats, int64_t n, const torch::Tensor& depths, const Grid& grid,
                    std::vector<int64_t>& offsets, std::vector<int32_t>& ids, torch::Tensor& slots_t,
                    int64_t* firsts) {
+  // Visible Gaussians, their entries (firsts) and the entries per tile: one pass in index order, where
+  // the splat records are read sequentially (tile counts do not depend on the order).
   std::vector<int32_t> order;
   order.reserve(n);
+  std::vector<int64_t> counts(grid.n_tiles() + 1, 0);
+  firsts[0] = 0;
   for (int64_t i = 0; i < n; ++i) {
     const auto& s = splats[i];
-    if (s.x0 <= s.x1 && s.y0 <= s.y1) order.push_back(static_cast<int32_t>(i));
-  }
-  sort_by_depth(order, depths.data_ptr<scalar_t>());
-  std::vector<int64_t> counts(grid.n_tiles() + 1, 0);
-  for (int32_t i : order) {
-    const auto& s = splats[i];
+    const bool in = s.x0 <= s.x1 && s.y0 <= s.y1;
+    firsts[i + 1] = firsts[i] + (in ? int64_t{s.tx1 - s.tx0 + 1} * (s.ty1 - s.ty0 + 1) : 0);
+    if (!in) continue;
+    order.push_back(static_cast<int32_t>(i));
     for (int64_t ty = s.ty0; ty <= s.ty1; ++ty)
       for (int64_t tx = s.tx0; tx <= s.tx1; ++tx) ++counts[ty * grid.tiles_x + tx + 1];
   }
+  sort_by_depth(order, depths.data_ptr<scalar_t>());
   std::partial_sum(counts.begin(), counts.end(), counts.begin());
   offsets = counts;
   ids.resize(offsets.back());
   TORCH_CHECK(offsets.back() < INT32_MAX, "rasterize_cpu: too many (tile, Gaussian) entries");
   slots_t.resize_({offsets.back()});
   int32_t* slots = slots_t.data_ptr<int32_t>();
-  firsts[0] = 0;
-  for (int64_t i = 0; i < n; ++i) {
-    const auto& s = splats[i];
-    const bool in = s.x0 <= s.x1 && s.y0 <= s.y1;
-    firsts[i + 1] = firsts[i] + (in ? int64_t{s.tx1 - s.tx0 + 1} * (s.ty1 - s.ty0 + 1) : 0);
-  }
   std::vector<int64_t> cursor(offsets.begin(), offsets.end() - 1);
-  for (int32_t i : order) {
+  // In depth order the records are read at random (7 MB at 100k Gaussians): each read missed the
+  // cache, the top sample of the forward's serial part; fetch the tile range of the Gaussian 16 ahead.
+  constexpr size_t kAhead = 16;
+  const size_t visible = order.size();
+  for (size_t j = 0; j < visible; ++j) {
+    if (j + kAhead < visible) {
+      const char* ahead = reinterpret_cast<const char*>(&splats[order[j + kAhead]].tx0);
+      __builtin_prefetch(ahead);
+      __builtin_prefetch(ahead + 4 * sizeof(int32_t) - 1);  // the range may straddle two lines
+    }
+    const int32_t i = order[j];
     const auto& s = splats[i];
     int32_t slot = static_cast<int32_t>(firsts[i]);
     for (int64_t ty = s.ty0; ty <= s.ty1; ++ty) {
