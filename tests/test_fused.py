@@ -8,6 +8,7 @@ import torch.nn.functional as F
 from geoavatar.avatar import face_frames, local_to_global, polar_coordinates
 from geoavatar.avatar.fused import place_gaussians
 from geoavatar.geometry import quaternion_multiply
+from geoavatar.render.cpu_backend import cpu_backend_available
 
 
 def plain_local_to_global(means, quats, log_scales, binding, frames):
@@ -71,13 +72,42 @@ def test_place_gaussians_matches_plain_ops_values_and_gradients(batch):
         assert torch.allclose(a, b, atol=1e-4, rtol=1e-4)
 
 
-def test_place_gaussians_gradcheck():
+def _native_or_skip(native):
+    if native and not cpu_backend_available():
+        pytest.skip("the native CPU extension is not available")
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_place_gaussians_gradcheck(native):
+    _native_or_skip(native)
     verts, faces = sheet(torch.float64)
     frames = face_frames(verts, faces)
     means, quats, log_scales, binding = gaussians(len(faces), 2, torch.float64)
     inputs = [t.clone().requires_grad_() for t in (frames.rotation, frames.centre, frames.scale, frames.quaternion,
                                                    means, quats, log_scales)]
-    assert torch.autograd.gradcheck(lambda *x: place_gaussians(*x, binding), inputs)
+    assert torch.autograd.gradcheck(lambda *x: place_gaussians(*x, binding, native=native), inputs)
+
+
+@pytest.mark.parametrize("batch", [None, 2])
+def test_native_placement_matches_the_torch_function(batch):
+    """The native loops (render/csrc) against _PlaceGaussians: the same maths, float rounding apart."""
+    _native_or_skip(True)
+    verts, faces = sheet(torch.float32, batch)
+    frames = face_frames(verts, faces)
+    means, quats, log_scales, binding = gaussians(len(faces), 3, torch.float32)
+    quats[0] = 0.0
+    results = {}
+    for native in (False, True):
+        leaves = [t.detach().clone().requires_grad_() for t in (frames.rotation, frames.centre, frames.scale,
+                                                                frames.quaternion, means, quats, log_scales)]
+        out = place_gaussians(*leaves, binding, native=native)
+        weights = [torch.randn(o.shape, generator=torch.Generator().manual_seed(i)) for i, o in enumerate(out)]
+        sum((o * w).sum() for o, w in zip(out, weights)).backward()
+        results[native] = (out, [leaf.grad for leaf in leaves])
+    for a, b in zip(results[True][0], results[False][0]):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-6)
+    for a, b in zip(results[True][1], results[False][1]):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
 
 
 @pytest.mark.parametrize("two_sided", [False, True])
