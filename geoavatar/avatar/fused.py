@@ -119,8 +119,8 @@ class _PlaceGaussiansCPU(torch.autograd.Function):
 
         args = [t.detach().contiguous() for t in (table, means, quats, log_scales)]
         index = index.reshape(-1).contiguous()
-        means_g, quats_g, scales_g = load_extension().place_forward(*args, index)
-        ctx.save_for_backward(*args, index)
+        means_g, quats_g, scales_g, aux = load_extension().place_forward(*args, index)
+        ctx.save_for_backward(*args, index, aux)  # aux: q / |q|, exp(s), |q| per Gaussian
         return means_g, quats_g, scales_g
 
     @staticmethod
@@ -128,10 +128,10 @@ class _PlaceGaussiansCPU(torch.autograd.Function):
     def backward(ctx, g_means: Tensor, g_quats: Tensor, g_scales: Tensor):
         from geoavatar.render.cpu_backend import load_extension
 
-        table, means, quats, log_scales, index = ctx.saved_tensors
+        table, means, quats, log_scales, index, aux = ctx.saved_tensors
         dtype = means.dtype
         g_table, g_mu, g_q, g_s = load_extension().place_backward(
-            table, means, quats, log_scales, index, g_means.to(dtype).contiguous(), g_quats.to(dtype).contiguous(),
+            table, means, quats, log_scales, index, aux, g_means.to(dtype).contiguous(), g_quats.to(dtype).contiguous(),
             g_scales.to(dtype).contiguous(), ctx.needs_input_grad[0])
         return g_table if ctx.needs_input_grad[0] else None, g_mu, g_q, g_s, None
 

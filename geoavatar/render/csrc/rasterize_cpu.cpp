@@ -1537,7 +1537,7 @@ inline T floored_norm(const T* q) {
 }
 
 void check_placement(const torch::Tensor& table, const torch::Tensor& means, const torch::Tensor& quats,
-                     const torch::Tensor& log_scales, const torch::Tensor& index) {
+                     const torch::Tensor& log_scales, const torch::Tensor& index, bool check_index) {
   const auto dtype = means.scalar_type();
   check_input(table, "table", 2, dtype);
   check_input(means, "means", 2, dtype);
@@ -1549,53 +1549,64 @@ void check_placement(const torch::Tensor& table, const torch::Tensor& means, con
               "place_gaussians: table [M, 17], means [N, 3], quats [N, 4], log_scales [N, 3] expected");
   const int64_t n = means.size(0);
   TORCH_CHECK(n > 0 ? index.numel() % n == 0 : index.numel() == 0, "place_gaussians: index must be [B * N]");
-  if (index.numel() > 0) {
+  if (check_index && index.numel() > 0) {  // the backward gets the forward's index
     TORCH_CHECK(index.min().item<int64_t>() >= 0 && index.max().item<int64_t>() < table.size(0),
                 "place_gaussians: index out of the table's rows");
   }
 }
 
-// Returns means [B * N, 3], quats [B * N, 4], scales [B * N, 3].
+// Per Gaussian: q / |q| (4), exp(s) (3), |q| floored (1), kept by the forward for the backward (it
+// saves 3 exp, a sqrt and 4 divisions per Gaussian there).
+constexpr int kPlacementAux = 8;
+
+// Returns means [B * N, 3], quats [B * N, 4], scales [B * N, 3] and the aux rows [N, 8] for place_backward.
 std::vector<torch::Tensor> place_forward(const torch::Tensor& table, const torch::Tensor& means,
                                          const torch::Tensor& quats, const torch::Tensor& log_scales,
                                          const torch::Tensor& index) {
-  check_placement(table, means, quats, log_scales, index);
+  check_placement(table, means, quats, log_scales, index, true);
   const int64_t rows = index.numel(), n = means.size(0);
   auto opts = means.options();
   torch::Tensor means_g = torch::empty({rows, 3}, opts), quats_g = torch::empty({rows, 4}, opts);
-  torch::Tensor scales_g = torch::empty({rows, 3}, opts);
+  torch::Tensor scales_g = torch::empty({rows, 3}, opts), aux = torch::empty({n, kPlacementAux}, opts);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "place_forward", [&] {
     using T = scalar_t;
     const T *tab = table.data_ptr<T>(), *mp = means.data_ptr<T>(), *qp = quats.data_ptr<T>();
     const T* sp = log_scales.data_ptr<T>();
     const int64_t* idx = index.data_ptr<int64_t>();
     T *mo = means_g.data_ptr<T>(), *qo = quats_g.data_ptr<T>(), *so = scales_g.data_ptr<T>();
-    parallel_over(rows, [&](int64_t row) {
-      const int64_t i = row % n;
-      const T* f = tab + kFaceRow * idx[row];  // R [0, 9), C [9, 12), k 12, face quaternion [13, 17)
-      const T* mu = mp + 3 * i;
-      const T k = f[12];
-      for (int r = 0; r < 3; ++r)
-        mo[3 * row + r] = k * (f[3 * r] * mu[0] + f[3 * r + 1] * mu[1] + f[3 * r + 2] * mu[2]) + f[9 + r];
+    T* ax = aux.data_ptr<T>();
+    parallel_over(n, [&](int64_t i) {
       const T* q = qp + 4 * i;
-      const T norm = floored_norm(q);
-      const T unit[4] = {q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm};
-      quaternion_product(f + 13, unit, qo + 4 * row);
-      for (int c = 0; c < 3; ++c) so[3 * row + c] = k * std::exp(sp[3 * i + c]);
+      T* a = ax + kPlacementAux * i;  // unit [0, 4), exp(s) [4, 7), norm 7
+      a[7] = floored_norm(q);
+      for (int c = 0; c < 4; ++c) a[c] = q[c] / a[7];
+      for (int c = 0; c < 3; ++c) a[4 + c] = std::exp(sp[3 * i + c]);
+      const T* mu = mp + 3 * i;
+      for (int64_t row = i; row < rows; row += n) {  // batch b: row b * N + i
+        const T* f = tab + kFaceRow * idx[row];  // R [0, 9), C [9, 12), k 12, face quaternion [13, 17)
+        const T k = f[12];
+        for (int r = 0; r < 3; ++r)
+          mo[3 * row + r] = k * (f[3 * r] * mu[0] + f[3 * r + 1] * mu[1] + f[3 * r + 2] * mu[2]) + f[9 + r];
+        quaternion_product(f + 13, a, qo + 4 * row);
+        for (int c = 0; c < 3; ++c) so[3 * row + c] = k * a[4 + c];
+      }
     });
   });
-  return {means_g, quats_g, scales_g};
+  return {means_g, quats_g, scales_g, aux};
 }
 
 // Returns the gradients of table [M, 17] (empty unless table_grad), means [N, 3], quats [N, 4],
 // log_scales [N, 3]; the face rows are summed in row order (deterministic for any thread count).
 std::vector<torch::Tensor> place_backward(const torch::Tensor& table, const torch::Tensor& means,
                                           const torch::Tensor& quats, const torch::Tensor& log_scales,
-                                          const torch::Tensor& index, const torch::Tensor& g_means,
+                                          const torch::Tensor& index, const torch::Tensor& aux,
+                                          const torch::Tensor& g_means,
                                           const torch::Tensor& g_quats, const torch::Tensor& g_scales,
                                           bool table_grad) {
-  check_placement(table, means, quats, log_scales, index);
+  check_placement(table, means, quats, log_scales, index, false);
   const int64_t rows = index.numel(), n = means.size(0), batch = n > 0 ? rows / n : 0;
+  check_input(aux, "aux", 2, means.scalar_type());
+  TORCH_CHECK(aux.size(0) == n && aux.size(1) == kPlacementAux, "place_gaussians: aux must be place_forward's");
   check_input(g_means, "g_means", 2, means.scalar_type());
   check_input(g_quats, "g_quats", 2, means.scalar_type());
   check_input(g_scales, "g_scales", 2, means.scalar_type());
@@ -1606,19 +1617,18 @@ std::vector<torch::Tensor> place_backward(const torch::Tensor& table, const torc
   torch::Tensor g_table = table_grad ? torch::zeros({table.size(0), kFaceRow}, opts) : torch::empty({0}, opts);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "place_backward", [&] {
     using T = scalar_t;
-    const T *tab = table.data_ptr<T>(), *mp = means.data_ptr<T>(), *qp = quats.data_ptr<T>();
-    const T* sp = log_scales.data_ptr<T>();
+    const T *tab = table.data_ptr<T>(), *mp = means.data_ptr<T>();  // quats, log_scales: through aux
     const int64_t* idx = index.data_ptr<int64_t>();
     const T *gmp = g_means.data_ptr<T>(), *gqp = g_quats.data_ptr<T>(), *gsp = g_scales.data_ptr<T>();
     T *gmo = gm.data_ptr<T>(), *gqo = gq.data_ptr<T>(), *gso = gs.data_ptr<T>();
+    const T* ax = aux.data_ptr<T>();
     // per row: the face row's gradient, summed into g_table below
     std::unique_ptr<T[]> per_row(table_grad ? new T[static_cast<size_t>(kFaceRow) * rows] : nullptr);
     parallel_over(n, [&](int64_t i) {
       const T* mu = mp + 3 * i;
-      const T* q = qp + 4 * i;
-      const T norm = floored_norm(q);
-      const T unit[4] = {q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm};
-      const T exp_s[3] = {std::exp(sp[3 * i]), std::exp(sp[3 * i + 1]), std::exp(sp[3 * i + 2])};
+      const T* unit = ax + kPlacementAux * i;
+      const T* exp_s = unit + 4;
+      const T norm = unit[7];
       T g_mu[3] = {0, 0, 0}, g_unit[4] = {0, 0, 0, 0}, g_ks[3] = {0, 0, 0};
       for (int64_t b = 0; b < batch; ++b) {
         const int64_t row = b * n + i;
