@@ -137,7 +137,8 @@ class _PlaceGaussiansCPU(torch.autograd.Function):
 
 
 def _native_placement(*tensors: Tensor) -> bool:
-    """CPU float tensors of one dtype and the native extension loaded (or loadable: as rasterize's "auto")."""
+    """CPU float tensors of one dtype and the native extension loaded (or loadable: as rasterize's "auto"):
+    the native placement and polar coordinates run."""
     dtype = tensors[0].dtype
     if dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu" or t.dtype != dtype for t in tensors):
         return False
@@ -210,6 +211,35 @@ class _PolarCoordinates(torch.autograd.Function):
         return grad.t(), None
 
 
-def polar_coordinates(local_means: Tensor, two_sided: bool = False) -> tuple[Tensor, Tensor]:
-    """r [N], phi [N] of local means [N, 3] (see binding.polar_coordinates)."""
-    return _PolarCoordinates.apply(local_means, two_sided)
+class _PolarCoordinatesCPU(torch.autograd.Function):
+    """_PolarCoordinates in the native CPU extension (polar_forward / polar_backward in
+    render/csrc/rasterize_cpu.cpp): one loop each way instead of ~25 PyTorch ops."""
+
+    @staticmethod
+    def forward(ctx, means: Tensor, two_sided: bool):
+        from geoavatar.render.cpu_backend import load_extension
+
+        mu = means.detach().contiguous()
+        ctx.save_for_backward(mu)
+        ctx.two_sided = two_sided
+        r, phi = load_extension().polar_forward(mu, two_sided)
+        return r, phi
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_r: Tensor, g_phi: Tensor):
+        from geoavatar.render.cpu_backend import load_extension
+
+        (mu,) = ctx.saved_tensors
+        grad = load_extension().polar_backward(mu, g_r.to(mu.dtype).contiguous(), g_phi.to(mu.dtype).contiguous(),
+                                               ctx.two_sided)
+        return grad, None
+
+
+def polar_coordinates(local_means: Tensor, two_sided: bool = False,
+                      native: bool | None = None) -> tuple[Tensor, Tensor]:
+    """r [N], phi [N] of local means [N, 3] (see binding.polar_coordinates); `native`: the CPU loops
+    (_PolarCoordinatesCPU), None: where they run."""
+    if native is None:
+        native = _native_placement(local_means)
+    return (_PolarCoordinatesCPU if native else _PolarCoordinates).apply(local_means, two_sided)

@@ -1698,6 +1698,68 @@ std::vector<torch::Tensor> place_backward(const torch::Tensor& table, const torc
   return {g_table, gm, gq, gs};
 }
 
+// ----------------------------------------------------------------------------- polar coordinates
+// fused.py's _PolarCoordinates on CPU (binding.polar_coordinates documents it): r = |mu|,
+// phi = atan2(|mu_tangent|, mu_normal) (|mu_normal| when two-sided), phi = 0 at the origin; one loop
+// each way instead of ~25 PyTorch ops over [N] (3 % of a 1-thread training step at 100k Gaussians).
+// Local axis 1 is the normal (fused.NORMAL_AXIS), 0 and 2 the tangent plane.
+
+// Returns r [N], phi [N].
+std::vector<torch::Tensor> polar_forward(const torch::Tensor& means, bool two_sided) {
+  check_input(means, "means", 2, means.scalar_type());
+  TORCH_CHECK(means.size(1) == 3, "polar_coordinates: means must be [N, 3]");
+  const int64_t n = means.size(0);
+  torch::Tensor r = torch::empty({n}, means.options()), phi = torch::empty({n}, means.options());
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "polar_forward", [&] {
+    using T = scalar_t;
+    const T* mu = means.data_ptr<T>();
+    T *ro = r.data_ptr<T>(), *po = phi.data_ptr<T>();
+    parallel_over(n, [&](int64_t i) {
+      const T x = mu[3 * i], y = mu[3 * i + 1], z = mu[3 * i + 2];
+      const T radius = std::sqrt(x * x + y * y + z * z);
+      const bool tiny = radius <= T(1e-12);
+      const T normal = tiny ? T(1) : (two_sided ? std::abs(y) : y);
+      const T tangent = tiny ? T(0) : std::sqrt(x * x + z * z);
+      ro[i] = radius;
+      po[i] = std::atan2(tangent, normal);
+    });
+  });
+  return {r, phi};
+}
+
+// Returns the gradient of means [N, 3] (vector_norm's zero subgradient at 0; no angle gradient there).
+torch::Tensor polar_backward(const torch::Tensor& means, const torch::Tensor& g_r, const torch::Tensor& g_phi,
+                             bool two_sided) {
+  check_input(means, "means", 2, means.scalar_type());
+  check_input(g_r, "g_r", 1, means.scalar_type());
+  check_input(g_phi, "g_phi", 1, means.scalar_type());
+  const int64_t n = means.size(0);
+  TORCH_CHECK(means.size(1) == 3 && g_r.numel() == n && g_phi.numel() == n, "polar_coordinates: shapes differ");
+  torch::Tensor grad = torch::empty({n, 3}, means.options());
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "polar_backward", [&] {
+    using T = scalar_t;
+    const T *mu = means.data_ptr<T>(), *gr = g_r.data_ptr<T>(), *gp = g_phi.data_ptr<T>();
+    T* out = grad.data_ptr<T>();
+    parallel_over(n, [&](int64_t i) {
+      const T x = mu[3 * i], y = mu[3 * i + 1], z = mu[3 * i + 2];
+      const T radius = std::sqrt(x * x + y * y + z * z);
+      const bool live = radius > T(1e-12);
+      const T normal = live ? (two_sided ? std::abs(y) : y) : T(1);
+      const T tangent = live ? std::sqrt(x * x + z * z) : T(0);
+      const T along = radius > 0 ? gr[i] / radius : T(0);  // d r = mu / r
+      // atan2(t, n): d t = n / (t^2 + n^2), d n = -t / (t^2 + n^2)
+      const T g = (live ? gp[i] : T(0)) / (live ? tangent * tangent + normal * normal : T(1));
+      const T g_t = tangent > 0 ? g * normal / tangent : T(0);  // d t = mu_t / t
+      T g_n = -g * tangent;
+      if (two_sided) g_n = g_n * static_cast<T>((y > 0) - (y < 0));  // sign(mu_normal)
+      out[3 * i] = along * x + g_t * x;
+      out[3 * i + 1] = along * y + g_n;
+      out[3 * i + 2] = along * z + g_t * z;
+    });
+  });
+  return grad;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
@@ -1711,6 +1773,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.def("project_backward", &project_backward, "grads of means, quats, scales", release_gil());
   module.def("place_forward", &place_forward, "fused._PlaceGaussians: global means, quats, scales", release_gil());
   module.def("place_backward", &place_backward, "grads of the face table, means, quats, log_scales", release_gil());
+  module.def("polar_forward", &polar_forward, "fused._PolarCoordinates: r, phi", release_gil());
+  module.def("polar_backward", &polar_backward, "grad of the local means", release_gil());
   module.def("simd_paths", &simd_paths, "SIMD paths of the float32 compositing this CPU runs, fastest first");
   module.def("max_threads", []() { return omp_get_max_threads(); });
 }
