@@ -769,6 +769,29 @@ struct BlockBox {
         y0(std::max<int64_t>(s.y0 - ty0, 0)), y1(std::min<int64_t>(s.y1 - ty0, th - 1)) {}
 };
 
+// One Gaussian broadcast to the lanes, and what both kernels compute of it per block: the lanes' offsets
+// dy, dx from the pixel centres y + 0.5, x + 0.5 (sums of small integers and 0.5, exact: the scalar
+// kernel's), and o exp(-sigma) with the scalar kernel's expressions in its order (the same float sigma).
+struct BlockSplat {
+  using L = Avx512Lanes;
+  using F = L::F;
+  F mx, my, a, b, c, opacity;
+  GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE explicit BlockSplat(const Splat<float>& s)
+      : mx(L::splat(s.mx)), my(L::splat(s.my)), a(L::splat(s.a)), b(L::splat(s.b)), c(L::splat(s.c)),
+        opacity(L::splat(s.opacity)) {}
+  // y, x: image row / column of the block's first pixel
+  GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE F dy(int64_t y) const {
+    return my - (L::lane_y() + L::splat(static_cast<float>(y) + 0.5f));
+  }
+  GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE F dx(int64_t x) const {
+    return mx - (L::lane_x() + L::splat(static_cast<float>(x) + 0.5f));
+  }
+  GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE F alpha_raw(F dx, F dy, F c_dy_dy) const {
+    const F sigma = L::splat(0.5f) * (a * dx * dx + c_dy_dy) + b * dx * dy;
+    return opacity * exp_avx512(-sigma);
+  }
+};
+
 GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_avx512_blocks(const LaneTile& tile) {
   using L = Avx512Lanes;
   using F = L::F;
@@ -781,8 +804,7 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_avx512_blocks(const
   // done pixels: one bit mask per block, in the caller's zeroed done plane
   uint32_t* __restrict__ done = reinterpret_cast<uint32_t*>(tile.done);
   const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th, blocks_x = tile.blocks_x;
-  const F lane_x = L::lane_x(), lane_y = L::lane_y();
-  const F half = L::splat(0.5f), one = L::splat(1.0f), alpha_min = L::splat(kAlphaMinF);
+  const F one = L::splat(1.0f), alpha_min = L::splat(kAlphaMinF);
   const F alpha_max = L::splat(kAlphaMaxF), t_min = L::splat(kTransmittanceMinF);
   int64_t n_done = 0;
   for (int64_t k = tile.begin; k < tile.end && n_done < tw * th; ++k) {
@@ -790,21 +812,17 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_avx512_blocks(const
     const Splat<float>& s = tile.splats[tile.ids[k]];
     const BlockBox box(s, tx0, ty0, tw, th);
     const auto position = L::splat_i(static_cast<int32_t>(k - tile.begin + 1));
-    const F mx = L::splat(s.mx), my = L::splat(s.my), a = L::splat(s.a), b = L::splat(s.b), c = L::splat(s.c);
-    const F opacity = L::splat(s.opacity), r = L::splat(s.r), g = L::splat(s.g), bl = L::splat(s.bl);
+    const BlockSplat gauss(s);
+    const F r = L::splat(s.r), g = L::splat(s.g), bl = L::splat(s.bl);
     for (int64_t by = box.y0 >> 2; by <= box.y1 >> 2; ++by) {
       const uint32_t rows = bits4(box.y0 - 4 * by, box.y1 - 4 * by);
-      // pixel centres y + 0.5, x + 0.5: sums of small integers and 0.5, exact (the scalar kernel's dy, dx)
-      const F dy = my - (lane_y + L::splat(static_cast<float>(ty0 + 4 * by) + 0.5f));
-      const F c_dy_dy = c * dy * dy;
+      const F dy = gauss.dy(ty0 + 4 * by);
+      const F c_dy_dy = gauss.c * dy * dy;
       for (int64_t bx = box.x0 >> 2; bx <= box.x1 >> 2; ++bx) {
         const int64_t block = by * blocks_x + bx, base = 16 * block;
         const M open = static_cast<M>(block_lanes(rows, bits4(box.x0 - 4 * bx, box.x1 - 4 * bx)) & ~done[block]);
         if (!open) continue;
-        const F dx = mx - (lane_x + L::splat(static_cast<float>(tx0 + 4 * bx) + 0.5f));
-        // the scalar kernel's expressions, in its order: the same float sigma bit for bit
-        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy;
-        const F alpha_raw = opacity * exp_avx512(-sigma);
+        const F alpha_raw = gauss.alpha_raw(gauss.dx(tx0 + 4 * bx), dy, c_dy_dy);
         const M accept = L::ge(open, alpha_raw, alpha_min);
         if (!accept) continue;
         const F alpha = L::min(alpha_raw, alpha_max);
@@ -1058,7 +1076,6 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_avx512_blocks(const 
   const float* __restrict__ grad_b = tile.grad_b;
   const int32_t* __restrict__ last = tile.last;
   const int64_t tx0 = tile.tx0, ty0 = tile.ty0, tw = tile.tw, th = tile.th, blocks_x = tile.blocks_x;
-  const F lane_x = L::lane_x(), lane_y = L::lane_y();
   const F zero = L::splat(0.0f), one = L::splat(1.0f), half = L::splat(0.5f);
   const F alpha_min = L::splat(kAlphaMinF), alpha_max = L::splat(kAlphaMaxF);
   for (int64_t k = tile.begin + tile.max_last - 1; k >= tile.begin; --k) {
@@ -1066,14 +1083,14 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_avx512_blocks(const 
     const Splat<float>& s = tile.splats[tile.ids[k]];
     const BlockBox box(s, tx0, ty0, tw, th);
     const auto position = L::splat_i(static_cast<int32_t>(k - tile.begin));
-    const F mx = L::splat(s.mx), my = L::splat(s.my), a = L::splat(s.a), b = L::splat(s.b), c = L::splat(s.c);
-    const F opacity = L::splat(s.opacity), inv_opacity = L::splat(1.0f / s.opacity);
+    const BlockSplat gauss(s);
+    const F a = gauss.a, b = gauss.b, c = gauss.c, inv_opacity = L::splat(1.0f / s.opacity);
     const F red = L::splat(s.r), green = L::splat(s.g), blue = L::splat(s.bl);
     F sums[kEntryGrads];
     for (F& sum : sums) sum = zero;
     for (int64_t by = box.y0 >> 2; by <= box.y1 >> 2; ++by) {
       const uint32_t rows = bits4(box.y0 - 4 * by, box.y1 - 4 * by);
-      const F dy = my - (lane_y + L::splat(static_cast<float>(ty0 + 4 * by) + 0.5f));  // as in the forward
+      const F dy = gauss.dy(ty0 + 4 * by);
       const F c_dy_dy = c * dy * dy;
       for (int64_t bx = box.x0 >> 2; bx <= box.x1 >> 2; ++bx) {
         const int64_t base = 16 * (by * blocks_x + bx);
@@ -1081,10 +1098,8 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_avx512_blocks(const 
         const M open = L::lt_i(static_cast<M>(block_lanes(rows, bits4(box.x0 - 4 * bx, box.x1 - 4 * bx))),
                                position, L::load_i(last + base));
         if (!open) continue;
-        const F dx = mx - (lane_x + L::splat(static_cast<float>(tx0 + 4 * bx) + 0.5f));
-        // alpha exactly as the forward computed it
-        const F sigma = half * (a * dx * dx + c_dy_dy) + b * dx * dy;
-        const F alpha_raw = opacity * exp_avx512(-sigma);
+        const F dx = gauss.dx(tx0 + 4 * bx);
+        const F alpha_raw = gauss.alpha_raw(dx, dy, c_dy_dy);  // exactly the forward's
         const M in = L::ge(open, alpha_raw, alpha_min);
         if (!in) continue;
         const M uncapped = L::lt(in, alpha_raw, alpha_max);  // a capped alpha depends on neither sigma nor opacity
