@@ -20,14 +20,15 @@ def plain_local_to_global(means, quats, log_scales, binding, frames):
     return means_g, quats_g, k * torch.exp(log_scales)
 
 
-def plain_polar(mu, two_sided=False):
+def plain_polar(mu, two_sided=False, axis=1):
     r = torch.linalg.vector_norm(mu, dim=-1)
     tiny = r <= 1e-12
     along = torch.zeros_like(mu)
-    along[..., 1] = 1.0
+    along[..., axis] = 1.0
     safe = torch.where(tiny[..., None], along, mu)
-    normal = safe[..., 1].abs() if two_sided else safe[..., 1]
-    return r, torch.atan2(torch.linalg.vector_norm(safe[..., [0, 2]], dim=-1), normal)
+    normal = safe[..., axis].abs() if two_sided else safe[..., axis]
+    others = [a for a in range(3) if a != axis]
+    return r, torch.atan2(torch.linalg.vector_norm(safe[..., others], dim=-1), normal)
 
 
 def sheet(dtype, batch=None, seed=0):
@@ -80,8 +81,9 @@ def test_place_gaussians_gradcheck():
     assert torch.autograd.gradcheck(lambda *x: place_gaussians(*x, binding), inputs)
 
 
+@pytest.mark.parametrize("axis", [1, 2])
 @pytest.mark.parametrize("two_sided", [False, True])
-def test_polar_coordinates_match_plain_ops_and_gradcheck(two_sided):
+def test_polar_coordinates_match_plain_ops_and_gradcheck(two_sided, axis):
     g = torch.Generator().manual_seed(3)
     mu = torch.randn(40, 3, generator=g, dtype=torch.float64)
     mu[0] = 0.0  # the origin: phi = 0, no gradient
@@ -89,11 +91,11 @@ def test_polar_coordinates_match_plain_ops_and_gradcheck(two_sided):
     mu[2] = torch.tensor([0.0, -1.5, 0.0])
     mu[3] = torch.tensor([0.7, 0.0, -0.2])  # in the face plane
     leaves = [mu.clone().requires_grad_() for _ in range(2)]
-    (r, phi), (r0, phi0) = polar_coordinates(leaves[0], two_sided), plain_polar(leaves[1], two_sided)
+    (r, phi), (r0, phi0) = polar_coordinates(leaves[0], two_sided, axis), plain_polar(leaves[1], two_sided, axis)
     assert torch.allclose(r, r0) and torch.allclose(phi, phi0)
     w = torch.randn(2, 40, generator=g, dtype=torch.float64)
     ((r * w[0]).sum() + (phi * w[1]).sum()).backward()
     ((r0 * w[0]).sum() + (phi0 * w[1]).sum()).backward()
     assert torch.allclose(leaves[0].grad, leaves[1].grad)
     smooth = mu[4:].clone().requires_grad_()  # away from the kinks, finite differences hold
-    assert torch.autograd.gradcheck(lambda x: polar_coordinates(x, two_sided), [smooth])
+    assert torch.autograd.gradcheck(lambda x: polar_coordinates(x, two_sided, axis), [smooth])
