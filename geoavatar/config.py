@@ -96,7 +96,11 @@ class LossConfig:
     use_angle: bool = True  # L_angle on/off (preset E on; A-D, F, G off)
     lambda_angle: float = 1e-2  # same weight as L_reg: the paper sums both terms
     tau_angle: float = 0.78  # 45 degrees
-    angle_two_sided: bool = False  # False: angle to the +normal (keeps Gaussians above their face)
+    angle_two_sided: bool = False  # False: angle to the +axis (keeps Gaussians above their face)
+    # the axis phi is measured from: "normal" = the face normal (the frame's y, a1); "z" = the frame's
+    # literal z-axis, which in GaussianAvatars' face frame is the in-plane a2 = a0 x a1 (paper Sec. 3
+    # says "positive z-axis" without naming the frame; issue #13 tests both)
+    angle_axis: Literal["normal", "z"] = "normal"
     lambda_scale: float = 1.0  # GaussianAvatars: mean |ReLU(exp(s_local) - 0.6)|
     threshold_scale: float = 0.6
     visible_only: bool = True  # GaussianAvatars averages the regularisers over visible Gaussians

@@ -64,6 +64,11 @@ def test_matrix_writes_runs_table_and_mouth_crops(matrix):
     assert "## tiny" in table and "## Average over datasets" in table
     rows = [line for line in table.splitlines() if line.startswith("| tiny/") or line.startswith("| mean |")]
     assert [r.split("|")[2].strip() for r in rows] == ["A", "E", "A", "E"]
+    # how much of a test frame the mouth metrics cover, from the evaluated frames
+    frames = json.loads(metrics_path(out / "tiny" / "A").read_text())["frames"]
+    shown = [f["mouth_share"] for f in frames if f["mouth_pixels"]]
+    assert shown and all(0.0 < v < 0.5 for v in shown)
+    assert "Mouth region" in table and f"{np.mean(shown):.1%} of a test frame" in table
     body = json.loads((out / "ablation.json").read_text())
     psnr_a = json.loads(metrics_path(out / "tiny" / "A").read_text())["summary"]["psnr"]["mean"]
     assert body["datasets"]["tiny"]["A"]["psnr"]["mean"] == pytest.approx(psnr_a)

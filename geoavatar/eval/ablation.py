@@ -218,6 +218,23 @@ def read_summary(run_dir: str | os.PathLike) -> dict:
         raise RunMismatch(f"{path}: unreadable evaluation ({err}); delete it to evaluate again") from None
 
 
+def mouth_share(run_dir: str | os.PathLike) -> tuple[float, float, float, int] | None:
+    """How much of each test frame is mouth (eval's mouth region), from a run's metrics.json:
+    (mean, min, max) share over the frames where the mouth shows, and their count; None if unreadable.
+    Evaluations written before `mouth_share` existed fall back to mouth_pixels / resolution² (square frames)."""
+    try:
+        body = json.loads(metrics_path(run_dir).read_text())
+    except (OSError, ValueError):
+        return None
+    side = body.get("settings", {}).get("resolution")
+    shares = [f["mouth_share"] if "mouth_share" in f else f["mouth_pixels"] / side ** 2 if side else None
+              for f in body.get("frames", []) if f.get("mouth_pixels")]
+    shares = [v for v in shares if v is not None]
+    if not shares:
+        return None
+    return float(np.mean(shares)), float(min(shares)), float(max(shares)), len(shares)
+
+
 # --- the tables ---------------------------------------------------------------------------------
 
 
@@ -267,6 +284,12 @@ def ablation_tables(out: Path, names: Sequence[str], presets: Sequence[str], sum
         lines.append(ablation_table(rows).rstrip() if rows else "(no finished run yet)")
         if missing:
             lines += ["", f"Not finished: {', '.join(missing)}."]
+        share = next((v for p in presets if (name, p) in summaries
+                      for v in [mouth_share(run_folder(out, name, p))] if v is not None), None)
+        if share is not None:
+            lines += ["", f"Mouth region (the mouth metrics' pixels: visible lips and mouth structure, dilated): "
+                          f"{share[0]:.1%} of a test frame on average ({share[1]:.1%}–{share[2]:.1%}, "
+                          f"{share[3]} frames where it shows)."]
         body["datasets"][name] = {p: summaries[(name, p)] for p in presets if (name, p) in summaries}
     average_rows = []
     for p in presets:

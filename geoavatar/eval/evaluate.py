@@ -126,6 +126,7 @@ class FrameMetrics:
     mouth_psnr: float | None = None
     mouth_lpips: float | None = None
     mouth_pixels: int = 0
+    mouth_share: float = 0.0  # mouth_pixels / the frame's pixels
     mouth_box: list[int] | None = None  # [y0, y1, x0, x1] of the LPIPS crop
     view: str | None = None  # the camera placement of a novel-view frame ("front", "yaw+30", ...)
     outside: float | None = None  # share of the render's opacity outside the dilated head silhouette
@@ -319,6 +320,7 @@ def evaluate_run(
                 if box is not None:
                     y0, y1, x0, x1 = box
                     record.mouth_pixels = int(mask.sum())
+                    record.mouth_share = record.mouth_pixels / float(item["width"] * item["height"])
                     record.mouth_psnr = metrics.masked_psnr(pred, target, mask)
                     record.mouth_box = box
                     if min(y1 - y0, x1 - x0) >= MIN_SIZE[config.lpips_net]:  # else the image itself is too small
