@@ -28,7 +28,7 @@ def prepare(
     flame_dir: Optional[Path] = None,
     flame_landmarks: Optional[Path] = None,
     static_offset: bool = True,
-    photometric: bool = False,
+    photometric: bool = True,
     overlay: bool = True,
     progress: bool = True,
 ) -> int:
@@ -54,7 +54,8 @@ def prepare(
             written to the dataset; without it only the head model's identity modes adapt.
         photometric: After the landmark fit, refine every frame photometrically (a mesh-bound appearance
             model rendered with the CPU rasterizer against the masked crops, landmarks kept as a term);
-            experimental and off by default until it measurably beats the landmark fit (issue #12).
+            --no-photometric writes the landmark fit as is (faster). Re-running with it on over a
+            --no-photometric folder reuses every earlier stage and adds the photometric one.
         overlay: Write OUT/overlay.mp4.
         progress: Show progress bars.
     """

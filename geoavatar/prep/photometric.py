@@ -60,10 +60,13 @@ SH_C2 = (1.0925484305920792, 0.31539156525252005, 0.5462742152960396)
 
 @dataclass
 class PhotometricConfig:
-    """Schedule and weights of the photometric fit (the defaults fit a 400-frame video in ~2 minutes on 2 cores)."""
+    """Schedule and weights of the photometric fit (the defaults cost ~12 ms of one core per frame and epoch: wojtek.mp4's
+    400 frames take 153 CPU s on one thread, BENCHMARKS.md)."""
 
     sizes: tuple[int, ...] = (64, 128)  # pyramid levels: image side in pixels (the longer side)
-    epochs: tuple[int, ...] = (4, 3)  # passes over all frames at each level
+    # passes over all frames at each level: one Adam step per chunk per pass, so the fit's progress is bound by these
+    # (generated subject 0: face error 6.3 -> 5.6 / 5.3 / 4.4 / 3.8 mm with (4, 3) / (8, 6) / (16, 12) / (24, 18))
+    epochs: tuple[int, ...] = (16, 12)
     appearance_epochs: int = 3  # albedo / lighting only, at the first level, before the pose moves
     chunk: int = 8  # frames per optimiser step
     lr_rotation: float = 4e-3  # rad
@@ -82,7 +85,8 @@ class PhotometricConfig:
     prior_weight: float = 1.0  # multiplies prep.tracking's priors and temporal smoothness
     gaussian_size: float = 0.6  # Gaussian std / sqrt(face area)
     opacity: float = 0.98
-    per_face: int = 4  # Gaussians per face: 1 (centroid) or 4
+    # Gaussians per face: 1 (centroid) or 4. 1 is ~2.5x cheaper per step and as accurate at 128 px (BENCHMARKS.md)
+    per_face: int = 1
     render_rings: int = 3  # faces rendered around the weighted ones (vertex rings)
     crop_margin: float = 1.25  # fitted crop side / the weighted faces' largest projected extent
     # Coarse levels render at the finest size and area-downsample, as the frames are: a render of sub-pixel
