@@ -133,7 +133,8 @@ def test_fit_recovers_a_known_perturbation_of_pose_and_expression(head):
                           translation=truth.translation + 0.004 * torch.randn(frames, 3, generator=g) * torch.tensor([1, 1, 0.3]),
                           expr=truth.expr + 0.25 * torch.randn(frames, head.num_expr, generator=g) * (torch.arange(head.num_expr) < 4),
                           jaw_pose=truth.jaw_pose + torch.tensor([0.04, 0, 0]))
-    config = PhotometricConfig(sizes=(48, 96), epochs=(12, 8), chunk=frames, appearance_epochs=4, prior_weight=0.01)
+    config = PhotometricConfig(sizes=(48, 96), epochs=(12, 8), chunk=frames, appearance_epochs=4, prior_weight=0.01,
+                               pose_smooth_weight=0.01)
     viewmats = np.broadcast_to(viewmat, (frames, 4, 4))
     boxes = crop_boxes(head, noisy, torch.as_tensor(viewmats.copy()), torch.as_tensor(K).expand(frames, 3, 3),
                        weighted_vertex_ids(head), config.crop_margin)

@@ -21,7 +21,8 @@ so only pixels the weighted faces explain count:
 
 Energy per chunk of frames (all terms means over the chunk's frames):
     photo + landmark_weight * (landmark term of prep.tracking, when landmarks are given)
-          + prior_weight * (prep.tracking's per-frame priors + temporal smoothness)
+          + prior_weight * (prep.tracking's per-frame priors + smoothness of expression, jaw, eyes, neck)
+          + pose_smooth_weight * (prep.tracking's smoothness of the head's rotation and translation)
 The temporal terms see the neighbouring frames of the adjacent chunks (fixed), so chunk borders are
 smooth too. A frame whose mask is empty (prepare empties the masks of frames where no face was found, whose
 landmarks are interpolated) has no image term: the mean `photo` is over the chunk's frames with pixels, and
@@ -83,6 +84,11 @@ class PhotometricConfig:
     fit_shape: bool = False  # refine the identity shape shared by all frames too
     landmark_weight: float = 20.0  # relative to the photometric L1 (landmark term of prep.tracking)
     prior_weight: float = 1.0  # multiplies prep.tracking's priors and temporal smoothness
+    # multiplies prep.tracking's head-pose smoothness (first and second differences of rotation and translation).
+    # At 1 the per-chunk Adam steps left frame-to-frame jitter on a real video whose landmark fit is smooth (wojtek:
+    # mean |second difference| of depth 0.09 -> 1.14 mm); 100 keeps it at 0.45 mm for the same residual, and costs
+    # generated subject 0 0.1-0.2 mm of face error (BENCHMARKS.md, photometric tracking)
+    pose_smooth_weight: float = 100.0
     gaussian_size: float = 0.6  # Gaussian std / sqrt(face area)
     opacity: float = 0.98
     # Gaussians per face: 1 (centroid) or 4. 1 is ~2.5x cheaper per step and as accurate at 128 px (BENCHMARKS.md)
@@ -468,9 +474,9 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
                     landmarks.weights, landmarks.confidence[rows], prior_config.huber)
             around = window(index)
             priors = _frame_priors(params, prior_config)
-            priors.update(_pose_smoothness(around, prior_config))
             priors["smooth"] = _motion_smoothness(around, prior_config)
             terms["prior"] = config.prior_weight * sum(priors.values())
+            terms["pose_smooth"] = config.pose_smooth_weight * sum(_pose_smoothness(around, prior_config).values())
         total = sum(terms.values())
         return total, {k: float(v.detach()) for k, v in terms.items()}
 
