@@ -162,7 +162,7 @@ def track(
         epochs: Passes over all frames at each level.
         chunk: Frames per optimiser step.
         per_face: Gaussians per rendered face: 1 (the centroid) or 4 (the centroid and the corner
-            sub-triangles' centroids; about 2.5x the cost per step, no more accurate at 128 px).
+            sub-triangles' centroids; 1.8-2.5x the cost, no more accurate at 128 px).
         fit_shape: Refine the identity shape too.
         overwrite: Replace an existing OUT.
         flame_dir: FLAME files for a FLAME dataset.

@@ -91,7 +91,7 @@ class PhotometricConfig:
     pose_smooth_weight: float = 100.0
     gaussian_size: float = 0.6  # Gaussian std / sqrt(face area)
     opacity: float = 0.98
-    # Gaussians per face: 1 (centroid) or 4. 1 is ~2.5x cheaper per step and as accurate at 128 px (BENCHMARKS.md)
+    # Gaussians per face: 1 (centroid) or 4. 1 is 1.8-2.5x cheaper and as accurate at 128 px (BENCHMARKS.md)
     per_face: int = 1
     render_rings: int = 3  # faces rendered around the weighted ones (vertex rings)
     crop_margin: float = 1.25  # fitted crop side / the weighted faces' largest projected extent
