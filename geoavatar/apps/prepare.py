@@ -32,12 +32,13 @@ def prepare(
     overlay: bool = True,
     progress: bool = True,
 ) -> int:
-    """Prepare a dataset from a monocular head video: crop, landmarks, masks, head-model tracking.
+    """Prepare a dataset from a monocular head video: crop, landmarks, masks, head-model tracking (a landmark fit,
+    then a photometric refinement of every frame unless --no-photometric).
 
     Writes OUT/dataset (VHAP / GaussianAvatars layout, ready for `geoavatar train --data OUT/dataset`),
-    OUT/overlay.mp4 (tracked mesh and landmarks over the frames: green MediaPipe, red model) and
-    OUT/report.json (per-frame landmark reprojection error, frames without a face). Stages are
-    resumable: a re-run skips the stages whose outputs are complete (OUT/.prepare/).
+    OUT/overlay.mp4 (tracked mesh and landmarks over the frames: green MediaPipe, red model; frames without a
+    face flagged) and OUT/report.json (per-frame landmark reprojection error and photometric residual, frames
+    without a face). Stages are resumable: a re-run skips the stages whose outputs are complete (OUT/.prepare/).
 
     Args:
         video: Input video (any container/codec PyAV decodes; rotation metadata is honoured).
