@@ -1,12 +1,14 @@
 """Benchmark `geoavatar prepare` on a whole video, then (optionally) train and evaluate on it.
 
     .venv/bin/python benchmarks/prepare_bench.py ../shared/data/video/wojtek.mp4 --out runs/prep/wojtek \
-        [--stills docs/images/prepare_overlay_wojtek.png] [--train-steps 3000 --resolution 256]
+        [--no-photometric] [--stills docs/images/prepare_overlay_wojtek.png] [--train-steps 3000 --resolution 256]
 
-Prints (and writes OUT/bench.json): wall and CPU seconds per stage, the per-frame median landmark
+Prints (and writes OUT/bench.json): wall and CPU seconds per stage (a stage skipped because it was complete
+keeps the figures of the run that made it), the load average before and after, the per-frame median landmark
 reprojection error over the face width (median / p90 / max over frames, share of frames below 2 %),
 the correlation of the tracked jaw opening with the detected mouth opening (inner-lip gap 13-14 over
-the face size), and with --train-steps the train and eval numbers (PSNR / SSIM / LPIPS on the held-out
+the face size; of the fit the dataset is written from), the mean photometric residual before and after
+the photometric stage, and with --train-steps the train and eval numbers (PSNR / SSIM / LPIPS on the held-out
 last 20 % of the frames). --stills writes three overlay frames side by side (first frame, widest
 mouth opening, a late test frame) for the README.
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -29,6 +32,8 @@ def main() -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--size", type=int, default=512)
     parser.add_argument("--max-frames", type=int, default=None)
+    parser.add_argument("--no-photometric", dest="photometric", action="store_false",
+                        help="skip the photometric stage (prepare --no-photometric)")
     parser.add_argument("--stills", type=Path, default=None)
     parser.add_argument("--train-steps", type=int, default=0)
     parser.add_argument("--resolution", type=int, default=256)
@@ -37,22 +42,26 @@ def main() -> int:
     from geoavatar.runtime import setup_process
 
     setup_process()
-    from geoavatar.prep.pipeline import PrepareConfig, overlay_frames, run_prepare
+    from geoavatar.prep.pipeline import STAGES, PrepareConfig, fit_file, overlay_frames, run_prepare
 
-    config = PrepareConfig(video=args.video, out=args.out, size=args.size, max_frames=args.max_frames)
+    config = PrepareConfig(video=args.video, out=args.out, size=args.size, max_frames=args.max_frames,
+                           photometric=args.photometric)
+    load_before = os.getloadavg()
     start, cpu = time.perf_counter(), time.process_time()
     dataset = run_prepare(config)
-    result: dict = {"video": str(args.video), "prepare_wall_s": time.perf_counter() - start,
-                    "prepare_cpu_s_this_process": time.process_time() - cpu, "stages": {}}
+    result: dict = {"video": str(args.video), "photometric": args.photometric,
+                    "prepare_wall_s": time.perf_counter() - start,
+                    "prepare_cpu_s_this_process": time.process_time() - cpu,
+                    "load_average_1min_before_after": [load_before[0], os.getloadavg()[0]], "stages": {}}
     work = args.out / ".prepare"
-    for stage in ("frames", "landmarks", "masks", "tracking", "write"):
+    for stage in STAGES:
         marker = json.loads((work / f"{stage}.json").read_text())
         result["stages"][stage] = {"wall_s": round(marker.get("seconds", float("nan")), 1),
                                    "cpu_s": round(marker.get("cpu_seconds", float("nan")), 1)}
     report = json.loads((args.out / "report.json").read_text())
     errors = np.array(report["reprojection_error_over_face_width"]["per_frame"])
     marks = np.load(work / "landmarks.npz")
-    fit = np.load(work / "tracking.npz")
+    fit = np.load(fit_file(config, work))
     points = marks["filtered"]
     mouth = np.linalg.norm(points[:, 13, :2] - points[:, 14, :2], axis=-1) / np.linalg.norm(
         points[:, 10, :2] - points[:, 152, :2], axis=-1)
@@ -66,6 +75,9 @@ def main() -> int:
         "corr_jaw_mouth_opening": float(np.corrcoef(jaw, mouth)[0, 1]),
         "focal_px": float(fit["focal"]),
     })
+    if "photometric_residual" in report:
+        residual = report["photometric_residual"]
+        result["photometric_residual_before_after"] = [residual["mean_before"], residual["mean"]]
     if args.stills:
         from PIL import Image
 
@@ -97,8 +109,6 @@ def main() -> int:
 
 
 def _children_cpu() -> float:
-    import os
-
     times = os.times()
     return times.children_user + times.children_system
 

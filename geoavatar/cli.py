@@ -39,7 +39,7 @@ _DESCRIPTIONS = {
     "head": "Head models: inspect the template, expressions and mouth structure.",
     "head show": "Render a contact sheet of a head model (front/side, expressions, open jaw).",
     "synth": "Generate a synthetic monocular dataset of a ground-truth actor (the embedded default).",
-    "prepare": "Video -> dataset: crop, MediaPipe landmarks, head/neck masks, head-model tracking, overlay video.",
+    "prepare": "Video -> dataset: crop, MediaPipe landmarks, head/neck masks, landmark + photometric tracking, overlay video.",
     "track": "Photometric tracking of an existing dataset on CPU: a copy with every frame's parameters refined.",
     "train": "Train a GeoAvatar (or an ablation preset) on a dataset.",
     "eval": "Evaluate runs on the test split: MSE, PSNR, SSIM, LPIPS (+ mouth); Table 1 / ablation tables.",

@@ -36,6 +36,16 @@ def head():
     return load_head_model("openhead", mouth="geoavatar")
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """The fit on one thread, as prepare and track run it: its renders are small, and on a busy 2-core machine
+    2 threads made these tests 3-40x slower."""
+    from geoavatar.runtime import num_threads
+
+    with num_threads(1):
+        yield
+
+
 def _truth(head, frames: int) -> HeadParams:
     g = torch.Generator().manual_seed(0)
     params = HeadParams.from_npz(head.zero_params(batch=frames))
@@ -123,7 +133,8 @@ def test_fit_recovers_a_known_perturbation_of_pose_and_expression(head):
                           translation=truth.translation + 0.004 * torch.randn(frames, 3, generator=g) * torch.tensor([1, 1, 0.3]),
                           expr=truth.expr + 0.25 * torch.randn(frames, head.num_expr, generator=g) * (torch.arange(head.num_expr) < 4),
                           jaw_pose=truth.jaw_pose + torch.tensor([0.04, 0, 0]))
-    config = PhotometricConfig(sizes=(48, 96), epochs=(12, 8), chunk=frames, appearance_epochs=4, prior_weight=0.01)
+    config = PhotometricConfig(sizes=(48, 96), epochs=(12, 8), chunk=frames, appearance_epochs=4, prior_weight=0.01,
+                               pose_smooth_weight=0.01)
     viewmats = np.broadcast_to(viewmat, (frames, 4, 4))
     boxes = crop_boxes(head, noisy, torch.as_tensor(viewmats.copy()), torch.as_tensor(K).expand(frames, 3, 3),
                        weighted_vertex_ids(head), config.crop_margin)
@@ -199,10 +210,30 @@ def test_track_writes_a_copy_with_fitted_parameters(tmp_path, capsys):
         track(data, out, progress=False)
 
 
+def test_prepare_and_track_share_the_fit_defaults():
+    import inspect
+
+    from geoavatar.apps.track import track
+    from geoavatar.prep.pipeline import PrepareConfig, photometric_config
+
+    defaults = PhotometricConfig()
+    prepare = PrepareConfig(video=Path("talk.mp4"), out=Path("out"))
+    assert prepare.photometric and prepare.photometric_epochs == defaults.epochs
+    assert photometric_config(prepare) == PhotometricConfig(tracking=photometric_config(prepare).tracking)
+    options = inspect.signature(track).parameters
+    assert (options["sizes"].default, options["epochs"].default, options["per_face"].default) == (
+        defaults.sizes, defaults.epochs, defaults.per_face)
+
+
 @pytest.mark.skipif(not WOJTEK.is_file(), reason="test video absent")
-def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path):
+def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path, monkeypatch):
     from geoavatar.data import open_dataset
+    from geoavatar.prep import photometric
     from geoavatar.prep.pipeline import PrepareConfig, run_prepare
+
+    threads = []  # the stage runs on one thread whatever the process's count (pipeline.PHOTOMETRIC_THREADS)
+    fit = photometric.fit_photometric
+    monkeypatch.setattr(photometric, "fit_photometric", lambda *a, **k: threads.append(torch.get_num_threads()) or fit(*a, **k))
 
     messages: list[str] = []
     options = dict(video=WOJTEK, size=128, max_frames=5, tracking_steps=(30, 40), progress=False, overlay=False,
@@ -212,10 +243,18 @@ def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path):
     assert not (work / "photometric.npz").exists()
     tracking = np.load(work / "tracking.npz")
     written = open_dataset(plain).subject.params
-    np.testing.assert_allclose(written["rotation"].numpy(), tracking["param_rotation"], atol=1e-6)  # the landmark fit
+    for key in ("rotation", "translation", "neck_pose", "jaw_pose", "eyes_pose", "expr"):  # the landmark fit, as is
+        fitted_values = tracking[f"param_{key}"]
+        np.testing.assert_allclose(written[key].numpy()[:, :fitted_values.shape[1]], fitted_values, atol=1e-6, err_msg=key)
     assert "photometric_residual" not in json.loads((tmp_path / "plain" / "report.json").read_text())
 
-    fitted = run_prepare(PrepareConfig(out=tmp_path / "plain", photometric=True, **options))
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        fitted = run_prepare(PrepareConfig(out=tmp_path / "plain", photometric=True, **options))
+        assert threads == [1] and torch.get_num_threads() == 2  # one thread inside the stage, the count restored
+    finally:
+        torch.set_num_threads(before)
     assert any("tracking' is complete" in m for m in messages)  # the landmark fit is reused
     refined = open_dataset(fitted).subject.params
     assert not np.allclose(refined["expr"].numpy()[:, :tracking["param_expr"].shape[1]], tracking["param_expr"])
@@ -292,3 +331,11 @@ def test_prepare_photometric_on_a_video_that_loses_the_face(tmp_path):
         step = np.maximum(np.abs(np.diff(values[:3], axis=0)).max(0), np.abs(np.diff(values[6:], axis=0)).max(0))
         low, high = around.min(0) - 2 * step - 1e-4, around.max(0) + 2 * step + 1e-4
         assert ((values[lost] >= low) & (values[lost] <= high)).all(), key
+    # the overlay names the fit it shows and flags the lost frames (an orange caption)
+    from geoavatar.prep.overlay import FLAGGED
+    from geoavatar.prep.pipeline import overlay_frames
+
+    config = PrepareConfig(video=video, out=out, size=128, tracking_steps=(30, 40), photometric_epochs=(1, 1))
+    pictures = dict(overlay_frames(config, out / ".prepare", rows=[2, 3]))
+    orange = [(np.abs(pictures[row][:20].astype(int) - FLAGGED).max(-1) < 40).sum() for row in (2, 3)]
+    assert orange[0] == 0 and orange[1] > 10, orange

@@ -27,8 +27,9 @@ def _write_video(path: Path, frames: list[np.ndarray], fps: int = 25) -> Path:
 def _config(video, out, **changes):
     from geoavatar.prep.pipeline import PrepareConfig
 
-    options = dict(video=video, out=out, size=128, max_frames=6, tracking_steps=(40, 60), progress=False,
-                   log=lambda message: None)
+    # the photometric stage has its own tests (test_photometric.py): without it these run in seconds
+    options = dict(video=video, out=out, size=128, max_frames=6, tracking_steps=(40, 60), photometric=False,
+                   progress=False, log=lambda message: None)
     options.update(changes)
     return PrepareConfig(**options)
 

@@ -55,6 +55,16 @@ def test_a_changed_field_redoes_its_stage_and_the_dependants_only(config, ran):
     assert rerun(replace(config, progress=True, log=print), ran) == []
 
 
+def test_no_photometric_ignores_the_photometric_settings(config, ran):
+    """--no-photometric skips the stage: its settings (e.g. a changed default) redo nothing, and turning it on
+    over such a folder redoes the photometric stage and the write only (what a user who upgrades does)."""
+    plain = replace(config, photometric=False)
+    assert rerun(plain, ran) == list(STAGES)
+    assert rerun(replace(plain, photometric_epochs=(1, 1)), ran) == []
+    assert rerun(config, ran) == ["photometric", "write"]
+    assert rerun(plain, ran) == ["photometric", "write"]
+
+
 def test_an_interrupted_stage_redoes_its_dependants(config, ran):
     run_prepare(config)
     (config.out / pipeline.WORK / "landmarks.json").unlink()  # killed while the landmarks were being redone

@@ -28,16 +28,17 @@ def prepare(
     flame_dir: Optional[Path] = None,
     flame_landmarks: Optional[Path] = None,
     static_offset: bool = True,
-    photometric: bool = False,
+    photometric: bool = True,
     overlay: bool = True,
     progress: bool = True,
 ) -> int:
-    """Prepare a dataset from a monocular head video: crop, landmarks, masks, head-model tracking.
+    """Prepare a dataset from a monocular head video: crop, landmarks, masks, head-model tracking (a landmark fit,
+    then a photometric refinement of every frame unless --no-photometric).
 
     Writes OUT/dataset (VHAP / GaussianAvatars layout, ready for `geoavatar train --data OUT/dataset`),
-    OUT/overlay.mp4 (tracked mesh and landmarks over the frames: green MediaPipe, red model) and
-    OUT/report.json (per-frame landmark reprojection error, frames without a face). Stages are
-    resumable: a re-run skips the stages whose outputs are complete (OUT/.prepare/).
+    OUT/overlay.mp4 (tracked mesh and landmarks over the frames: green MediaPipe, red model; frames without a
+    face flagged) and OUT/report.json (per-frame landmark reprojection error and photometric residual, frames
+    without a face). Stages are resumable: a re-run skips the stages whose outputs are complete (OUT/.prepare/).
 
     Args:
         video: Input video (any container/codec PyAV decodes; rotation metadata is honoured).
@@ -54,7 +55,8 @@ def prepare(
             written to the dataset; without it only the head model's identity modes adapt.
         photometric: After the landmark fit, refine every frame photometrically (a mesh-bound appearance
             model rendered with the CPU rasterizer against the masked crops, landmarks kept as a term);
-            experimental and off by default until it measurably beats the landmark fit (issue #12).
+            --no-photometric writes the landmark fit as is (faster). Re-running with it on over a
+            --no-photometric folder reuses every earlier stage and adds the photometric one.
         overlay: Write OUT/overlay.mp4.
         progress: Show progress bars.
     """

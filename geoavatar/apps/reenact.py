@@ -3,9 +3,10 @@ the avatar.
 
 The driver is a tracked dataset (`--driver`: any layout `geoavatar train` reads) or a video
 (`--driver-video`), which is tracked first by the code of `geoavatar prepare` (geoavatar.prep.pipeline:
-crop, landmarks, masks, the landmark fit with the avatar's head model; the photometric stage only with
-`--photometric`, as `prepare --photometric`) at `--driver-size` pixels (default 256). The driver keeps
-its own identity; only its motion is transferred, as below. Where the tracked driver goes:
+crop, landmarks, masks, the landmark fit with the avatar's head model; prepare's photometric stage, on by
+default there, only with `--photometric` here: it costs ~0.4 CPU s per frame) at `--driver-size` pixels
+(default 256). The driver keeps its own identity; only its motion is transferred, as below. Where the
+tracked driver goes:
 
     RUN/drivers/<video stem>-<8 hex of its absolute path>[-photometric]/    (default)
     --driver-cache DIR                                                       (a folder of your choice)
@@ -315,8 +316,8 @@ def reenact(
         driver_cache: Folder for the tracked driver video (default RUN/drivers/<video stem>-<hash>/); a later
             call with the same video and settings reuses it.
         driver_size: Side in pixels of the driver's face crop (default 256); --driver-video only.
-        photometric: Refine the driver's tracking photometrically, as `prepare --photometric` (slower;
-            experimental); --driver-video only.
+        photometric: Refine the driver's tracking photometrically, as `prepare` does by default (slower: ~0.4 CPU s
+            per frame); --driver-video only.
         threads: CPU threads of the rendering loop (posing and rasterizing). 1 by default, as `geoavatar drive`:
             a frame's tensors are small, and on a busy 2-core machine 2 threads made each frame 5-7x slower
             (OpenMP threads waiting for each other); more may pay on a quiet machine. Tracking a --driver-video

@@ -22,6 +22,9 @@ import tyro
 
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.head.params import FRAME_KEYS, HeadParams
+from geoavatar.prep.photometric import PhotometricConfig
+
+_DEFAULTS = PhotometricConfig()  # the command's defaults are the fit's own (and prepare's photometric stage's)
 
 DatasetPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATASET")]
 REPORT_FILE = "track.json"
@@ -73,8 +76,7 @@ def track_subject(subject, config=None, flame_dir: Path | None = None, progress:
     """Fit every frame of `subject`; returns the PhotometricResult (params rows = subject.timesteps)."""
     from tqdm import tqdm
 
-    from geoavatar.prep.photometric import (PhotometricConfig, PhotometricTargets, crop_boxes, fit_photometric,
-                                            total_steps, weighted_vertex_ids)
+    from geoavatar.prep.photometric import PhotometricTargets, crop_boxes, fit_photometric, total_steps, weighted_vertex_ids
 
     config = config or PhotometricConfig()
     head = tracking_head(subject, flame_dir)
@@ -139,9 +141,10 @@ def write_tracked_copy(subject, params: HeadParams, out: Path, report: dict) -> 
 def track(
     dataset: DatasetPath,
     out: Path,
-    sizes: tuple[int, ...] = (64, 128),
-    epochs: tuple[int, ...] = (4, 3),
-    chunk: int = 8,
+    sizes: tuple[int, ...] = _DEFAULTS.sizes,
+    epochs: tuple[int, ...] = _DEFAULTS.epochs,
+    chunk: int = _DEFAULTS.chunk,
+    per_face: int = _DEFAULTS.per_face,
     fit_shape: bool = False,
     overwrite: bool = False,
     flame_dir: Path | None = None,
@@ -158,31 +161,35 @@ def track(
         sizes: Pyramid levels, image side in pixels.
         epochs: Passes over all frames at each level.
         chunk: Frames per optimiser step.
+        per_face: Gaussians per rendered face: 1 (the centroid) or 4 (the centroid and the corner
+            sub-triangles' centroids; 1.8-2.5x the cost, no more accurate at 128 px).
         fit_shape: Refine the identity shape too.
         overwrite: Replace an existing OUT.
         flame_dir: FLAME files for a FLAME dataset.
-        threads: Torch threads (1 is fastest on a busy 2-core machine: the fit runs many small operations).
+        threads: Torch threads (1 is fastest on a busy 2-core machine: the fit runs many small operations and
+            renders; 2 threads made it 26x slower there, BENCHMARKS.md).
         progress: Show a progress bar.
     """
     import time
 
+    from geoavatar.apps.common import check_threads, torch_threads
     from geoavatar.data.dataset import open_subject
-    from geoavatar.prep.photometric import PhotometricConfig, residual_report
+    from geoavatar.prep.photometric import residual_report
 
     if Path(out).resolve() == Path(dataset).resolve():
         raise OptionError("--out must differ from DATASET (the dataset is copied, never changed in place)")
     if Path(out).exists() and not overwrite:
         raise TrackError(f"{out} exists; pass --overwrite to replace it")
     try:
-        config = PhotometricConfig(sizes=tuple(sizes), epochs=tuple(epochs), chunk=chunk, fit_shape=fit_shape)
+        config = PhotometricConfig(sizes=tuple(sizes), epochs=tuple(epochs), chunk=chunk, per_face=per_face,
+                                   fit_shape=fit_shape)
     except ValueError as err:
         raise OptionError(str(err)) from None
-    if threads < 1:
-        raise OptionError(f"--threads must be at least 1, got {threads}")
-    torch.set_num_threads(threads)
+    check_threads(threads)
     subject = open_subject(dataset)
     started = time.perf_counter()
-    result = track_subject(subject, config, flame_dir, progress)
+    with torch_threads(threads):
+        result = track_subject(subject, config, flame_dir, progress)
     seconds = time.perf_counter() - started
     report = {
         "source": str(Path(dataset).resolve()), "frames": subject.num_timesteps, "seconds": round(seconds, 2),

@@ -1,8 +1,10 @@
 """Overlay video: the tracked mesh (shaded, alpha-blended) and the landmarks over the frames.
 
 Green dots are MediaPipe's (filtered) landmarks, red dots the tracked model's projected landmarks;
-where they sit on each other the tracking is right. The mesh is rendered at `mesh_size` pixels and
-resized to the frame (the CPU z-buffer rasterizer is the cost of this stage).
+where they sit on each other the tracking is right. A caption in the top-left corner names the frame and
+the fit shown (prepare: "photometric" or "landmark fit"); on a frame where no face was found it says so in
+orange (its green dots are then interpolated, not detected). The mesh is rendered at `mesh_size` pixels
+and resized to the frame (the CPU z-buffer rasterizer is the cost of this stage).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from geoavatar.render.mesh import render_mesh, scale_intrinsics
 MESH_ALPHA = 0.45
 DETECTED = (60, 230, 60)
 PROJECTED = (240, 40, 40)
+CAPTION = (255, 255, 255)
+FLAGGED = (255, 150, 0)  # caption of a frame without a detected face
 
 
 def overlay_frame(
@@ -30,8 +34,10 @@ def overlay_frame(
     detected: np.ndarray,  # [L, 2] pixels
     projected: np.ndarray,  # [L, 2] pixels
     mesh_size: int = 256,
+    caption: str = "",
+    flagged: bool = False,
 ) -> np.ndarray:
-    """One overlay picture [S, S, 3] uint8."""
+    """One overlay picture [S, S, 3] uint8, with `caption` in the top-left corner (orange when `flagged`)."""
     import cv2
 
     height, width = image.shape[:2]
@@ -50,6 +56,13 @@ def overlay_frame(
     for points, colour in ((detected, DETECTED), (projected, PROJECTED)):
         for x, y in points:
             cv2.circle(out, (int(round(x - 0.5)), int(round(y - 0.5))), radius, colour, -1, lineType=cv2.LINE_AA)
+    if caption:
+        scale = max(0.3, width / 1024)
+        thickness = max(1, round(2 * scale))
+        origin = (round(8 * scale) + 2, round(28 * scale) + 4)
+        cv2.putText(out, caption, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thickness + 2, cv2.LINE_AA)
+        cv2.putText(out, caption, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, FLAGGED if flagged else CAPTION, thickness,
+                    cv2.LINE_AA)
     return out
 
 

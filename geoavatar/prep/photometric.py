@@ -21,7 +21,8 @@ so only pixels the weighted faces explain count:
 
 Energy per chunk of frames (all terms means over the chunk's frames):
     photo + landmark_weight * (landmark term of prep.tracking, when landmarks are given)
-          + prior_weight * (prep.tracking's per-frame priors + temporal smoothness)
+          + prior_weight * (prep.tracking's per-frame priors + smoothness of expression, jaw, eyes, neck)
+          + pose_smooth_weight * (prep.tracking's smoothness of the head's rotation and translation)
 The temporal terms see the neighbouring frames of the adjacent chunks (fixed), so chunk borders are
 smooth too. A frame whose mask is empty (prepare empties the masks of frames where no face was found, whose
 landmarks are interpolated) has no image term: the mean `photo` is over the chunk's frames with pixels, and
@@ -60,10 +61,13 @@ SH_C2 = (1.0925484305920792, 0.31539156525252005, 0.5462742152960396)
 
 @dataclass
 class PhotometricConfig:
-    """Schedule and weights of the photometric fit (the defaults fit a 400-frame video in ~2 minutes on 2 cores)."""
+    """Schedule and weights of the photometric fit (the defaults cost ~12 ms of one core per frame and epoch: wojtek.mp4's
+    400 frames take 153 CPU s on one thread, BENCHMARKS.md)."""
 
     sizes: tuple[int, ...] = (64, 128)  # pyramid levels: image side in pixels (the longer side)
-    epochs: tuple[int, ...] = (4, 3)  # passes over all frames at each level
+    # passes over all frames at each level: one Adam step per chunk per pass, so the fit's progress is bound by these
+    # (generated subject 0: face error 6.3 -> 5.6 / 5.3 / 4.4 / 3.8 mm with (4, 3) / (8, 6) / (16, 12) / (24, 18))
+    epochs: tuple[int, ...] = (16, 12)
     appearance_epochs: int = 3  # albedo / lighting only, at the first level, before the pose moves
     chunk: int = 8  # frames per optimiser step
     lr_rotation: float = 4e-3  # rad
@@ -80,9 +84,15 @@ class PhotometricConfig:
     fit_shape: bool = False  # refine the identity shape shared by all frames too
     landmark_weight: float = 20.0  # relative to the photometric L1 (landmark term of prep.tracking)
     prior_weight: float = 1.0  # multiplies prep.tracking's priors and temporal smoothness
+    # multiplies prep.tracking's head-pose smoothness (first and second differences of rotation and translation).
+    # At 1 the per-chunk Adam steps left frame-to-frame jitter on a real video whose landmark fit is smooth (wojtek:
+    # mean |second difference| of depth 0.09 -> 1.14 mm); 100 keeps it at 0.45 mm for the same residual, and costs
+    # generated subject 0 0.1-0.2 mm of face error (BENCHMARKS.md, photometric tracking)
+    pose_smooth_weight: float = 100.0
     gaussian_size: float = 0.6  # Gaussian std / sqrt(face area)
     opacity: float = 0.98
-    per_face: int = 4  # Gaussians per face: 1 (centroid) or 4
+    # Gaussians per face: 1 (centroid) or 4. 1 is 1.8-2.5x cheaper and as accurate at 128 px (BENCHMARKS.md)
+    per_face: int = 1
     render_rings: int = 3  # faces rendered around the weighted ones (vertex rings)
     crop_margin: float = 1.25  # fitted crop side / the weighted faces' largest projected extent
     # Coarse levels render at the finest size and area-downsample, as the frames are: a render of sub-pixel
@@ -464,9 +474,9 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
                     landmarks.weights, landmarks.confidence[rows], prior_config.huber)
             around = window(index)
             priors = _frame_priors(params, prior_config)
-            priors.update(_pose_smoothness(around, prior_config))
             priors["smooth"] = _motion_smoothness(around, prior_config)
             terms["prior"] = config.prior_weight * sum(priors.values())
+            terms["pose_smooth"] = config.pose_smooth_weight * sum(_pose_smoothness(around, prior_config).values())
         total = sum(terms.values())
         return total, {k: float(v.detach()) for k, v in terms.items()}
 

@@ -15,8 +15,8 @@ holds the key it would have now, and redoes it and every stage that depends on i
     landmarks  face mesh on the crops, One-Euro filtering, confidence, missing frames
     masks      selfie segmentation x landmark head region (see geoavatar.prep.masks)
     tracking   the head-model fit (geoavatar.prep.tracking)
-    photometric  every frame refined against its crop (geoavatar.prep.photometric; opt-in with --photometric, else skipped,
-               the dataset is written from the landmark fit)
+    photometric  every frame refined against its crop (geoavatar.prep.photometric); with --no-photometric it only
+               records that it was skipped and the dataset is written from the landmark fit
     write      the dataset through LayoutWriter, then the overlay video and the report
 
 A stage's key is the sha256 of the canonical JSON of {its version, its config, its upstream stages'
@@ -50,7 +50,7 @@ from geoavatar.prep.errors import PrepareError
 STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
 # ones depending on it) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 2, "write": 3}
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 2, "write": 4}
 # The stages whose outputs a stage reads: a rerun of one redoes these dependants.
 DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "frames": (),
@@ -61,6 +61,10 @@ DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "write": ("frames", "landmarks", "masks", "tracking", "photometric"),
 }
 WORK = ".prepare"
+# Torch (and native rasterizer) threads of the photometric stage. Its renders are small (128 px, ~10k Gaussians), so
+# every parallel region is short: on a 2-core machine shared with other jobs, 2 threads made it 26x slower in wall
+# time and 21x in CPU time than 1 thread (BENCHMARKS.md, photometric tracking); 1 thread costs little where it is quiet.
+PHOTOMETRIC_THREADS = 1
 UNKEYED = "-"  # a PrepareConfig field no stage output depends on (where to write, logging)
 
 
@@ -94,8 +98,8 @@ class PrepareConfig:
     # fit a smooth static offset of the mesh (geoavatar.head.smooth_offset)
     static_offset: bool = _stage_field("tracking", True)
     # photometric tracking of every frame after the landmark fit (geoavatar.prep.photometric)
-    photometric: bool = _stage_field("photometric", False)  # opt-in until it beats the landmark fit (issue #12)
-    photometric_epochs: tuple[int, int] = _stage_field("photometric", (4, 3))  # at 64 px, at 128 px
+    photometric: bool = _stage_field("photometric", True)  # False (--no-photometric): the landmark fit is written
+    photometric_epochs: tuple[int, int] = _stage_field("photometric", (16, 12))  # at 64 px, at 128 px (PhotometricConfig's)
     overlay: bool = _stage_field("write", True)
     mask_backend: str = _stage_field("masks", "selfie")
     progress: bool = _stage_field(UNKEYED, True)
@@ -187,7 +191,8 @@ def _canonical(value: Any) -> Any:
 
 def stage_configs(config: PrepareConfig) -> dict[str, dict[str, Any]]:
     """Each stage's config: the PrepareConfig fields it reads (by their `_stage_field` stage), plus the
-    video file's identity (frames) and the full TrackingConfig (tracking)."""
+    video file's identity (frames), the full TrackingConfig (tracking) and PhotometricConfig (photometric;
+    with --no-photometric only that flag)."""
     out: dict[str, dict[str, Any]] = {stage: {} for stage in STAGES}
     for f in fields(PrepareConfig):
         stage = f.metadata["stage"]
@@ -199,6 +204,8 @@ def stage_configs(config: PrepareConfig) -> dict[str, dict[str, Any]]:
     out["tracking"]["tracking_config"] = _canonical(tracking_config(config))
     if config.photometric:
         out["photometric"]["photometric_config"] = _canonical(photometric_config(config))
+    else:  # skipped: its settings are not read, so changing them must not redo the dataset written without them
+        out["photometric"] = {"photometric": False}
     return out
 
 
@@ -380,6 +387,7 @@ def stage_photometric(config: PrepareConfig, work: Path) -> dict:
                                             residual_report, total_steps, weighted_vertex_ids)
     from geoavatar.prep.tracking import GROUP_OF, GROUP_WEIGHTS
     from geoavatar.render.camera import project
+    from geoavatar.runtime import num_threads
 
     (work / "photometric.npz").unlink(missing_ok=True)
     if not config.photometric:
@@ -413,7 +421,7 @@ def stage_photometric(config: PrepareConfig, work: Path) -> dict:
         confidence=torch.as_tensor(marks["confidence"], dtype=torch.float32).clamp(0.05, 1.0))
     bar = _bar(config, total_steps(settings, len(keep)), "photometric")
     try:
-        with torch.enable_grad():
+        with torch.enable_grad(), num_threads(PHOTOMETRIC_THREADS):
             result = fit_photometric(head, init, targets, settings, landmarks=landmarks, progress=bar.update)
     finally:
         bar.close()
@@ -480,7 +488,8 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
 
 
 def overlay_frames(config: PrepareConfig, work: Path, rows=None):
-    """Yield (row, overlay picture) for the rows (dataset timesteps) asked for (all by default)."""
+    """Yield (row, overlay picture) for the rows (dataset timesteps) asked for (all by default), each captioned
+    with its timestep and the fit shown; a frame where no face was found (interpolated) is flagged."""
     import torch
 
     from geoavatar.head import HeadModel, npz_frame
@@ -490,8 +499,9 @@ def overlay_frames(config: PrepareConfig, work: Path, rows=None):
     fit = np.load(fit_file(config, work))
     data, _ = load_tracking_head(config)
     head = HeadModel(data)
-    keep = marks["keep"]
+    keep, found = marks["keep"], marks["found"]
     ids = fit["landmark_ids"]
+    shown = "photometric" if config.photometric else "landmark fit"
     params = {k[len("param_"):]: torch.as_tensor(fit[k]) for k in fit.files if k.startswith("param_")}
     viewmat = torch.as_tensor(fit["viewmat"], dtype=torch.float32)
     for row in rows if rows is not None else range(len(keep)):
@@ -499,8 +509,10 @@ def overlay_frames(config: PrepareConfig, work: Path, rows=None):
         with torch.no_grad():
             vertices = head.forward_params(frame_params).vertices[0]
         image = _read_png(work / "frames" / f"{keep[row]:05d}.png")
+        lost = not found[keep[row]]
+        caption = f"{row:05d}  {shown}" + ("  no face: interpolated" if lost else "")
         yield row, overlay_frame(image, vertices, head.faces, viewmat, torch.as_tensor(fit["K"][row], dtype=torch.float32),
-                                 marks["filtered"][row, ids, :2], fit["projected"][row])
+                                 marks["filtered"][row, ids, :2], fit["projected"][row], caption=caption, flagged=lost)
 
 
 def write_overlay(config: PrepareConfig, work: Path, path: Path) -> Path:
