@@ -35,6 +35,7 @@
 #include <memory>
 #include <numeric>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
@@ -545,30 +546,19 @@ GEOAVATAR_INLINE F exp_lanes(F x) {
   return p * reinterpret_cast<const F&>(bits);
 }
 
-// Sum of the W lanes of an int32 vector, by halves (vector adds, not W extractions).
-template <int W>
-GEOAVATAR_INLINE int32_t sum_lanes(typename Vec<W>::I v) {
-  if constexpr (W == 2) {
+// Sum of a vector's lanes, by halves: vector adds, not one extraction per lane, in a fixed order (a
+// shuffle-free tree), so an entry's gradient depends on nothing but its pixels. Any lane type and width.
+template <typename V>
+GEOAVATAR_INLINE auto sum_lanes(V v) {
+  using T = std::remove_cv_t<std::remove_reference_t<decltype(v[0])>>;
+  if constexpr (sizeof(V) == 2 * sizeof(T)) {
     return v[0] + v[1];
   } else {
-    typename Vec<W / 2>::I lo, hi;
+    typedef T Half __attribute__((vector_size(sizeof(V) / 2)));
+    Half lo, hi;
     std::memcpy(&lo, &v, sizeof lo);
     std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
-    return sum_lanes<W / 2>(lo + hi);
-  }
-}
-
-// Sum of the W lanes of a double vector, by halves: a fixed order (a shuffle-free tree), so an entry's
-// gradient does not depend on anything but its pixels.
-template <int W>
-GEOAVATAR_INLINE double sum_lanes_f64(typename Vec<W>::D v) {
-  if constexpr (W == 2) {
-    return v[0] + v[1];
-  } else {
-    typename Vec<W / 2>::D lo, hi;
-    std::memcpy(&lo, &v, sizeof lo);
-    std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
-    return sum_lanes_f64<W / 2>(lo + hi);
+    return sum_lanes(lo + hi);
   }
 }
 #endif
@@ -655,7 +645,7 @@ GEOAVATAR_INLINE void composite_tile_vec(const LaneTile& tile) {
         store(trans + base, add ? next_t : t_here);
         store(last + base, add ? position : load<I>(last + base));
         store(done + base, stop ? one_i : done_here);
-        const int32_t stopped = -sum_lanes<W>(stop);  // -1 per stopped lane
+        const int32_t stopped = -sum_lanes(stop);  // -1 per stopped lane
         tile.row_done[row] += stopped;
         n_done += stopped;
       }
@@ -1055,7 +1045,7 @@ GEOAVATAR_INLINE void backward_tile_vec(const LaneBackTile& tile) {
       }
     }
     double* out = tile.entry_grads + kEntryGrads * static_cast<int64_t>(tile.slots[k]);
-    for (int j = 0; j < kEntryGrads; ++j) out[j] = sum_lanes_f64<W>(__builtin_convertvector(sums[j], D));
+    for (int j = 0; j < kEntryGrads; ++j) out[j] = sum_lanes(__builtin_convertvector(sums[j], D));
   }
 }
 
