@@ -121,7 +121,8 @@ def regularization_losses(
 ) -> dict[str, Tensor]:
     """Weighted regularisers {"reg", "angle", "scale"} (already multiplied by their lambdas)."""
     mask = visible if cfg.visible_only else None
-    r, phi = polar_coordinates(local_means, two_sided=cfg.angle_two_sided, axis=NORMAL_AXIS if cfg.angle_axis == "normal" else Z_AXIS)
+    axis = NORMAL_AXIS if cfg.angle_axis == "normal" else Z_AXIS
+    r, phi = polar_coordinates(local_means, two_sided=cfg.angle_two_sided, axis=axis)
     tau = set_thresholds(cfg, local_means.device)[face_sets.to(local_means.device)[binding]]  # [N]
     out = {"reg": cfg.lambda_reg * position_loss(r, tau, mask)}
     if cfg.use_angle:
