@@ -251,6 +251,20 @@ def test_orbit_cameras_circle_the_head_centre(run, data):
     assert float(turned) == pytest.approx(math.cos(math.radians(60.0)), abs=1e-4)
 
 
+def test_orbit_cameras_put_the_head_centre_mid_image_whatever_the_principal_point(run, data):
+    """prepare's face crops leave the principal point anywhere (duda.mp4: below the image); an orbit camera aimed at
+    the head centre must still show it in the middle of the frame, not at the dataset's principal point."""
+    base = record_camera(open_subject(data), 0, None)
+    K = base.K.clone()
+    K[0, 2], K[1, 2] = 0.3 * base.width, 1.1 * base.height  # off-centre, the second outside the image
+    centre = torch.tensor([0.01, 0.02, -0.03])
+    for camera in orbit_app.orbit_cameras(Camera(base.viewmat, K, base.width, base.height), centre,
+                                          orbit_app.sweep_angles(6, 60.0, 20.0)):
+        pixel, depth = project(centre[None], camera.viewmat, camera.K)
+        assert torch.allclose(pixel[0], torch.tensor([base.width / 2, base.height / 2]), atol=1e-3)
+        assert torch.equal(camera.K[[0, 1], [0, 1]], K[[0, 1], [0, 1]]) and float(depth[0]) > 0  # focal kept
+
+
 def test_orbit_video(run_dir, tmp_path):
     out = tmp_path / "orbit.mp4"
     assert orbit_app.orbit(run_dir, out=out, frames=4, pitch=0.0, device="cpu", progress=False) == 0
