@@ -63,6 +63,7 @@ class OrbitResult(NamedTuple):
     frames: int
     angles: list[tuple[float, float]]  # (yaw, pitch) of each frame, degrees
     outside: list[float]  # share of opacity outside the dilated head silhouette, per frame
+    images: list  # uint8 [H, W, 3] numpy per frame, as written to the video
 
 
 @torch.no_grad()
@@ -114,7 +115,7 @@ def orbit_video(
             outside.append(outside_share(result.alpha, silhouette))
     if stills is not None:
         atomic_write_png(stills, side_by_side(*[images[i] for i in still_indices(angles)]))
-    return OrbitResult(video.frames, angles, outside)
+    return OrbitResult(video.frames, angles, outside, images)
 
 
 def still_indices(angles: list[tuple[float, float]]) -> list[int]:
