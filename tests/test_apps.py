@@ -18,7 +18,7 @@ import torch
 import tyro
 from plyfile import PlyData
 
-from apps_fixtures import SIZE, make_run, make_subject
+from apps_fixtures import SIZE, make_run, make_subject, make_untrained_run
 from geoavatar import cli
 from geoavatar.apps import bench as bench_app
 from geoavatar.apps import export as export_app
@@ -166,11 +166,19 @@ def test_export_sequence_folder_and_npz(run, run_dir, tmp_path):
         assert arrays["timesteps"].tolist() == test_steps
         assert arrays["means"].shape == (count, n, 3) and arrays["quats"].shape == (count, n, 4)
         assert arrays["log_scales"].shape == (count, n, 3)
-        assert arrays["opacity_logits"].shape == (n,) and arrays["f_dc"].shape == (n, 3)
+        assert run.avatar.normal_shading  # the default: the colour is shaded per frame, so stored per frame
+        assert arrays["opacity_logits"].shape == (n,) and arrays["f_dc"].shape == (count, n, 3)
         assert arrays["binding"].shape == (n,)
         first = read_gaussian_ply(folder / f"frame_{test_steps[0]:05d}.ply")
-        assert np.array_equal(arrays["means"][0], first.means)
+        assert np.array_equal(arrays["means"][0], first.means) and np.array_equal(arrays["f_dc"][0], first.f_dc)
         assert not np.allclose(arrays["means"][0], arrays["means"][1])  # the head moves between frames
+    # Without normal shading the colour does not change over time: stored once.
+    plain = make_untrained_run(run.info.data_root, tmp_path / "plain", normal_shading=False)
+    assert export_app.export(plain, out=tmp_path / "plain.npz", sequence=True, format="npz", split="test",
+                             progress=False) == 0
+    with np.load(tmp_path / "plain.npz") as arrays:
+        n = arrays["binding"].shape[0]
+        assert arrays["f_dc"].shape == (n, 3) and arrays["means"].shape == (len(test_steps), n, 3)
     with pytest.raises(OptionError, match="--frame and --sequence"):
         export_app.export(run_dir, frame=0, sequence=True)
     with pytest.raises(OptionError, match="not a timestep"):
