@@ -73,11 +73,16 @@ class ModelConfig:
     # Colour += a linear function (3x3 per Gaussian, zero at the start) of the Gaussian's face normal in world
     # axes: diffuse shading by lights fixed to the world, as when a fixed camera films a turning head. An SH-0
     # colour cannot follow that shading and fakes it with view-dependent layering, which novel views under the
-    # same lights expose (BENCHMARKS.md, issue #18). Assumes a fixed camera (not INSTA's per-frame cameras).
-    normal_shading: bool = False
-    # Initial colour of the Gaussians: grey (GaussianAvatars), or "images": each face's colour in the training
-    # frames, head-on views weighted most, unseen faces from the nearest seen one (avatar/colour_init.py).
-    init_colour: InitColour = "grey"
+    # same lights expose (BENCHMARKS.md, issue #18). Made for a fixed camera (VHAP / GaussianAvatars layouts,
+    # `prepare`); with INSTA's per-frame cameras the world normal hardly changes and the term is an inert second
+    # colour. On by default for every preset since #18's third round (front, mouth and novel views better on two
+    # generated subjects and both test videos); `--config.model.no-normal-shading` turns it off (GaussianAvatars'
+    # and the paper's model; tables measured before that round ran without it).
+    normal_shading: bool = True
+    # Initial colour of the Gaussians: "images" (default since #18's third round): each face's colour in the
+    # training frames, head-on views weighted most, unseen faces from the nearest seen one
+    # (avatar/colour_init.py); or "grey" (GaussianAvatars, the paper; `--config.model.init-colour grey`).
+    init_colour: InitColour = "images"
     mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
     face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
     mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation

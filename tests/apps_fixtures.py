@@ -35,13 +35,15 @@ def make_run(data: Path, out: Path, steps: int = 2) -> Path:
     return out
 
 
-def make_untrained_run(data: Path, out: Path) -> Path:
+def make_untrained_run(data: Path, out: Path, **model) -> Path:
     """A RUN folder holding the trainer's step-0 state (one Gaussian per face): loads like any run, costs
-    no rendering. For tests of the apps' plumbing that need no learned appearance."""
+    no rendering. For tests of the apps' plumbing that need no learned appearance. `model`: ModelConfig fields
+    to change from preset E's."""
     from geoavatar.train import checkpoint as ckpt
     from geoavatar.train.trainer import new_state, open_training_data, state_payload
 
     config = preset("E", steps=2)
+    config = replace(config, model=replace(config.model, **model))
     options = RunOptions(data=data, out=out, device="cpu", progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ShortVideoWarning)

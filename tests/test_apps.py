@@ -18,7 +18,7 @@ import torch
 import tyro
 from plyfile import PlyData
 
-from apps_fixtures import SIZE, make_run, make_subject
+from apps_fixtures import SIZE, make_run, make_subject, make_untrained_run
 from geoavatar import cli
 from geoavatar.apps import bench as bench_app
 from geoavatar.apps import export as export_app
@@ -166,11 +166,19 @@ def test_export_sequence_folder_and_npz(run, run_dir, tmp_path):
         assert arrays["timesteps"].tolist() == test_steps
         assert arrays["means"].shape == (count, n, 3) and arrays["quats"].shape == (count, n, 4)
         assert arrays["log_scales"].shape == (count, n, 3)
-        assert arrays["opacity_logits"].shape == (n,) and arrays["f_dc"].shape == (n, 3)
+        assert run.avatar.normal_shading  # the default: the colour is shaded per frame, so stored per frame
+        assert arrays["opacity_logits"].shape == (n,) and arrays["f_dc"].shape == (count, n, 3)
         assert arrays["binding"].shape == (n,)
         first = read_gaussian_ply(folder / f"frame_{test_steps[0]:05d}.ply")
-        assert np.array_equal(arrays["means"][0], first.means)
+        assert np.array_equal(arrays["means"][0], first.means) and np.array_equal(arrays["f_dc"][0], first.f_dc)
         assert not np.allclose(arrays["means"][0], arrays["means"][1])  # the head moves between frames
+    # Without normal shading the colour does not change over time: stored once.
+    plain = make_untrained_run(run.info.data_root, tmp_path / "plain", normal_shading=False)
+    assert export_app.export(plain, out=tmp_path / "plain.npz", sequence=True, format="npz", split="test",
+                             progress=False) == 0
+    with np.load(tmp_path / "plain.npz") as arrays:
+        n = arrays["binding"].shape[0]
+        assert arrays["f_dc"].shape == (n, 3) and arrays["means"].shape == (len(test_steps), n, 3)
     with pytest.raises(OptionError, match="--frame and --sequence"):
         export_app.export(run_dir, frame=0, sequence=True)
     with pytest.raises(OptionError, match="not a timestep"):
@@ -249,6 +257,20 @@ def test_orbit_cameras_circle_the_head_centre(run, data):
     yaw_eye = eyes[[a[0] for a in angles].index(max(a[0] for a in angles))]
     turned = torch.nn.functional.cosine_similarity(flat(yaw_eye - centre), flat(eyes[0] - centre), dim=0)
     assert float(turned) == pytest.approx(math.cos(math.radians(60.0)), abs=1e-4)
+
+
+def test_orbit_cameras_put_the_head_centre_mid_image_whatever_the_principal_point(run, data):
+    """prepare's face crops leave the principal point anywhere (duda.mp4: below the image); an orbit camera aimed at
+    the head centre must still show it in the middle of the frame, not at the dataset's principal point."""
+    base = record_camera(open_subject(data), 0, None)
+    K = base.K.clone()
+    K[0, 2], K[1, 2] = 0.3 * base.width, 1.1 * base.height  # off-centre, the second outside the image
+    centre = torch.tensor([0.01, 0.02, -0.03])
+    for camera in orbit_app.orbit_cameras(Camera(base.viewmat, K, base.width, base.height), centre,
+                                          orbit_app.sweep_angles(6, 60.0, 20.0)):
+        pixel, depth = project(centre[None], camera.viewmat, camera.K)
+        assert torch.allclose(pixel[0], torch.tensor([base.width / 2, base.height / 2]), atol=1e-3)
+        assert torch.equal(camera.K[[0, 1], [0, 1]], K[[0, 1], [0, 1]]) and float(depth[0]) > 0  # focal kept
 
 
 def test_orbit_video(run_dir, tmp_path):

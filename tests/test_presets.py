@@ -1,6 +1,7 @@
 """Configs: paper defaults, the ablation presets A-I (paper Tables 3, 6, 7) and schedule scaling."""
 
 import dataclasses
+import json
 
 import pytest
 
@@ -58,6 +59,31 @@ def test_paper_defaults():
     assert (c.lr.position, c.lr.position_final, c.lr.features, c.lr.opacity, c.lr.scaling, c.lr.rotation) == (
         5e-3, 5e-5, 2.5e-3, 0.05, 0.017, 1e-3)
     assert c.lr.adam_eps == 1e-15 and c.refine_tracking
+
+
+@pytest.mark.parametrize("name", sorted(PAPER))
+def test_every_preset_has_normal_shading_and_image_colours_and_can_turn_them_off(name):
+    """#18 third round: on by default (front and novel views better on two generated subjects and two videos);
+    the paper's / GaussianAvatars' model stays one option away."""
+    config = preset(name)
+    assert config.model.normal_shading and config.model.init_colour == "images"
+    off = with_values(config, {"model.normal_shading": False, "model.init_colour": "grey"}).validate()
+    assert not off.model.normal_shading and off.model.init_colour == "grey"
+
+
+def test_a_stored_configuration_from_before_the_options_reads_as_trained():
+    """Runs written before model.normal_shading / init_colour existed were trained without them: loading (and
+    --resume / --extend) must not give them today's defaults."""
+    from geoavatar.train.checkpoint import FIELDS_ADDED_LATER, config_from_json, config_to_dict
+
+    stored = config_to_dict(preset("E"))
+    assert set(FIELDS_ADDED_LATER["model"]) <= set(stored["model"])
+    for key in FIELDS_ADDED_LATER["model"]:
+        del stored["model"][key]
+    old = config_from_json(json.dumps(stored))
+    assert not old.model.normal_shading and old.model.init_colour == "grey"
+    assert dataclasses.replace(old, model=preset("E").model) == preset("E")  # nothing else changes
+    assert config_from_json(json.dumps(config_to_dict(preset("E")))) == preset("E")  # written today: as stored
 
 
 def test_scaled_to_keeps_every_milestone_proportional():

@@ -265,7 +265,8 @@ def test_normal_shading_run_trains_loads_and_exports_shaded_colours(subject, tmp
 
 
 def test_init_colour_images_starts_from_the_training_frames_colours(subject, tmp_path):
-    """model.init_colour = "images": the fresh avatar's colours are the frames' (skin-toned, varied), not grey."""
+    """model.init_colour = "images" (the default): the fresh avatar's colours are the frames' (skin-toned, varied),
+    not grey as with "grey"."""
     from geoavatar.avatar.model import sh_dc_to_rgb
 
     config = small_config()
@@ -274,7 +275,8 @@ def test_init_colour_images_starts_from_the_training_frames_colours(subject, tmp
         warnings.simplefilter("ignore", ShortVideoWarning)
         data = open_training_data(options(subject, tmp_path / "ic"), config)
     colours = sh_dc_to_rgb(new_state(data, config, seed=0).avatar.params["f_dc"]).detach()  # [N, 3]
-    grey = sh_dc_to_rgb(new_state(data, small_config(), seed=0).avatar.params["f_dc"]).detach()
+    grey_config = replace(config, model=replace(config.model, init_colour="grey"))  # GaussianAvatars' start
+    grey = sh_dc_to_rgb(new_state(data, grey_config, seed=0).avatar.params["f_dc"]).detach()
     assert torch.allclose(grey, torch.full_like(grey, 0.5))
     assert float((colours - 0.5).abs().mean()) > 0.05 and float(colours.std(0).mean()) > 0.05
     assert float(colours[:, 0].mean()) > float(colours[:, 2].mean())  # skin and hair are redder than blue

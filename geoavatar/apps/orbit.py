@@ -1,13 +1,16 @@
 """`geoavatar orbit RUN [--frame K]`: novel views of one frame, a yaw sweep then a pitch sweep; mp4.
 
 The avatar is posed with frame K's parameters (T rule of apps/common.py). The cameras keep the
-dataset camera's intrinsics and its distance to the head centre (apps.common.head_centre: the
-bounding-box centre of the posed skin without the neck) and turn about that centre:
+dataset camera's focal lengths and its distance to the head centre (apps.common.head_centre: the
+bounding-box centre of the posed skin without the neck), are aimed at that centre with the principal
+point at the image centre (render.camera.centred_intrinsics: `prepare`'s crops put the dataset's
+principal point anywhere, and an aimed camera shows its target there) and turn about it:
 
     first half of the frames:  yaw(s)   = yaw_max   * sin(2 pi s), s in [0, 1)   about the camera's up axis
     second half:               pitch(s) = pitch_max * sin(2 pi s)                about the camera's right axis
 
-so the video starts and ends at the dataset's own viewpoint (aimed at the head centre) and loops.
+so the video starts and ends at the dataset's own viewpoint (aimed at the head centre, which is in the middle
+of every frame) and loops.
 
 Floaters (eval/floaters.py): every frame's share of rendered opacity outside the dilated silhouette of
 the posed head mesh is measured; the command prints its mean, its largest value and where, and with
@@ -32,7 +35,7 @@ from geoavatar.errors import OptionError
 from geoavatar.eval.floaters import DEFAULT_DILATE, FloaterConfig, head_silhouette, outside_share
 from geoavatar.io.atomic import atomic_write_png
 from geoavatar.io.video import Mp4Writer
-from geoavatar.render.camera import orbit_viewmat
+from geoavatar.render.camera import centred_intrinsics, orbit_viewmat
 from geoavatar.train.checkpoint import RunError
 
 
@@ -48,16 +51,19 @@ def sweep_angles(frames: int, yaw_max: float, pitch_max: float) -> list[tuple[fl
 
 
 def orbit_cameras(base: Camera, centre: Tensor, angles: list[tuple[float, float]]) -> list[Camera]:
-    """Cameras turned about `centre` [3] by (yaw, pitch) degrees, at base's distance and intrinsics
-    (render.camera.orbit_viewmat: positive yaw toward the camera's right, positive pitch up)."""
+    """Cameras turned about `centre` [3] by (yaw, pitch) degrees and aimed at it, at base's distance and focal
+    lengths, `centre` in the middle of the image (render.camera.orbit_viewmat: positive yaw toward the camera's
+    right, positive pitch up; centred_intrinsics)."""
     viewmat = base.viewmat.to(centre)
-    return [Camera(orbit_viewmat(viewmat, centre, yaw, pitch), base.K, base.width, base.height) for yaw, pitch in angles]
+    K = centred_intrinsics(base.K, base.width, base.height)
+    return [Camera(orbit_viewmat(viewmat, centre, yaw, pitch), K, base.width, base.height) for yaw, pitch in angles]
 
 
 class OrbitResult(NamedTuple):
     frames: int
     angles: list[tuple[float, float]]  # (yaw, pitch) of each frame, degrees
     outside: list[float]  # share of opacity outside the dilated head silhouette, per frame
+    images: list  # uint8 [H, W, 3] numpy per frame, as written to the video
 
 
 @torch.no_grad()
@@ -109,7 +115,7 @@ def orbit_video(
             outside.append(outside_share(result.alpha, silhouette))
     if stills is not None:
         atomic_write_png(stills, side_by_side(*[images[i] for i in still_indices(angles)]))
-    return OrbitResult(video.frames, angles, outside)
+    return OrbitResult(video.frames, angles, outside, images)
 
 
 def still_indices(angles: list[tuple[float, float]]) -> list[int]:

@@ -90,7 +90,24 @@ def _checkpoint_settings(path: Path) -> dict:
     except (KeyError, TypeError, ValueError) as err:
         raise RunMismatch(f"{path}: the checkpoint does not record its configuration ({err})") from None
     return {"preset": run.get("preset"), "steps": config.get("steps"), "resolution": run.get("resolution"),
-            "seed": run.get("seed"), "data": run.get("data"), "step": int(payload.get("step", -1))}
+            "seed": run.get("seed"), "data": run.get("data"), "step": int(payload.get("step", -1)),
+            "model": _model_values(payload["config"], path)}
+
+
+# The sections of a run's configuration that a preset fixes; a default changed since the run was trained (e.g. #18's
+# normal shading) makes it another model than `--preset` asks for today.
+MODEL_SECTIONS = ("model.", "loss.")
+
+
+def _model_values(config_text: str, path: Path) -> dict:
+    from geoavatar.config import config_values
+    from geoavatar.train.checkpoint import RunError, config_from_json
+
+    try:
+        config = config_from_json(config_text, where=str(path))
+    except RunError as err:
+        raise RunMismatch(str(err)) from None
+    return {k: v for k, v in config_values(config).items() if k.startswith(MODEL_SECTIONS)}
 
 
 def _differences(spec: JobSpec, saved: dict) -> list[str]:
@@ -99,6 +116,12 @@ def _differences(spec: JobSpec, saved: dict) -> list[str]:
     data = saved.get("data")
     if data is None or Path(data).resolve() != Path(spec.data).resolve():
         out.append(f"dataset {data} (asked {spec.data})")
+    if not out:  # same preset name: the model it stands for today
+        from geoavatar.config import config_values, preset
+
+        asked = {k: v for k, v in config_values(preset(spec.preset, spec.steps)).items() if k.startswith(MODEL_SECTIONS)}
+        out += [f"{key} {saved['model'].get(key)!r} (preset {spec.preset} today: {value!r})"
+                for key, value in asked.items() if saved["model"].get(key) != value]
     return out
 
 

@@ -24,7 +24,7 @@ from torch import Tensor
 from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_centre
-from geoavatar.render.camera import Camera, orbit_viewmat, world_to_camera
+from geoavatar.render.camera import Camera, centred_intrinsics, orbit_viewmat, world_to_camera
 from geoavatar.render.mesh import rasterize_mesh
 
 # (name, yaw, pitch) in degrees: the side views of `side_view_shares` (+ yaw toward the camera's right).
@@ -73,16 +73,18 @@ def outside_share(alpha: Tensor, silhouette: Tensor) -> float:
 def side_view_shares(run, params: HeadParams, timestep: int | None, camera: Camera,
                      config: FloaterConfig | None = None, backend: str = "auto") -> dict[str, float]:
     """outside_share of the run's avatar posed by `params` (T `timestep`) at each side view: `camera`
-    turned about the head centre (head.regions.skull_centre) by the view's yaw and pitch."""
+    turned about the head centre (head.regions.skull_centre) by the view's yaw and pitch, aimed at it with the
+    principal point at the image centre (render.camera.centred_intrinsics), as `geoavatar orbit` aims."""
     config = config or FloaterConfig()
     posed = pose_avatar(run.avatar, run.head, params, timestep, run.deformer)
     vertices = posed.vertices  # [V, 3]
     centre = skull_centre(vertices, run.head)  # [3]
     viewmat = camera.viewmat.to(vertices)
+    K = centred_intrinsics(camera.K.to(vertices), camera.width, camera.height)  # the aimed centre mid-image
     dilate = config.dilate_px(camera.width, camera.height)
     shares = {}
     for name, yaw, pitch in config.views:
-        view = Camera(orbit_viewmat(viewmat, centre, yaw, pitch), camera.K.to(vertices), camera.width, camera.height)
+        view = Camera(orbit_viewmat(viewmat, centre, yaw, pitch), K, camera.width, camera.height)
         alpha = rasterize_gaussians(posed.gaussians, view, None, backend).alpha  # [H, W, 1]
         shares[name] = outside_share(alpha, head_silhouette(vertices, run.head.faces, view, dilate))
     return shares

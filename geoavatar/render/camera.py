@@ -111,6 +111,17 @@ def intrinsics_from_fov(
     )
 
 
+def centred_intrinsics(K: Tensor, width: int, height: int) -> Tensor:
+    """K [3, 3] with its principal point moved to the image centre (width / 2, height / 2), focal lengths kept.
+
+    A camera aimed at a point (look_at, orbit_viewmat) shows that point at the principal point; `prepare`'s
+    face crops leave it anywhere (even outside the image), so views aimed at the head use this K."""
+    out = K.clone()
+    out[..., 0, 2] = width / 2.0
+    out[..., 1, 2] = height / 2.0
+    return out
+
+
 def fov_from_intrinsics(K: Tensor, width: int, height: int, axis: Literal["x", "y"] = "x") -> float:
     """Inverse of intrinsics_from_fov: full field of view in degrees across width (x) or height (y)."""
     focal = float(K[..., 0, 0] if axis == "x" else K[..., 1, 1])
@@ -204,7 +215,7 @@ def _homogeneous(matrix: Tensor, name: str) -> Tensor:
 
 
 __all__ = [
-    "Camera", "look_at", "intrinsics_from_fov", "fov_from_intrinsics", "world_to_camera", "project",
+    "Camera", "look_at", "intrinsics_from_fov", "centred_intrinsics", "fov_from_intrinsics", "world_to_camera", "project",
     "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "scale_intrinsics",
     "orbit_viewmat",
 ]

@@ -136,9 +136,19 @@ def dataclass_from_dict(cls: type, data: dict, where: str = "config") -> Any:
     return cls(**values)
 
 
+# Fields added to the configuration after runs had been written, with the value those runs were trained with
+# (a stored configuration without the field predates it); their defaults today differ.
+FIELDS_ADDED_LATER: dict[str, dict[str, Any]] = {"model": {"normal_shading": False, "init_colour": "grey"}}
+
+
 def config_from_json(text: str, where: str = "config") -> TrainConfig:
+    """A stored TrainConfig; fields it predates (FIELDS_ADDED_LATER) take the value it was trained with."""
     try:
-        return dataclass_from_dict(TrainConfig, json.loads(text), where).validate()
+        data = json.loads(text)
+        for section, added in FIELDS_ADDED_LATER.items():
+            if isinstance(data, dict) and isinstance(data.get(section), dict):
+                data[section] = {**added, **data[section]}
+        return dataclass_from_dict(TrainConfig, data, where).validate()
     except (json.JSONDecodeError, TypeError, ValueError) as err:
         raise RunError(f"{where}: not a valid training configuration ({err})") from err
 
@@ -285,6 +295,6 @@ def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None 
 __all__ = [
     "APS_FILE", "CHECKPOINT_DIR", "CONFIG_FILE", "FINAL_CHECKPOINT", "LAST_CHECKPOINT", "LOG_FILE", "VAL_DIR",
     "LoadedRun", "RunError", "RunInfo", "last_good_checkpoint", "open_run_dataset",
-    "config_from_json", "config_to_dict", "dataclass_from_dict", "load_checkpoint", "load_head_for", "load_run",
+    "FIELDS_ADDED_LATER", "config_from_json", "config_to_dict", "dataclass_from_dict", "load_checkpoint", "load_head_for", "load_run",
     "run_checkpoint_path", "save_checkpoint",
 ]
