@@ -61,12 +61,13 @@ SH_C2 = (1.0925484305920792, 0.31539156525252005, 0.5462742152960396)
 
 @dataclass
 class PhotometricConfig:
-    """Schedule and weights of the photometric fit (the defaults cost ~12 ms of one core per frame and epoch: wojtek.mp4's
-    400 frames take 153 CPU s on one thread, BENCHMARKS.md)."""
+    """Schedule and weights of the photometric fit (the defaults cost ~12 ms of one core per frame and epoch, 36 epochs in
+    all; BENCHMARKS.md, photometric tracking)."""
 
     sizes: tuple[int, ...] = (64, 128)  # pyramid levels: image side in pixels (the longer side)
     # passes over all frames at each level: one Adam step per chunk per pass, so the fit's progress is bound by these
-    # (generated subject 0: face error 6.3 -> 5.6 / 5.3 / 4.4 / 3.8 mm with (4, 3) / (8, 6) / (16, 12) / (24, 18))
+    # (generated subject 0, session 6's rates: face error 6.3 -> 5.6 / 5.3 / 4.4 / 3.8 mm with (4, 3) / (8, 6) / (16, 12) /
+    # (24, 18); the rates below reach 3.3 mm at (16, 12))
     epochs: tuple[int, ...] = (16, 12)
     appearance_epochs: int = 8  # albedo / lighting only, at the first level, before the pose moves
     chunk: int = 8  # frames per optimiser step
