@@ -1,7 +1,7 @@
 """Photometric tracking against the truth on generated subjects: `geoavatar track` on `geoavatar synth` output.
 
     .venv/bin/python benchmarks/tracking_bench.py --work /work/track_runs/bench --subjects 0 --frames 48 --size 256 \
-        [--epochs 8 6] [--sizes 64 128] [--per-face 1] [--threads 1] [--tracked NAME]
+        [--epochs 8 6] [--sizes 64 128] [--per-face 1] [--threads 1] [--tracked NAME] [--set lr_translation=0.003 ...]
 
 For each subject: generate (or reuse) WORK/synth<k>, run `geoavatar track` into WORK/tracked<k>, then compare the
 written parameters (flame_param/ of the synthetic dataset: truth + tracker-like error) and the fitted ones
@@ -69,7 +69,12 @@ def main() -> int:
     parser.add_argument("--per-face", type=int, default=None, help="passed to geoavatar track --per-face")
     parser.add_argument("--threads", type=int, default=None, help="passed to geoavatar track --threads")
     parser.add_argument("--tracked", default="tracked", help="name of the output folder in WORK (tracked<k>)")
+    parser.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE",
+                        help="PhotometricConfig fields (Python literals), e.g. pose_smooth_weight=30 epochs='(16, 12)': "
+                             "the fit runs through this script (track_subject, one thread) instead of `geoavatar track`")
     args = parser.parse_args()
+    if args.set and (args.epochs or args.sizes or args.per_face or args.threads):
+        parser.error("--set replaces the track options: give epochs / sizes / per_face as --set fields")
     from geoavatar.data.dataset import open_subject
     from geoavatar.head import load_head_model
 
@@ -82,6 +87,8 @@ def main() -> int:
             subprocess.run([*geoavatar, "synth", "--out", str(synth), "--subject", str(subject), "--frames",
                             str(args.frames), "--size", str(args.size), "--no-progress"], check=True)
         command = [*geoavatar, "track", str(synth), "--out", str(tracked), "--overwrite", "--no-progress"]
+        if args.set:
+            command = [sys.executable, __file__, "--fit-with", str(synth), str(tracked), *args.set]
         if args.epochs:
             command += ["--epochs", *map(str, args.epochs)]
         if args.sizes:
@@ -121,6 +128,30 @@ def main() -> int:
     return 0
 
 
+def fit_with(synth: Path, tracked: Path, settings: list[str]) -> None:
+    """`geoavatar track synth --out tracked --overwrite` with PhotometricConfig fields set from FIELD=VALUE strings."""
+    import ast
+    import shutil
+    from dataclasses import replace
+
+    from geoavatar.apps.track import track_subject, write_tracked_copy
+    from geoavatar.data.dataset import open_subject
+    from geoavatar.prep.photometric import PhotometricConfig
+    from geoavatar.runtime import num_threads, setup_process
+
+    setup_process()
+    changes = {}
+    for item in settings:
+        key, _, value = item.partition("=")
+        changes[key] = ast.literal_eval(value)
+    config = replace(PhotometricConfig(), **changes)
+    subject = open_subject(synth)
+    with num_threads(1):
+        result = track_subject(subject, config, progress=False)
+    shutil.rmtree(tracked, ignore_errors=True)
+    write_tracked_copy(subject, result.params, tracked, {"set": changes, "log": result.log})
+
+
 def _children_cpu() -> float:
     """User + system CPU seconds of the finished child processes."""
     times = os.times()
@@ -128,4 +159,7 @@ def _children_cpu() -> float:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--fit-with":
+        fit_with(Path(sys.argv[2]), Path(sys.argv[3]), sys.argv[4:])
+        sys.exit(0)
     sys.exit(main())

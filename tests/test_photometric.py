@@ -121,20 +121,26 @@ def _vertex_error(head, a: HeadParams, b: HeadParams, ids) -> float:
                      .norm(dim=-1).mean())
 
 
-@pytest.mark.xfail(reason="issue #12 open: the fit lowers the residual but not the vertex error: the albedo learnt "
-                          "from the perturbed poses absorbs the misalignment (a shift shared by the frames is invisible "
-                          "to an appearance estimated from them)", strict=False)
 def test_fit_recovers_a_known_perturbation_of_pose_and_expression(head):
-    frames, size = 3, 96
+    """Six frames of a rendered head, every frame's pose, jaw and expression perturbed, are pulled back to the truth.
+
+    The perturbations are centred over the frames: an offset common to every frame is the gauge of a fit whose
+    albedo is estimated from the same frames (the albedo slides with it; BENCHMARKS.md, photometric tracking), and
+    prepare pins it with its landmark term. What the image term must do is make the frames agree with one another."""
+    frames, size = 6, 96
     truth = _truth(head, frames)
     images, masks, viewmat, K = _render_frames(head, truth, size)
     g = torch.Generator().manual_seed(1)
-    noisy = truth.replace(rotation=truth.rotation + 0.035 * torch.randn(frames, 3, generator=g),
-                          translation=truth.translation + 0.004 * torch.randn(frames, 3, generator=g) * torch.tensor([1, 1, 0.3]),
-                          expr=truth.expr + 0.25 * torch.randn(frames, head.num_expr, generator=g) * (torch.arange(head.num_expr) < 4),
-                          jaw_pose=truth.jaw_pose + torch.tensor([0.04, 0, 0]))
-    config = PhotometricConfig(sizes=(48, 96), epochs=(12, 8), chunk=frames, appearance_epochs=4, prior_weight=0.01,
-                               pose_smooth_weight=0.01)
+    centred = lambda x: x - x.mean(0, keepdim=True)  # noqa: E731
+    noisy = truth.replace(
+        rotation=truth.rotation + centred(0.035 * torch.randn(frames, 3, generator=g)),
+        translation=truth.translation + centred(0.004 * torch.randn(frames, 3, generator=g) * torch.tensor([1, 1, 0.3])),
+        expr=truth.expr + centred(0.25 * torch.randn(frames, head.num_expr, generator=g) * (torch.arange(head.num_expr) < 4)),
+        jaw_pose=truth.jaw_pose + centred(torch.randn(frames, 1, generator=g) * torch.tensor([0.04, 0, 0])))
+    # One chunk holds every frame, so the shared albedo gets one Adam step per epoch (a video of 400 frames gets
+    # 50): its rate while the pose moves is raised to match.
+    config = PhotometricConfig(sizes=(48, 96), epochs=(30, 20), chunk=frames, appearance_epochs=20, prior_weight=0.01,
+                               pose_smooth_weight=0.01, lr_albedo_pose=0.05)
     viewmats = np.broadcast_to(viewmat, (frames, 4, 4))
     boxes = crop_boxes(head, noisy, torch.as_tensor(viewmats.copy()), torch.as_tensor(K).expand(frames, 3, 3),
                        weighted_vertex_ids(head), config.crop_margin)
@@ -143,7 +149,7 @@ def test_fit_recovers_a_known_perturbation_of_pose_and_expression(head):
     ids = weighted_vertex_ids(head)
     before, after = _vertex_error(head, noisy, truth, ids), _vertex_error(head, result.params, truth, ids)
     assert after < before / 2.5, (before, after)
-    assert result.residual.mean() < result.residual_before.mean()
+    assert result.residual.mean() < result.residual_before.mean() / 2
     assert result.params.rotation.shape == (frames, 3) and np.isfinite(result.residual).all()
 
 

@@ -61,19 +61,23 @@ SH_C2 = (1.0925484305920792, 0.31539156525252005, 0.5462742152960396)
 
 @dataclass
 class PhotometricConfig:
-    """Schedule and weights of the photometric fit (the defaults cost ~12 ms of one core per frame and epoch: wojtek.mp4's
-    400 frames take 153 CPU s on one thread, BENCHMARKS.md)."""
+    """Schedule and weights of the photometric fit (the defaults cost ~12 ms of one core per frame and epoch, 36 epochs in
+    all; BENCHMARKS.md, photometric tracking)."""
 
     sizes: tuple[int, ...] = (64, 128)  # pyramid levels: image side in pixels (the longer side)
     # passes over all frames at each level: one Adam step per chunk per pass, so the fit's progress is bound by these
-    # (generated subject 0: face error 6.3 -> 5.6 / 5.3 / 4.4 / 3.8 mm with (4, 3) / (8, 6) / (16, 12) / (24, 18))
+    # (generated subject 0, session 6's rates: face error 6.3 -> 5.6 / 5.3 / 4.4 / 3.8 mm with (4, 3) / (8, 6) / (16, 12) /
+    # (24, 18); the rates below reach 3.3 mm at (16, 12))
     epochs: tuple[int, ...] = (16, 12)
-    appearance_epochs: int = 3  # albedo / lighting only, at the first level, before the pose moves
+    appearance_epochs: int = 8  # albedo / lighting only, at the first level, before the pose moves
     chunk: int = 8  # frames per optimiser step
-    lr_rotation: float = 4e-3  # rad
-    lr_translation: float = 1e-3  # m
-    lr_neck: float = 4e-3
-    lr_jaw: float = 4e-3
+    # Adam moves a parameter by about its rate per step, and each frame gets one step per epoch: the head pose's
+    # rates are what lets 28 steps cover a centimetre (generated subject 0: 3x the rates of session 6 took the test face
+    # error 8.3 -> 5.6 mm, 2x 6.3, 4x 5.8, 6x 6.7; BENCHMARKS.md, photometric tracking)
+    lr_rotation: float = 1.2e-2  # rad
+    lr_translation: float = 3e-3  # m
+    lr_neck: float = 1.2e-2
+    lr_jaw: float = 1.2e-2
     lr_eyes: float = 1e-2
     lr_expr: float = 3e-2
     lr_shape: float = 1e-2
@@ -86,9 +90,9 @@ class PhotometricConfig:
     prior_weight: float = 1.0  # multiplies prep.tracking's priors and temporal smoothness
     # multiplies prep.tracking's head-pose smoothness (first and second differences of rotation and translation).
     # At 1 the per-chunk Adam steps left frame-to-frame jitter on a real video whose landmark fit is smooth (wojtek:
-    # mean |second difference| of depth 0.09 -> 1.14 mm); 100 keeps it at 0.45 mm for the same residual, and costs
-    # generated subject 0 0.1-0.2 mm of face error (BENCHMARKS.md, photometric tracking)
-    pose_smooth_weight: float = 100.0
+    # mean |second difference| of depth 0.09 -> 1.14 mm). At the rates above, 100 held generated subject 0's test
+    # frames far from the truth (face 5.0 mm against 3.1 at 30; BENCHMARKS.md, photometric tracking)
+    pose_smooth_weight: float = 30.0
     gaussian_size: float = 0.6  # Gaussian std / sqrt(face area)
     opacity: float = 0.98
     # Gaussians per face: 1 (centroid) or 4. 1 is 1.8-2.5x cheaper and as accurate at 128 px (BENCHMARKS.md)
