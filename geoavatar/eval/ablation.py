@@ -80,18 +80,20 @@ def metrics_path(run_dir: str | os.PathLike) -> Path:
 
 
 def _checkpoint_settings(path: Path) -> dict:
-    """preset, steps, resolution, seed, data and step recorded in a checkpoint of `geoavatar train`."""
-    from geoavatar.train.checkpoint import load_checkpoint
+    """preset, steps, resolution, seed, data, step and model settings recorded in a checkpoint of `geoavatar train`."""
+    from geoavatar.train.checkpoint import RunError, config_from_json, load_checkpoint
 
     payload = load_checkpoint(path)  # RunError naming the file when it is unreadable
     try:
-        config = json.loads(payload["config"])
+        config = config_from_json(payload["config"], where=str(path))
         run = json.loads(payload.get("run", "{}"))
     except (KeyError, TypeError, ValueError) as err:
         raise RunMismatch(f"{path}: the checkpoint does not record its configuration ({err})") from None
-    return {"preset": run.get("preset"), "steps": config.get("steps"), "resolution": run.get("resolution"),
+    except RunError as err:
+        raise RunMismatch(str(err)) from None
+    return {"preset": run.get("preset"), "steps": config.steps, "resolution": run.get("resolution"),
             "seed": run.get("seed"), "data": run.get("data"), "step": int(payload.get("step", -1)),
-            "model": _model_values(payload["config"], path)}
+            "model": _model_values(config)}
 
 
 # The sections of a run's configuration that a preset fixes; a default changed since the run was trained (e.g. #18's
@@ -99,14 +101,10 @@ def _checkpoint_settings(path: Path) -> dict:
 MODEL_SECTIONS = ("model.", "loss.")
 
 
-def _model_values(config_text: str, path: Path) -> dict:
+def _model_values(config) -> dict:
+    """The MODEL_SECTIONS fields of a TrainConfig, by dotted name."""
     from geoavatar.config import config_values
-    from geoavatar.train.checkpoint import RunError, config_from_json
 
-    try:
-        config = config_from_json(config_text, where=str(path))
-    except RunError as err:
-        raise RunMismatch(str(err)) from None
     return {k: v for k, v in config_values(config).items() if k.startswith(MODEL_SECTIONS)}
 
 
@@ -117,9 +115,9 @@ def _differences(spec: JobSpec, saved: dict) -> list[str]:
     if data is None or Path(data).resolve() != Path(spec.data).resolve():
         out.append(f"dataset {data} (asked {spec.data})")
     if not out:  # same preset name: the model it stands for today
-        from geoavatar.config import config_values, preset
+        from geoavatar.config import preset
 
-        asked = {k: v for k, v in config_values(preset(spec.preset, spec.steps)).items() if k.startswith(MODEL_SECTIONS)}
+        asked = _model_values(preset(spec.preset, spec.steps))
         out += [f"{key} {saved['model'].get(key)!r} (preset {spec.preset} today: {value!r})"
                 for key, value in asked.items() if saved["model"].get(key) != value]
     return out
