@@ -71,10 +71,16 @@ def test_viewer_serves_a_page_on_localhost_and_follows_the_gui(run):
         viewer.fps.value = 60.0
         viewer.playing.value = True  # playback advances the frame slider on its own thread
         deadline = time.time() + 20.0
-        while viewer.frame.value == 2 and time.time() < deadline:
+        shown = viewer.frame.value
+        while shown == 2 and time.time() < deadline:
             time.sleep(0.05)
+            shown = viewer.frame.value  # read once: at 60 fps over 4 frames it may be back at 2 a moment later
         viewer.playing.value = False
-        assert viewer.frame.value != 2
+        assert shown != 2
+        time.sleep(0.3)  # a step already under way finishes
+        paused_at = viewer.frame.value
+        time.sleep(0.3)
+        assert viewer.frame.value == paused_at  # pausing stops the playback
     finally:
         viewer.stop()
     with pytest.raises(OSError):
