@@ -189,3 +189,17 @@ def test_bad_run_folders_fail_clearly(run_e, tmp_path):
         eval_runs([run_e], data=tmp_path / "moved", progress=False, device="cpu")
     with pytest.raises(OptionError, match="--max-frames must be positive"):
         eval_runs([run_e], max_frames=0, progress=False, device="cpu")
+
+
+def test_eval_out_never_overwrites_a_run_report(run_e, tmp_path, capsys):
+    report = run_e / "eval" / "test"
+    assert eval_runs([run_e], max_frames=1, lpips_net="alex", progress=False, device="cpu") == 0
+    before = (report / "metrics.json").read_bytes()
+    with pytest.raises(OptionError, match="--out"):  # the mistake: --out taken for an output folder's file
+        eval_runs([run_e], out=report / "metrics", max_frames=1, lpips_net="alex", progress=False, device="cpu")
+    assert (report / "metrics.json").read_bytes() == before
+    table = tmp_path / "one"  # with --out, one run gets its comparison too; a second call replaces it
+    for _ in range(2):
+        assert eval_runs([run_e], out=table, max_frames=1, lpips_net="alex", progress=False, device="cpu") == 0
+    assert "-comparison" in json.loads((tmp_path / "one.json").read_text())["format"]
+    assert (tmp_path / "one.md").read_text().count("E · tiny") >= 1

@@ -50,8 +50,8 @@ def eval_runs(
         split: Frames to evaluate: test (held-out last frames), val, train, or novel (test frames seen from
             other cameras, with metrics per view: datasets from `geoavatar synth --novel-views`).
         lpips_net: LPIPS backbone: vgg (as the 3DGS / GaussianAvatars evaluation) or alex.
-        out: Comparison table file (Markdown; a .json beside it) when several runs are given
-            (default: eval_SPLIT_comparison.md in the runs' common parent folder).
+        out: Comparison table file (Markdown; a .json beside it), written when several runs are given or this is
+            set; never an existing run report (default: eval_SPLIT_comparison.md in the runs' common parent folder).
         max_frames: Evaluate only this many frames, spread evenly over the split (default: all).
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
         data: Dataset folder, when it moved since training (default: the one the run recorded).
@@ -68,8 +68,8 @@ def eval_runs(
         progress: Show progress bars.
     """
     from geoavatar.eval.evaluate import EvalConfig, evaluate_run
-    from geoavatar.eval.report import (extra_sections, comparison_markdown, metric_table, write_comparison,
-                                       write_run_report)
+    from geoavatar.eval.report import (check_comparison_target, extra_sections, comparison_markdown, metric_table,
+                                       write_comparison, write_run_report)
     from geoavatar.train.checkpoint import load_run
     from geoavatar.runtime import resolve_device
 
@@ -79,6 +79,8 @@ def eval_runs(
                         mouth=mouth, backend=backend, keep_images=save_images, floaters=floaters,
                         floater_frames=floater_frames)
     config.validate()  # OptionError naming the option
+    if out is not None:
+        check_comparison_target(out)  # before the evaluation, not after it
     try:
         torch_device = resolve_device(device)
     except ValueError as err:  # resolve_device's messages name --device
@@ -91,7 +93,7 @@ def eval_runs(
         written = write_run_report(result)
         results.append(result)
         print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
-    if len(results) == 1:
+    if len(results) == 1 and out is None:
         print(metric_table(results, mark_best=False), end="")
         print(extra_sections(results), end="")
         return 0

@@ -10,7 +10,7 @@ Files (all written atomically through geoavatar.io: the umask's mode, DiskFullEr
     RUN/eval/<split>/metrics.json    per-frame metrics, summary (mean, std, count), settings, run info
     RUN/eval/<split>/metrics.md      the Table 1 column of this run
     RUN/eval/<split>/frames/*.png    with --save-images: gt | pred | |error| x 4 | mouth mask per frame
-    OUT.md / OUT.json                with several runs: the comparison (both layouts) and every summary
+    OUT.md / OUT.json                with several runs or --out: the comparison (both layouts) and every summary
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
+from geoavatar.errors import OptionError
 from geoavatar.eval.evaluate import EvalResult, frame_dicts
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png, atomic_write_text
 
@@ -224,16 +225,37 @@ def comparison_markdown(results: Sequence[EvalResult]) -> str:
             + "\n**Bold**: best, <u>underlined</u>: second. Per-run details: `RUN/eval/<split>/metrics.json`.\n")
 
 
-def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[str, Path]:
-    """The comparison Markdown at `path` (.md added when missing) and a JSON of every summary beside it."""
+def comparison_paths(path: str | Path) -> tuple[Path, Path]:
+    """The comparison's Markdown (`path`, .md added when missing) and its JSON beside it."""
     path = Path(path)
     markdown = path if path.suffix.lower() == ".md" else path.with_name(path.name + ".md")
+    return markdown, markdown.with_suffix(".json")
+
+
+def check_comparison_target(path: str | Path) -> None:
+    """OptionError unless writing the comparison at `path` replaces nothing but an earlier comparison: `--out
+    RUN/eval/test/metrics` would otherwise overwrite that run's own report."""
+    markdown, summary = comparison_paths(path)
+    if not (markdown.exists() or summary.exists()):
+        return
+    try:
+        earlier = json.loads(summary.read_text()).get("format")
+    except (OSError, ValueError, AttributeError):
+        earlier = None
+    if earlier != REPORT_FORMAT + "-comparison":
+        raise OptionError(f"--out {path}: {markdown.name} / {summary.name} exist there and are not an earlier comparison "
+                          "table; --out names the comparison file, not a folder (give a new name)")
+
+
+def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[str, Path]:
+    """The comparison Markdown at `path` (.md added when missing) and a JSON of every summary beside it."""
+    markdown, summary = comparison_paths(path)
     body = {"format": REPORT_FORMAT + "-comparison", "version": REPORT_VERSION, "runs": [
         {k: v for k, v in run_json(r).items() if k != "frames"} for r in results]}
     return {"markdown": atomic_write_text(markdown, comparison_markdown(results)),
-            "json": atomic_write_json(markdown.with_suffix(".json"), body)}
+            "json": atomic_write_json(summary, body)}
 
 
-__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "extra_sections", "side_view_table", "view_table",
+__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "check_comparison_target", "comparison_paths", "extra_sections", "side_view_table", "view_table",
            "comparison_markdown", "eval_dir", "metric_table",
            "run_json", "run_markdown", "write_comparison", "write_frame_images", "write_run_report"]
