@@ -14,6 +14,10 @@ D: `geoavatar synth` output (flame_param/ = truth + tracker-like error, flame_pa
    the truth moved along the optical axis: where its minimum lies.
 3. With --landmarks: the same response of prep.tracking's landmark term on D, with MediaPipe landmarks detected on
    D's frames, at the truth and at the written parameters.
+4. With --fitted F (a `geoavatar track` copy of D): what the fit's remaining error consists of, per split: the face
+   error after removing each frame's best translation, then its best rigid motion (Procrustes); the face centroid's
+   error in the camera's axes (mean |.|, std, lag-1 autocorrelation over frames: a slow drift or a jitter); and the
+   face error after a Gaussian temporal filter of the fitted translation alone and of the whole head pose.
 """
 
 from __future__ import annotations
@@ -138,15 +142,74 @@ def landmark_depth_response(head, data: Path) -> list[str]:
     return lines
 
 
+def _best_rigid(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """x [V, 3] moved by the rotation and translation that bring it closest to y [V, 3] (least squares)."""
+    xc, yc = x - x.mean(0), y - y.mean(0)
+    u, _, vt = torch.linalg.svd(xc.T @ yc)
+    d = torch.ones(3, dtype=x.dtype)
+    d[2] = torch.sign(torch.det(u @ vt))
+    return xc @ (u @ torch.diag(d) @ vt) + y.mean(0)
+
+
+def fitted_anatomy(head, data: Path, fitted: Path) -> list[str]:
+    from scipy.ndimage import gaussian_filter1d
+
+    from geoavatar.data.dataset import open_subject
+
+    subject = open_subject(data)
+    split, ts = subject.split(), subject.timesteps
+    truth = load_params(data, "flame_param_gt", ts)
+    fit = load_params(fitted, "flame_param", ts)
+    face = torch.as_tensor(np.asarray(head.regions["face"]))
+    with torch.no_grad():
+        a = head.forward_params(fit).vertices[:, face].double()  # [T, F, 3]
+        b = head.forward_params(truth).vertices[:, face].double()
+    raw = (a - b).norm(dim=-1).mean(1) * 1000  # [T] mm
+    moved = (a - a.mean(1, keepdim=True) + b.mean(1, keepdim=True) - b).norm(dim=-1).mean(1) * 1000
+    rigid = torch.stack([(_best_rigid(a[i], b[i]) - b[i]).norm(dim=-1).mean() * 1000 for i in range(len(ts))])
+    camera_axes = _camera_axes(data)  # [3, 3] columns: the camera's x, y, z in world axes
+    centroid = ((a.mean(1) - b.mean(1)).numpy() * 1000) @ camera_axes  # [T, 3] mm, camera axes
+    row = {t: i for i, t in enumerate(ts)}
+    lines = ["| split | face (mm) | after each frame's best translation | after its best rigid motion |", "|---|---:|---:|---:|"]
+    for name, timesteps in (("train", split.train), ("test", split.test)):
+        ids = [row[t] for t in timesteps]
+        lines.append(f"| {name} | {raw[ids].mean():.2f} | {moved[ids].mean():.2f} | {rigid[ids].mean():.2f} |")
+    lines += ["", "| face centroid error, camera axis | mean abs (mm) | std (mm) | lag-1 autocorrelation |", "|---|---:|---:|---:|"]
+    for k, axis in enumerate("xyz"):
+        e = centroid[:, k] - centroid[:, k].mean()
+        lines.append(f"| {axis} | {np.abs(centroid[:, k]).mean():.2f} | {e.std():.2f} | {(e[1:] * e[:-1]).mean() / e.var():.2f} |")
+    lines += ["", "| temporal filter (Gaussian, sigma in frames) | train face (mm) | test face (mm) |", "|---|---:|---:|"]
+    train_ids, test_ids = [row[t] for t in split.train], [row[t] for t in split.test]
+    for keys, label in ((("translation",), "translation"), (("translation", "rotation", "neck_pose"), "head pose")):
+        for sigma in (1.0, 2.0, 3.0):
+            smoothed = dict(fit)
+            for key in keys:
+                smoothed[key] = torch.as_tensor(gaussian_filter1d(fit[key].double().numpy(), sigma, axis=0, mode="nearest")).float()
+            train_face, _ = vertex_error(head, smoothed, head.forward_params(truth).vertices, train_ids)
+            test_face, _ = vertex_error(head, smoothed, head.forward_params(truth).vertices, test_ids)
+            lines.append(f"| {label}, sigma {sigma:g} | {train_face:.2f} | {test_face:.2f} |")
+    return lines
+
+
+def _camera_axes(data: Path) -> np.ndarray:
+    """[3, 3] the first frame's camera axes (columns) in world axes, from transforms.json (camera-to-world)."""
+    frames = json.loads((data / "transforms.json").read_text())["frames"]
+    return np.asarray(frames[0]["transform_matrix"], dtype=np.float64)[:3, :3]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="a `geoavatar synth` dataset")
     parser.add_argument("--landmarks", action="store_true", help="also the landmark term's depth response (MediaPipe)")
+    parser.add_argument("--fitted", type=Path, help="a `geoavatar track` copy of D: only what its remaining error consists of")
     args = parser.parse_args()
     from geoavatar.head import load_head_model
 
     torch.set_num_threads(1)
     head = load_head_model("openhead", mouth="geoavatar")
+    if args.fitted is not None:
+        print("\n".join(fitted_anatomy(head, args.data, args.fitted)))
+        return 0
     print("\n".join(decomposition(head, args.data)))
     print("\nphotometric image term (exact albedo) at the truth moved along the optical axis (+: away from the camera)\n")
     print("\n".join(photometric_depth_response(head)))
