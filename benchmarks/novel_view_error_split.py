@@ -5,7 +5,8 @@ from the dataset camera and six turned cameras) the pixels are put in one class 
     bg        outside the ground-truth mask dilated by BAND px
     band      within BAND px of the mask's border (the silhouette: hair and ear outlines, the neck edge)
     mouth     the head mesh's mouth and lip faces (eval's mouth region)
-    front     faces of the posed head mesh that the dataset camera sees in the same frame (what the front view shows)
+    front     faces of the posed head mesh that the dataset camera sees in the same frame (what the front view shows;
+              z-buffered at 4x the resolution, so that faces smaller than a pixel count)
     disclosed faces the dataset camera does not see in that frame (sides and back the turn discloses), and mask
               pixels no head face covers (hair volume, glasses)
 Per class: its share of the pixels and the PSNR the frame would have if only that class's error were there
@@ -27,7 +28,7 @@ import torch.nn.functional as F
 
 from geoavatar.eval.evaluate import mouth_face_mask, mouth_mask, render_run_frames
 from geoavatar.render.camera import world_to_camera
-from geoavatar.render.mesh import rasterize_mesh
+from geoavatar.render.mesh import rasterize_mesh, scale_intrinsics
 from geoavatar.train.checkpoint import load_run, open_run_dataset
 
 torch.set_num_threads(1)
@@ -59,7 +60,7 @@ for fr in render_run_frames(run, ds):
     outer, inner = dilate(gt_mask, BAND), ~dilate(~gt_mask, BAND)
     front_item = ds[front_camera[item["timestep"]]]
     seen = torch.zeros(faces.shape[0], dtype=torch.bool)
-    ids = face_ids(fr.vertices, front_item["viewmat"], front_item["K"], w, h)
+    ids = face_ids(fr.vertices, front_item["viewmat"], scale_intrinsics(front_item["K"], 4), 4 * w, 4 * h)
     seen[ids[ids >= 0].unique()] = True
     ids = face_ids(fr.vertices, item["viewmat"], item["K"], w, h)
     mouth = mouth_mask(fr.vertices, faces, mouth_faces, item["viewmat"], item["K"], w, h)
