@@ -274,3 +274,25 @@ def test_bad_arguments_fail_clearly_and_keep_user_files(tmp_path, monkeypatch):
         generate_dataset(tmp_path / "half", _config(frames=6, size=32), progress=False)
     assert not (tmp_path / "half").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".half")]
+
+
+def test_shading_without_the_highlight_removes_exactly_the_blinn_phong_term():
+    from geoavatar.data.synth.appearance import HIGHLIGHT, MATERIALS, Appearance, FaceLandmarks
+
+    marks = FaceLandmarks(eye_centres=np.array([[0.03, 0.03, 0.05], [-0.03, 0.03, 0.05]]), eye_radius=0.012,
+                          mouth_centre=np.array([0.0, -0.04, 0.07]), mouth_arch_centre=np.array([0.0, -0.04, 0.05]),
+                          head_centre=np.zeros(3), nose_tip=np.array([0.0, 0.0, 0.1]))
+    appearance = Appearance(get_subject(0), marks)
+    view = torch.tensor([0.0, 0.0, -1.0])  # surface -> camera
+    light = torch.nn.functional.normalize(torch.tensor(HIGHLIGHT.directions[0]), dim=0)
+    half = torch.nn.functional.normalize(light + view, dim=0)  # the normal of the brightest highlight
+    normals = torch.stack([half, torch.nn.functional.normalize(torch.tensor([0.9, 0.0, -0.4]), dim=0)])
+    p = torch.tensor([[0.0, -0.02, 0.09], [0.05, -0.02, 0.06]])
+    weights = torch.zeros(2, len(MATERIALS))
+    weights[:, MATERIALS.index("skin")] = 1.0
+    args = (p, weights, torch.zeros(2), normals, view.expand(2, 3), torch.zeros(2, dtype=torch.bool), torch.ones(2))
+    full, diffuse = appearance.shade_samples(*args), appearance.shade_samples(*args, highlight=False)
+    assert torch.equal(full, appearance.shade_samples(*args, highlight=True))
+    # at the half vector the highlight is skin's full strength (0.07, unless clamped at 1); far from it ~0
+    assert torch.allclose(full[0] - diffuse[0], torch.minimum(torch.full((3,), 0.07), 1.0 - diffuse[0]), atol=1e-5)
+    assert float((full[1] - diffuse[1]).abs().max()) < 1e-4 and float(diffuse[0].max()) < 0.999

@@ -243,13 +243,15 @@ class Appearance:
         view_dirs: Tensor,  # [P, 3] unit vectors surface -> camera
         back_facing: Tensor,  # [P] bool: the sample sees the inside of the surface (mouth cavity)
         occlusion: Tensor,  # [P] 0..1 ambient occlusion (mouth interior)
+        highlight: bool = True,  # False: diffuse only (what a view-independent model could match; analysis)
     ) -> Tensor:
         """Shaded colour [P, 3] in [0, 1]."""
         albedo = self.albedo(canonical, weights, edge)
-        colour = shade(albedo, normals, view_dirs, LIGHTING)
-        spec_strength = weights @ self._specular.to(weights) / weights.sum(-1).clamp_min(1e-6)
-        highlight = shade(torch.zeros_like(albedo), normals, view_dirs, HIGHLIGHT)
-        colour = colour * occlusion[:, None] + highlight * (spec_strength * occlusion)[:, None]
+        colour = shade(albedo, normals, view_dirs, LIGHTING) * occlusion[:, None]
+        if highlight:
+            spec_strength = weights @ self._specular.to(weights) / weights.sum(-1).clamp_min(1e-6)
+            shine = shade(torch.zeros_like(albedo), normals, view_dirs, HIGHLIGHT)
+            colour = colour + shine * (spec_strength * occlusion)[:, None]
         # The inside of the head seen through the open mouth: a dark, reddish cavity.
         cavity = self._tensor((0.16, 0.05, 0.05), colour)
         colour = torch.where(back_facing[:, None], cavity * occlusion[:, None], colour)
