@@ -6,6 +6,10 @@ the training part sweeps head yaw -22..+30, i.e. views -30..+22 relative to the 
 yaw - head yaw, so a camera turned by +30 sees a head at yaw -15 from 45 degrees: beyond anything trained.
 
 usage: python benchmarks/novel_view_segments.py RUN/eval/novel/metrics.json ...
+
+Since session 8 `geoavatar eval --split novel` measures this itself from the geometry, for any subject
+(`view_yaw` / `view_pitch` / `trained_view` per frame, `by_view_range` per view); this script stays to reproduce
+the earlier rounds' tables. On subject 0's E the two agree at yaw -30 to the digit and differ by one frame at +30.
 """
 import json, sys, numpy as np
 YAW = {"front": 0, "yaw+30": 30, "yaw-30": -30, "yaw+60": 60, "yaw-60": -60, "pitch+20": 0, "pitch-20": 0}

@@ -137,6 +137,44 @@ def test_eval_novel_split_reports_every_view(novel_run, capsys):
         assert 0.0 <= summary["outside"]["mean"] <= 1.0 and 0.0 <= summary["gt_outside"]["mean"] <= 1.0
     assert report["side_views"] == {}  # the novel split's frames are side views already
     assert "Per view" in (novel_run / "eval" / "novel" / "metrics.md").read_text()
+    # every frame says where its camera saw the face from; a view turned by yaw (about the head's centre, the
+    # head barely pitched) sees it from that many degrees further round than the front camera of the same frame
+    frames = {(f["timestep"], f["view"]): f for f in report["frames"]}
+    for (timestep, view), frame in frames.items():
+        turn = dict((name, yaw) for _, name, yaw, _ in NOVEL_VIEWS).get(view, 0.0)
+        front = frames[(timestep, FRONT_VIEW)]
+        if "yaw" in view:
+            assert abs(frame["view_yaw"] - front["view_yaw"] - turn) < 6.0, (timestep, view)
+        assert isinstance(frame["trained_view"], bool)
+    assert all(not f["trained_view"] for (_, view), f in frames.items() if view in ("yaw+60", "yaw-60"))
+    assert sum(f["trained_view"] for (_, view), f in frames.items() if view == FRONT_VIEW) >= 1
+    ranges = report["by_view_range"]
+    assert "beyond" in ranges["yaw+60"] and "trained" not in ranges["yaw+60"]
+    assert sum(part["psnr"]["count"] for part in ranges[FRONT_VIEW].values()) == 2
+
+
+def test_head_relative_view_undoes_the_head_turn():
+    from geoavatar.eval.view_angles import view_directions, within_trained_views, yaw_pitch
+    from geoavatar.geometry import axis_angle_to_matrix
+
+    g = torch.Generator().manual_seed(0)
+    rest = torch.randn(200, 3, generator=g, dtype=torch.float64) * torch.tensor([0.08, 0.1, 0.09], dtype=torch.float64)
+    turn = axis_angle_to_matrix(torch.tensor([0.2, -0.5, 0.1], dtype=torch.float64))  # the head's rotation
+    posed = rest @ turn.T + torch.tensor([0.01, 0.03, -0.02], dtype=torch.float64)  # [S, 3]
+    # a camera 0.9 m away, placed 30 deg to the head's left (+x) and 10 deg above, in the head's axes
+    yaw, pitch = math.radians(30.0), math.radians(10.0)
+    local = torch.tensor([math.sin(yaw) * math.cos(pitch), math.sin(pitch), math.cos(yaw) * math.cos(pitch)],
+                         dtype=torch.float64)
+    centre = posed.mean(0) + 0.9 * (turn @ local)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, :3] = turn.T  # any orientation: only the camera's centre matters
+    viewmat[:3, 3] = -(turn.T @ centre)
+    direction = view_directions(rest, posed[None], viewmat[None])
+    measured_yaw, measured_pitch = yaw_pitch(direction)
+    assert float(measured_yaw) == pytest.approx(30.0, abs=1e-6) and float(measured_pitch) == pytest.approx(10.0, abs=1e-6)
+    trained = view_directions(rest, posed[None], viewmat[None])
+    assert bool(within_trained_views(direction, trained, 5.0)[0])
+    assert not bool(within_trained_views(direction, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64), 5.0)[0])
 
 
 def test_eval_test_split_measures_floaters_at_side_views(novel_run):

@@ -57,14 +57,17 @@ from geoavatar.eval import metrics
 from geoavatar.eval.floaters import (DEFAULT_DILATE, FloaterConfig, dilate_mask, head_silhouette, outside_share,
                                      side_view_shares)
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
+from geoavatar.eval.view_angles import rest_skull, view_directions, within_trained_views, yaw_pitch
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import rasterize_mesh
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
 from geoavatar.train.frame_params import FrameParams
 from geoavatar.head.params import HeadParams
+from geoavatar.head.regions import skull_vertex_ids
 from geoavatar.render import Camera, composite_target
 
 SPLITS = ("test", "val", "train", "novel")
+TRAINED_VIEW_TOLERANCE = 5.0  # degrees: a frame's view counts as trained when a training frame saw the face so
 METRIC_NAMES = ("mse", "psnr", "ssim", "lpips", "mouth_psnr", "mouth_lpips", "outside", "gt_outside")
 
 
@@ -129,6 +132,9 @@ class FrameMetrics:
     mouth_share: float = 0.0  # mouth_pixels / the frame's pixels
     mouth_box: list[int] | None = None  # [y0, y1, x0, x1] of the LPIPS crop
     view: str | None = None  # the camera placement of a novel-view frame ("front", "yaw+30", ...)
+    view_yaw: float | None = None  # degrees: where the camera sees the face from, in the head's axes (view_angles)
+    view_pitch: float | None = None
+    trained_view: bool | None = None  # some training frame saw the face from within TRAINED_VIEW_TOLERANCE degrees
     outside: float | None = None  # share of the render's opacity outside the dilated head silhouette
     gt_outside: float | None = None  # the same share of the ground-truth mask (hair etc.: the floor)
 
@@ -148,6 +154,8 @@ class EvalResult:
     seconds: float
     images: list[dict[str, Tensor]] = field(default_factory=list)  # with keep_images: pred, gt, mouth
     by_view: dict[str, dict[str, dict[str, float | int | None]]] = field(default_factory=dict)  # view -> summary
+    # view -> {"trained": summary, "beyond": summary}: the frames of a view seen from angles training saw / did not
+    by_view_range: dict[str, dict[str, dict]] = field(default_factory=dict)
     side_views: dict[str, float] = field(default_factory=dict)  # side view -> mean outside share (floaters)
 
 
@@ -300,6 +308,8 @@ def evaluate_run(
     side_at = set(indices[i] for i in evenly_spaced(len(indices), config.floater_frames)) \
         if config.floaters and config.split != "novel" and config.floater_frames > 0 else set()
     side: dict[str, list[float]] = {}
+    skull = skull_vertex_ids(run.head)
+    rest, trained = trained_view_directions(run, dataset)  # [S, 3], [N, 3]
     bar = tqdm(total=len(indices), disable=not progress, dynamic_ncols=True, unit="frame", desc=f"eval {label}")
     try:
         for frame in render_run_frames(run, dataset, indices, config.timestep_mode, config.backend):
@@ -327,6 +337,11 @@ def evaluate_run(
                         record.mouth_lpips = float(metrics.lpips(pred[y0:y1, x0:x1], target[y0:y1, x0:x1],
                                                                  config.lpips_net, config.lpips_unit_inputs)[0])
             record.view = dataset.frames[frame.index].view
+            direction = view_directions(rest, frame.vertices[skull.to(frame.vertices.device)][None].cpu(),
+                                        item["viewmat"][None].cpu())  # [1, 3]
+            yaw, pitch = yaw_pitch(direction)
+            record.view_yaw, record.view_pitch = round(float(yaw), 2), round(float(pitch), 2)
+            record.trained_view = bool(within_trained_views(direction, trained, TRAINED_VIEW_TOLERANCE)[0])
             if config.floaters:
                 camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
                 silhouette = head_silhouette(frame.vertices, run.head.faces, camera,
@@ -362,6 +377,10 @@ def evaluate_run(
         "mouth": ({"faces": "mouth structure (F_m) + lips faces, z-buffered", "dilate_fraction": config.mouth_dilate,
                    "min_crop": config.mouth_min_crop} if config.mouth else None),
         "std": "population (ddof 0) over frames",
+        "view_angles": {"measure": "view_yaw / view_pitch: degrees from the head's centre to the camera in the head's "
+                                   "own axes (rest skin -> posed skin, least squares); trained_view: a training frame "
+                                   "saw the face from within tolerance_deg", "tolerance_deg": TRAINED_VIEW_TOLERANCE,
+                        "training_frames": int(trained.shape[0])},
         "backend": config.backend,
         "floaters": ({"measure": "share of rendered opacity outside the head-mesh silhouette (with the mouth "
                                  "structure) dilated by dilate_fraction of the longer image side; gt_outside: "
@@ -373,12 +392,35 @@ def evaluate_run(
     }
     views = [f.view for f in frames if f.view is not None]
     by_view = {view: summarize([f for f in frames if f.view == view]) for view in dict.fromkeys(views)}
+    by_view_range = {view: {name: summarize(chosen) for name, wanted in (("trained", True), ("beyond", False))
+                            for chosen in [[f for f in frames if f.view == view and f.trained_view is wanted]] if chosen}
+                     for view in dict.fromkeys(views)}
     return EvalResult(
         run_dir=run.info.run_dir, label=label, preset=preset, subject=subject, split=config.split,
         step=run.info.step, checkpoint=str(run.info.checkpoint), frames=frames, summary=summarize(frames),
         settings=settings, seconds=time.perf_counter() - started, images=images, by_view=by_view,
+        by_view_range=by_view_range,
         side_views={name: float(np.mean(values)) for name, values in side.items()},
     )
+
+
+def trained_view_directions(run: LoadedRun, dataset: HeadAvatarDataset) -> tuple[Tensor, Tensor]:
+    """(rest skull [S, 3], [N, 3] the directions the training frames saw the face from, head axes) with the
+    run's refined parameters and the training frames' cameras (no image is read)."""
+    device = next(run.avatar.parameters()).device
+    params = FrameParams(run.info.frame_params, refine=False)
+    rest = rest_skull(run.head, params(0).to(device)).cpu()  # [S, 3]
+    records = dataset.subject.frames_of(dataset.split.timesteps("train"))
+    if not records:
+        return rest, torch.zeros(0, 3, dtype=torch.float64)
+    skull = skull_vertex_ids(run.head)
+    rows = torch.as_tensor([r.row for r in records])
+    everything = HeadParams(shape=params.shape, static_offset=params.static_offset,
+                            **{k: v.detach()[rows] for k, v in params.values.items()})
+    with torch.no_grad():
+        posed = run.head.forward_params(everything.to(device)).vertices[:, skull.to(device)]  # [N, S, 3]
+    viewmats = torch.as_tensor(np.stack([r.viewmat for r in records]))
+    return rest, view_directions(rest, posed.cpu(), viewmats)
 
 
 def frame_dicts(result: EvalResult) -> list[dict]:

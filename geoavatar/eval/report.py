@@ -24,7 +24,7 @@ from typing import Sequence
 import numpy as np
 
 from geoavatar.errors import OptionError
-from geoavatar.eval.evaluate import EvalResult, frame_dicts
+from geoavatar.eval.evaluate import TRAINED_VIEW_TOLERANCE, EvalResult, frame_dicts
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png, atomic_write_text
 
 REPORT_FORMAT = "geoavatar-eval"
@@ -132,6 +132,28 @@ def view_table(results: Sequence[EvalResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def view_range_table(results: Sequence[EvalResult]) -> str:
+    """Novel views split by the angle the face is seen from: per view and run, PSNR / LPIPS (x10^-1) of the
+    frames whose head-relative view some training frame saw ("trained") and of the rest ("beyond"), with counts."""
+    views = list(dict.fromkeys(v for r in results for v in r.by_view_range))
+    if not views:
+        return ""
+    head = ["| View |"] + [f" {_escape(r.label)} trained: PSNR / LPIPS (n) | beyond: PSNR / LPIPS (n) |" for r in results]
+    lines = ["".join(head), "|---|" + "---:|---:|" * len(results)]
+
+    def cell(stats: dict | None) -> str:
+        if not stats or stats.get("psnr", {}).get("mean") is None:
+            return "–"
+        lpips = stats.get("lpips", {}).get("mean")
+        return (f"{stats['psnr']['mean']:.2f} / {lpips * 10:.3f} ({stats['psnr']['count']})" if lpips is not None
+                else f"{stats['psnr']['mean']:.2f} ({stats['psnr']['count']})")
+
+    for view in views:
+        cells = [cell(r.by_view_range.get(view, {}).get(part)) for r in results for part in ("trained", "beyond")]
+        lines.append(f"| {_escape(view)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def side_view_table(results: Sequence[EvalResult]) -> str:
     """Floaters at side views: one row per run, the mean share of opacity outside the head silhouette (%)."""
     views = list(dict.fromkeys(v for r in results for v in r.side_views))
@@ -149,6 +171,10 @@ def extra_sections(results: Sequence[EvalResult]) -> str:
     views = view_table(results)
     if views:
         out += "\n## Per view (novel views)\n\n" + views
+    ranges = view_range_table(results)
+    if ranges:
+        out += ("\n## Per view, by the angle the face is seen from (trained: some training frame saw the face from "
+                f"within {TRAINED_VIEW_TOLERANCE:g}°)\n\n" + ranges)
     sides = side_view_table(results)
     if sides:
         out += ("\n## Floaters at side views (% of rendered opacity outside the dilated head silhouette)\n\n"
@@ -185,7 +211,8 @@ def run_json(result: EvalResult) -> dict:
         "run": str(result.run_dir), "label": result.label, "preset": result.preset, "subject": result.subject,
         "checkpoint": result.checkpoint, "step": result.step, "split": result.split,
         "seconds": round(result.seconds, 3),
-        "summary": result.summary, "by_view": result.by_view, "side_views": result.side_views,
+        "summary": result.summary, "by_view": result.by_view, "by_view_range": result.by_view_range,
+        "side_views": result.side_views,
         "settings": result.settings, "frames": frame_dicts(result),
     }
 
@@ -256,6 +283,6 @@ def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[st
             "json": atomic_write_json(summary, body)}
 
 
-__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "check_comparison_target", "comparison_paths", "extra_sections", "side_view_table", "view_table",
+__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "check_comparison_target", "comparison_paths", "extra_sections", "side_view_table", "view_range_table", "view_table",
            "comparison_markdown", "eval_dir", "metric_table",
            "run_json", "run_markdown", "write_comparison", "write_frame_images", "write_run_report"]

@@ -152,21 +152,26 @@ def _edge_adjacent_face_pairs(faces: np.ndarray) -> np.ndarray:
     return np.stack([owner[:-1][same], owner[1:][same]], axis=1)
 
 
+def skull_vertex_ids(head) -> "torch.Tensor":
+    """[S] ids of the head's skin without the neck and the mouth structure (every vertex if that left none);
+    head: HeadModel or HeadModelData."""
+    import torch
+
+    count = int(head.num_vertices)
+    keep = torch.ones(count, dtype=torch.bool)
+    groups = [head.regions.get("neck")] + [head.vertex_groups.get(g) for g in ("mouth_upper", "mouth_lower")]
+    for ids in groups:
+        if ids is not None:
+            keep[torch.as_tensor(np.asarray(ids), dtype=torch.long)] = False
+    if not bool(keep.any()):
+        keep[:] = True
+    return torch.nonzero(keep).flatten()
+
+
 def skull_centre(vertices: "torch.Tensor", head) -> "torch.Tensor":
     """[3] centre of a posed head: the bounding-box centre of its skin without the neck and the mouth
     structure, so that a camera turned about it turns about the middle of the skull and face, not
     about a point pulled down toward the shoulders. vertices [V, 3] (the head's vertices first; any
     further ones, e.g. a generated actor's hair, are left out); head: HeadModel or HeadModelData."""
-    import torch
-
-    count = int(head.num_vertices)
-    points = vertices[:count]  # [V_head, 3]
-    keep = torch.ones(count, dtype=torch.bool, device=vertices.device)
-    groups = [head.regions.get("neck")] + [head.vertex_groups.get(g) for g in ("mouth_upper", "mouth_lower")]
-    for ids in groups:
-        if ids is not None:
-            keep[torch.as_tensor(np.asarray(ids), dtype=torch.long, device=vertices.device)] = False
-    if not bool(keep.any()):
-        keep[:] = True
-    points = points[keep]
+    points = vertices[skull_vertex_ids(head).to(vertices.device)]  # [S, 3]
     return 0.5 * (points.min(dim=0).values + points.max(dim=0).values)
