@@ -413,14 +413,17 @@ def trained_view_directions(run: LoadedRun, dataset: HeadAvatarDataset) -> tuple
     records = dataset.subject.frames_of(dataset.split.timesteps("train"))
     if not records:
         return rest, torch.zeros(0, 3, dtype=torch.float64)
-    skull = skull_vertex_ids(run.head)
-    rows = torch.as_tensor([r.row for r in records])
-    everything = HeadParams(shape=params.shape, static_offset=params.static_offset,
-                            **{k: v.detach()[rows] for k, v in params.values.items()})
-    with torch.no_grad():
-        posed = run.head.forward_params(everything.to(device)).vertices[:, skull.to(device)]  # [N, S, 3]
-    viewmats = torch.as_tensor(np.stack([r.viewmat for r in records]))
-    return rest, view_directions(rest, posed.cpu(), viewmats)
+    skull = skull_vertex_ids(run.head).to(device)
+    viewmats = torch.as_tensor(np.stack([r.viewmat for r in records]))  # [N, 4, 4]
+    directions = []
+    for start in range(0, len(records), 256):  # a long video's posed meshes at once would take gigabytes
+        rows = torch.as_tensor([r.row for r in records[start:start + 256]])
+        chunk = HeadParams(shape=params.shape, static_offset=params.static_offset,
+                           **{k: v.detach()[rows] for k, v in params.values.items()})
+        with torch.no_grad():
+            posed = run.head.forward_params(chunk.to(device)).vertices[:, skull]  # [B, S, 3]
+        directions.append(view_directions(rest, posed.cpu(), viewmats[start:start + 256]))
+    return rest, torch.cat(directions)
 
 
 def frame_dicts(result: EvalResult) -> list[dict]:
