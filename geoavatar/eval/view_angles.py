@@ -5,9 +5,10 @@ turned by -15 degrees the camera sees the face from 45 degrees. What decides how
 relative to the face, and whether any training frame saw the face from near there. Both come from geometry
 alone, for any head model and dataset:
 
-    rest  = rest_skull(head, params)                      # [S, 3] the head's skin (no neck, no mouth), unposed
-    yaw, pitch = head_relative_view(rest, posed, viewmat)  # degrees; 0, 0: the camera faces the face
-    seen = within_trained_views(directions, trained, 5.0)  # [B] bool
+    rest = rest_skull(head, params)                             # [S, 3] the head's skin (no neck, no mouth), unposed
+    directions = view_directions(rest, posed, viewmat)          # [B, 3] head centre -> camera, head axes
+    yaw, pitch = yaw_pitch(directions)                          # degrees; 0, 0: the camera faces the face
+    seen = within_trained_views(directions, trained, 5.0)       # [B] bool; trained: the training frames' directions
 
 The head's orientation in a frame is the rotation that best maps its rest skin onto the posed skin (least
 squares, Kabsch), so neck, global rotation and any head model's joints count alike. Head axes: +x the head's
