@@ -392,8 +392,7 @@ def evaluate_run(
     }
     views = [f.view for f in frames if f.view is not None]
     by_view = {view: summarize([f for f in frames if f.view == view]) for view in dict.fromkeys(views)}
-    by_view_range = {view: {name: summarize(chosen) for name, wanted in (("trained", True), ("beyond", False))
-                            for chosen in [[f for f in frames if f.view == view and f.trained_view is wanted]] if chosen}
+    by_view_range = {view: summarize_by_trained_view([f for f in frames if f.view == view])
                      for view in dict.fromkeys(views)}
     return EvalResult(
         run_dir=run.info.run_dir, label=label, preset=preset, subject=subject, split=config.split,
@@ -402,6 +401,13 @@ def evaluate_run(
         by_view_range=by_view_range,
         side_views={name: float(np.mean(values)) for name, values in side.items()},
     )
+
+
+def summarize_by_trained_view(frames: Sequence[FrameMetrics]) -> dict[str, dict]:
+    """{"trained": summary, "beyond": summary} of the frames seen from trained / untrained angles
+    (an empty part is left out)."""
+    parts = {"trained": [f for f in frames if f.trained_view], "beyond": [f for f in frames if not f.trained_view]}
+    return {name: summarize(chosen) for name, chosen in parts.items() if chosen}
 
 
 def trained_view_directions(run: LoadedRun, dataset: HeadAvatarDataset) -> tuple[Tensor, Tensor]:

@@ -138,7 +138,8 @@ def view_range_table(results: Sequence[EvalResult]) -> str:
     views = list(dict.fromkeys(v for r in results for v in r.by_view_range))
     if not views:
         return ""
-    head = ["| View |"] + [f" {_escape(r.label)} trained: PSNR / LPIPS (n) | beyond: PSNR / LPIPS (n) |" for r in results]
+    head = ["| View |"] + [f" {_escape(r.label)} trained: PSNR / LPIPS (n) | beyond: PSNR / LPIPS (n) |"
+                           for r in results]
     lines = ["".join(head), "|---|" + "---:|---:|" * len(results)]
 
     def cell(stats: dict | None) -> str:
@@ -270,8 +271,8 @@ def check_comparison_target(path: str | Path) -> None:
     except (OSError, ValueError, AttributeError):
         earlier = None
     if earlier != REPORT_FORMAT + "-comparison":
-        raise OptionError(f"--out {path}: {markdown.name} / {summary.name} exist there and are not an earlier comparison "
-                          "table; --out names the comparison file, not a folder (give a new name)")
+        raise OptionError(f"--out {path}: {markdown.name} / {summary.name} exist there and are not an earlier "
+                          "comparison table; --out names the comparison file, not a folder (give a new name)")
 
 
 def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[str, Path]:
@@ -283,6 +284,7 @@ def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[st
             "json": atomic_write_json(summary, body)}
 
 
-__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "check_comparison_target", "comparison_paths", "extra_sections", "side_view_table", "view_range_table", "view_table",
+__all__ = ["COLUMNS", "MetricColumn", "ablation_table", "check_comparison_target", "comparison_paths", "extra_sections",
+           "side_view_table", "view_range_table", "view_table",
            "comparison_markdown", "eval_dir", "metric_table",
            "run_json", "run_markdown", "write_comparison", "write_frame_images", "write_run_report"]

@@ -28,7 +28,8 @@ from geoavatar.head.regions import skull_vertex_ids
 
 def rest_skull(head, params: HeadParams) -> Tensor:
     """[S, 3] the skull vertices of `params`' identity (first frame's shape) with no pose and no expression."""
-    rest = params.rows(slice(0, 1)).map(torch.zeros_like).replace(shape=params.shape, static_offset=params.static_offset)
+    rest = params.rows(slice(0, 1)).map(torch.zeros_like)  # no pose, no expression
+    rest = rest.replace(shape=params.shape, static_offset=params.static_offset)
     with torch.no_grad():
         vertices = head.forward_params(rest).vertices[0]
     return vertices[skull_vertex_ids(head).to(vertices.device)]
