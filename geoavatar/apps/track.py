@@ -5,6 +5,12 @@ alike: the split is never read) starting from its parameters, and writes a copy 
 flame_param/ holds the fitted parameters; images, masks, cameras and every other file are copied
 unchanged. DIR/track.json holds the per-frame photometric residual before and after and the fit's log.
 `geoavatar prepare` runs the same fit (prep.photometric.fit_photometric) as its photometric stage.
+
+With `--avatar RUN` the appearance model is a trained avatar instead (train/avatar_tracking.py): every
+frame's parameters are fitted so that the avatar explains its image. On the run's own dataset the frames
+it trained on keep the run's refined parameters (training already fitted them against the avatar) unless
+`--refit-trained`; the others, the held-out frames, are fitted. On any other dataset of the same person
+(a new clip, prepared with `prepare`) every frame is fitted.
 """
 
 from __future__ import annotations
@@ -23,8 +29,10 @@ import tyro
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.head.params import FRAME_KEYS, HeadParams
 from geoavatar.prep.photometric import PhotometricConfig
+from geoavatar.train.avatar_tracking import AvatarTrackingConfig
 
 _DEFAULTS = PhotometricConfig()  # the command's defaults are the fit's own (and prepare's photometric stage's)
+_AVATAR_DEFAULTS = AvatarTrackingConfig()
 
 DatasetPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATASET")]
 REPORT_FILE = "track.json"
@@ -92,6 +100,80 @@ def track_subject(subject, config=None, flame_dir: Path | None = None, progress:
     return result
 
 
+def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, device: str = "auto",
+                      flame_dir: Path | None = None, progress: bool = True, log=print) -> tuple[HeadParams, dict]:
+    """The dataset's parameters [T] with its frames fitted against the run's avatar, and a report (which rows
+    came from the run, which were fitted, their L1 before and after)."""
+    from tqdm import tqdm
+
+    from geoavatar.apps.common import open_run, run_device
+    from geoavatar.data.dataset import DataConfig, HeadAvatarDataset
+    from geoavatar.render.camera import Camera
+    from geoavatar.train.avatar_tracking import AvatarFrame, AvatarTrackingConfig, track_frames
+    from geoavatar.train.checkpoint import RunError
+
+    run = open_run(run_dir, device, flame_dir=flame_dir)
+    if subject.head_model != run.info.head_model:
+        raise TrackError(f"{subject.root}: tracked with head model '{subject.head_model}', the run {run_dir} with "
+                         f"'{run.info.head_model}'")
+    if len({frame.camera for frame in subject.frames}) > 1:
+        raise TrackError(f"{subject.root}: several cameras; geoavatar track fits monocular datasets only")
+    try:
+        config = AvatarTrackingConfig(steps=steps)
+    except ValueError as err:
+        raise OptionError(f"--steps: {err}") from None
+    values = HeadParams.from_npz({k: v.float() for k, v in subject.params.items()})  # [T, ...]
+    own_dataset = Path(subject.root).resolve() == Path(run.info.data_root).resolve()
+    trained = set(run.info.timesteps.get("train", [])) if own_dataset and not refit_trained else set()
+    if trained and list(subject.timesteps) != run.info.timesteps["all"]:
+        raise RunError(f"{subject.root}: its timesteps differ from those the run {run_dir} trained on; the dataset "
+                       "changed since training")
+    refined = HeadParams.from_npz(run.info.frame_params)  # [T, ...] rows = the run's timesteps
+    rows = {key: getattr(values, key).clone() for key in FRAME_KEYS}
+    for row, timestep in enumerate(subject.timesteps):
+        if timestep in trained:
+            for key in FRAME_KEYS:
+                rows[key][row] = getattr(refined, key)[row]
+    dataset = HeadAvatarDataset(subject, "all", DataConfig(resolution=run.info.resolution, cache="none"))
+    to_fit = [index for index in range(len(dataset)) if dataset.timesteps[index] not in trained]
+    target_device = run_device(run)
+
+    def frames():
+        for index in to_fit:
+            item = dataset[index]
+            on = lambda x: x.to(target_device)  # noqa: E731
+            params = HeadParams.from_npz({k: on(v) for k, v in item["params"].items()})
+            camera = Camera(on(item["viewmat"]), on(item["K"]), item["width"], item["height"])
+            yield AvatarFrame(params, camera, on(item["image"]), on(item["mask"]), on(item["background"]))
+
+    with tqdm(total=len(to_fit), desc="track (avatar)", unit="frame", disable=not progress) as bar:
+        result = track_frames(run.avatar, run.head, run.deformer, frames(), config, progress=bar.update) \
+            if to_fit else None
+    fitted_rows = [dataset.frames[index].row for index in to_fit]
+    if result is not None:
+        for i, row in enumerate(fitted_rows):
+            for key in FRAME_KEYS:
+                rows[key][row] = getattr(result.params, key)[i].to(rows[key].device)
+    listed = lambda values: [None if not np.isfinite(v) else round(float(v), 5) for v in values]  # noqa: E731
+    before = result.loss_before if result is not None else np.zeros(0)
+    after = result.loss_after if result is not None else np.zeros(0)
+    report = {
+        "avatar": str(Path(run_dir).resolve()), "steps": steps,
+        "from_run": sorted(int(t) for t in trained),
+        "fitted": [int(subject.timesteps[row]) for row in fitted_rows],
+        "l1": {"mean_before": _finite_mean(before), "mean": _finite_mean(after),
+               "per_frame_before": listed(before), "per_frame": listed(after)},
+    }
+    log(f"track: {len(fitted_rows)} frame(s) fitted against the avatar ({len(trained)} kept the run's refined "
+        f"parameters); L1 {report['l1']['mean_before']:.4f} -> {report['l1']['mean']:.4f}")
+    return values.replace(**rows), report
+
+
+def _finite_mean(values: np.ndarray) -> float | None:
+    finite = values[np.isfinite(values)]
+    return round(float(finite.mean()), 5) if finite.size else None
+
+
 def _in_width_of(like: np.ndarray, values: np.ndarray, dtype=None) -> np.ndarray:
     """`values` [K] in an array shaped like `like` [..., W] (its dtype unless given): the leading
     min(K, W) entries, zeros after them, so a dataset keeps its own widths (e.g. FLAME's 100
@@ -146,6 +228,10 @@ def track(
     chunk: int = _DEFAULTS.chunk,
     per_face: int = _DEFAULTS.per_face,
     fit_shape: bool = False,
+    avatar: Path | None = None,
+    steps: int = _AVATAR_DEFAULTS.steps,
+    refit_trained: bool = False,
+    device: str = "auto",
     overwrite: bool = False,
     flame_dir: Path | None = None,
     threads: int = 1,
@@ -164,6 +250,12 @@ def track(
         per_face: Gaussians per rendered face: 1 (the centroid) or 4 (the centroid and the corner
             sub-triangles' centroids; 1.8-2.5x the cost, no more accurate at 128 px).
         fit_shape: Refine the identity shape too.
+        avatar: A trained run (RUN folder) of this person: fit every per-frame parameter against its avatar instead
+            of the mesh-bound albedo, each frame alone; the options above do not apply. On the run's own dataset,
+            the frames it trained on keep its refined parameters.
+        steps: With --avatar: Adam steps per frame.
+        refit_trained: With --avatar on the run's own dataset: fit its training frames too.
+        device: With --avatar: where the avatar renders (auto: CUDA when available).
         overwrite: Replace an existing OUT.
         flame_dir: FLAME files for a FLAME dataset.
         threads: Torch threads (1 is fastest on a busy 2-core machine: the fit runs many small operations and
@@ -180,6 +272,10 @@ def track(
         raise OptionError("--out must differ from DATASET (the dataset is copied, never changed in place)")
     if Path(out).exists() and not overwrite:
         raise TrackError(f"{out} exists; pass --overwrite to replace it")
+    if avatar is not None and fit_shape:
+        raise OptionError("--fit-shape: the identity is the avatar's with --avatar; leave one of them out")
+    if avatar is None and refit_trained:
+        raise OptionError("--refit-trained applies to --avatar only")
     try:
         config = PhotometricConfig(sizes=tuple(sizes), epochs=tuple(epochs), chunk=chunk, per_face=per_face,
                                    fit_shape=fit_shape)
@@ -189,20 +285,30 @@ def track(
     subject = open_subject(dataset)
     started = time.perf_counter()
     with torch_threads(threads):
-        result = track_subject(subject, config, flame_dir, progress)
+        if avatar is None:
+            result = track_subject(subject, config, flame_dir, progress)
+            fitted = result.params
+        else:
+            fitted, avatar_report = track_with_avatar(subject, Path(avatar), steps, refit_trained, device, flame_dir,
+                                                      progress)
     seconds = time.perf_counter() - started
-    report = {
-        "source": str(Path(dataset).resolve()), "frames": subject.num_timesteps, "seconds": round(seconds, 2),
-        "config": {k: v for k, v in asdict(config).items() if k != "tracking"},
-        "photometric_residual": residual_report(result.residual, result.residual_before),  # null: an empty mask
-        "log": result.log,
-    }
-    write_tracked_copy(subject, result.params, Path(out), report)
-    residual = report["photometric_residual"]
-    print(f"tracked {subject.num_timesteps} frames in {seconds:.1f} s; residual {residual['mean_before']:.4f} -> "
-          f"{residual['mean']:.4f}; dataset: {out}", file=sys.stderr if not progress else sys.stdout)
+    report = {"source": str(Path(dataset).resolve()), "frames": subject.num_timesteps, "seconds": round(seconds, 2)}
+    if avatar is None:
+        report.update({
+            "config": {k: v for k, v in asdict(config).items() if k != "tracking"},
+            "photometric_residual": residual_report(result.residual, result.residual_before),  # null: an empty mask
+            "log": result.log,
+        })
+        summary = report["photometric_residual"]
+        before, after = summary["mean_before"], summary["mean"]
+    else:
+        report["avatar_tracking"] = avatar_report
+        before, after = avatar_report["l1"]["mean_before"] or 0.0, avatar_report["l1"]["mean"] or 0.0
+    write_tracked_copy(subject, fitted, Path(out), report)
+    print(f"tracked {subject.num_timesteps} frames in {seconds:.1f} s; residual {before:.4f} -> {after:.4f}; "
+          f"dataset: {out}", file=sys.stderr if not progress else sys.stdout)
     return 0
 
 
-__all__ = ["REPORT_FILE", "TrackError", "TrackInputs", "load_inputs", "track", "track_subject", "tracking_head",
-           "write_tracked_copy"]
+__all__ = ["REPORT_FILE", "TrackError", "TrackInputs", "load_inputs", "track", "track_subject", "track_with_avatar",
+           "tracking_head", "write_tracked_copy"]
