@@ -170,10 +170,13 @@ def fitted_anatomy(head, data: Path, fitted: Path) -> list[str]:
     camera_axes = _camera_axes(data)  # [3, 3] columns: the camera's x, y, z in world axes
     centroid = ((a.mean(1) - b.mean(1)).numpy() * 1000) @ camera_axes  # [T, 3] mm, camera axes
     row = {t: i for i, t in enumerate(ts)}
-    lines = ["| split | face (mm) | after each frame's best translation | after its best rigid motion |", "|---|---:|---:|---:|"]
+    lines = ["| split | face (mm) | lips (mm) | after each frame's best translation | after its best rigid motion |",
+             "|---|---:|---:|---:|---:|"]
+    truth_vertices = head.forward_params(truth).vertices
     for name, timesteps in (("train", split.train), ("test", split.test)):
         ids = [row[t] for t in timesteps]
-        lines.append(f"| {name} | {raw[ids].mean():.2f} | {moved[ids].mean():.2f} | {rigid[ids].mean():.2f} |")
+        lips = vertex_error(head, fit, truth_vertices, ids)[1]
+        lines.append(f"| {name} | {raw[ids].mean():.2f} | {lips:.2f} | {moved[ids].mean():.2f} | {rigid[ids].mean():.2f} |")
     lines += ["", "| face centroid error, camera axis | mean abs (mm) | std (mm) | lag-1 autocorrelation |", "|---|---:|---:|---:|"]
     for k, axis in enumerate("xyz"):
         e = centroid[:, k] - centroid[:, k].mean()

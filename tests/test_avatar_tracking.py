@@ -94,6 +94,12 @@ def test_track_command_fits_the_held_out_frames_and_keeps_the_runs_own(tiny, tmp
         assert np.allclose(fitted["translation"][rows[t]].numpy(), refined["translation"][rows[t]].numpy(), atol=1e-7)
     assert any(not np.allclose(fitted["translation"][rows[t]].numpy(), source["translation"][rows[t]].numpy())
                for t in test)  # the held-out frames moved
+    # eval on the copy reports beside the run's own report, never over it
+    from geoavatar.apps.eval import eval_runs
+
+    assert eval_runs([run_dir], data=out, mouth=False, floaters=False, max_frames=1, progress=False) == 0
+    assert (run_dir / "eval" / "test@tracked" / "metrics.json").is_file()
+    assert not (run_dir / "eval" / "test").exists()
     # --refit-trained fits every frame
     assert track(data, tmp_path / "all", avatar=run_dir, steps=1, refit_trained=True, progress=False) == 0
     report = json.loads((tmp_path / "all" / "track.json").read_text())["avatar_tracking"]

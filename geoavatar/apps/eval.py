@@ -43,7 +43,8 @@ def eval_runs(
     PSNR and LPIPS of the mouth region (mouth-structure + lips faces). Test frames are unseen
     timesteps: they use the dataset's tracked parameters and T = 0 for the mouth deformer.
     Writes RUN/eval/SPLIT/metrics.json (per frame, summary, settings) and metrics.md (Table 1 layout)
-    for each run; with several runs also one comparison table (Table 1 and ablation layouts).
+    for each run (RUN/eval/SPLIT@COPY with --data COPY, another copy of the run's dataset); with several runs
+    also one comparison table (Table 1 and ablation layouts).
 
     Args:
         runs: One or more RUN folders written by `geoavatar train`.
@@ -54,7 +55,9 @@ def eval_runs(
             set; never an existing run report (default: eval_SPLIT_comparison.md in the runs' common parent folder).
         max_frames: Evaluate only this many frames, spread evenly over the split (default: all).
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
-        data: Dataset folder, when it moved since training (default: the one the run recorded).
+        data: Dataset folder, when it moved since training (default: the one the run recorded), or another copy of
+            it, e.g. `geoavatar track --avatar`'s: while the recorded folder exists, the report of a copy goes to
+            RUN/eval/SPLIT@COPY (COPY: the copy's folder name), so the run's own report is kept.
         checkpoint: Which checkpoint of each run: last or final.
         save_images: Also write RUN/eval/SPLIT/frames/*.png (gt | render | error x4 | mouth mask).
         lpips_unit_inputs: Feed [0, 1] images to LPIPS unscaled, as the 3DGS scripts do (only then are
@@ -90,7 +93,7 @@ def eval_runs(
         # RunError, DatasetError, LPIPSWeightsError...: GeoAvatarErrors, one line at the CLI
         run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
         result = evaluate_run(run, config, data=data, progress=progress, flame_dir=flame_dir)
-        written = write_run_report(result)
+        written = write_run_report(result, report_dir(run.info.run_dir, split, run.info.data_root, data))
         results.append(result)
         print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
     if len(results) == 1 and out is None:
@@ -104,4 +107,14 @@ def eval_runs(
     return 0
 
 
-__all__ = ["eval_runs"]
+def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> Path:
+    """RUN/eval/SPLIT, or RUN/eval/SPLIT@NAME for a copy NAME of the dataset given while the recorded one exists."""
+    from geoavatar.eval.report import eval_dir
+
+    folder = eval_dir(run_dir, split)
+    if data is None or not Path(recorded).is_dir() or Path(data).resolve() == Path(recorded).resolve():
+        return folder
+    return folder.with_name(f"{split}@{Path(data).resolve().name}")
+
+
+__all__ = ["eval_runs", "report_dir"]
