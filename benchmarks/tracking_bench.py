@@ -8,6 +8,13 @@ written parameters (flame_param/ of the synthetic dataset: truth + tracker-like 
 with the truth (flame_param_gt/), per split (train / test frames of the dataset): head rotation error (deg),
 translation error (mm), jaw error (deg), mean posed-vertex error over the face region and over the lips (mm).
 Prints a Markdown table and writes WORK/tracking_bench.json (WORK/tracking_bench_NAME.json with --tracked NAME).
+
+With --prepare the subject's frames also go through `geoavatar prepare` as a video (WORK/synth<k>.mp4 ->
+WORK/prep<k>_landmarks with --no-photometric, then WORK/prep<k> with the photometric stage added by resuming a copy):
+the landmark-only and the photometric fit of the whole preprocessing, from the pixels alone. prepare estimates its
+own camera, focal length and identity, so these rows compare in each fit's own camera frame: the posed vertices
+and the head's origin mapped by the frame's world-to-camera transform, the rotation as the camera-space head
+rotation (vertex distances of the other rows are the same in either frame: the dataset's camera is rigid).
 """
 
 from __future__ import annotations
@@ -68,6 +75,8 @@ def main() -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=None, help="passed to geoavatar track --sizes")
     parser.add_argument("--per-face", type=int, default=None, help="passed to geoavatar track --per-face")
     parser.add_argument("--threads", type=int, default=None, help="passed to geoavatar track --threads")
+    parser.add_argument("--prepare", action="store_true", help="also the landmark-only and photometric fits of "
+                        "`geoavatar prepare` on the frames as a video (camera frame; see the module docstring)")
     parser.add_argument("--tracked", default="tracked", help="name of the output folder in WORK (tracked<k>)")
     parser.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE",
                         help="PhotometricConfig fields (Python literals), e.g. pose_smooth_weight=30 epochs='(16, 12)': "
@@ -107,6 +116,8 @@ def main() -> int:
         fitted = load_params(tracked, "flame_param", source.timesteps)
         row_of = {t: i for i, t in enumerate(source.timesteps)}
         measured = {"written": errors(head, written, truth), "photometric": errors(head, fitted, truth)}
+        if args.prepare:
+            measured.update(prepare_errors(head, args.work, subject, synth, truth, source, geoavatar))
         results[subject] = {"seconds": seconds, "cpu_seconds": cpu, "frames": len(source.timesteps),
                             "load_average_1min_before_after": [load, os.getloadavg()[0]], "command": command[2:]}
         for name, timesteps in (("train", split.train), ("test", split.test)):
@@ -126,6 +137,66 @@ def main() -> int:
     name = "tracking_bench.json" if args.tracked == "tracked" else f"tracking_bench_{args.tracked}.json"
     (args.work / name).write_text(json.dumps(results, indent=2) + "\n")
     return 0
+
+
+def prepare_errors(head, work: Path, subject: int, synth: Path, truth: dict, source, geoavatar: list[str]) -> dict:
+    """Errors of `geoavatar prepare`'s landmark-only and photometric fits of the subject's frames, in camera frames."""
+    import shutil
+
+    from PIL import Image
+
+    from geoavatar.data.dataset import open_subject
+    from geoavatar.io.video import write_mp4
+
+    video = work / f"synth{subject}.mp4"
+    if not video.is_file():
+        frames = sorted(source.frames, key=lambda f: f.row)
+        write_mp4(video, (np.asarray(Image.open(f.image_path).convert("RGB")) for f in frames), fps=25.0, crf=12)
+    landmarks, photometric = work / f"prep{subject}_landmarks", work / f"prep{subject}"
+    size = str(max(source.frames[0].width, source.frames[0].height))
+    if not (landmarks / "dataset").is_dir():
+        subprocess.run([*geoavatar, "prepare", str(video), "--out", str(landmarks), "--size", size, "--no-photometric",
+                        "--no-progress"], check=True)
+    if not (photometric / "dataset").is_dir():
+        shutil.copytree(landmarks, photometric)
+        subprocess.run([*geoavatar, "prepare", str(video), "--out", str(photometric), "--size", size, "--no-progress"],
+                       check=True)
+    truth_view = _viewmats(source)
+    out = {}
+    for name, folder in (("landmarks (prepare --no-photometric)", landmarks), ("photometric (prepare)", photometric)):
+        fitted_subject = open_subject(folder / "dataset")
+        if len(fitted_subject.timesteps) != len(source.timesteps):
+            raise SystemExit(f"{folder}: {len(fitted_subject.timesteps)} frames, the subject has {len(source.timesteps)}")
+        fitted = load_params(folder / "dataset", "flame_param", fitted_subject.timesteps)
+        out[name] = camera_errors(head, fitted, _viewmats(fitted_subject), truth, truth_view)
+    return out
+
+
+def _viewmats(subject) -> torch.Tensor:
+    """[T, 4, 4] world-to-camera per row of a monocular subject."""
+    frames = sorted(subject.frames, key=lambda f: f.row)
+    return torch.as_tensor(np.stack([f.viewmat for f in frames])).float()
+
+
+def camera_errors(head, params: dict, view: torch.Tensor, truth: dict, truth_view: torch.Tensor) -> dict[str, np.ndarray]:
+    """errors() with each fit in its own camera frame: params / view [T, 4, 4] against truth / truth_view."""
+    from scipy.spatial.transform import Rotation
+
+    def in_camera(p, v):
+        with torch.no_grad():
+            vertices = head.forward_params(p).vertices  # [T, V, 3]
+        points = vertices @ v[:, :3, :3].transpose(1, 2) + v[:, None, :3, 3]
+        origin = (v[:, :3, :3] @ p["translation"][..., None])[..., 0] + v[:, :3, 3]  # [T, 3]
+        rotation = Rotation.from_matrix(v[:, :3, :3].double().numpy()) * Rotation.from_rotvec(p["rotation"].double().numpy())
+        return points, origin, torch.as_tensor(rotation.as_rotvec()).float()
+
+    a, origin_a, rot_a = in_camera(params, view)
+    b, origin_b, rot_b = in_camera(truth, truth_view)
+    distance = (a - b).norm(dim=-1) * 1000
+    face, lips = (torch.as_tensor(np.asarray(head.regions[name])) for name in ("face", "lips"))
+    return {"rotation_deg": angle_deg(rot_a, rot_b), "translation_mm": (origin_a - origin_b).norm(dim=-1).numpy() * 1000,
+            "jaw_deg": angle_deg(params["jaw_pose"], truth["jaw_pose"]),
+            "face_mm": distance[:, face].mean(1).numpy(), "lips_mm": distance[:, lips].mean(1).numpy()}
 
 
 def fit_with(synth: Path, tracked: Path, settings: list[str]) -> None:

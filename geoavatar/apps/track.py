@@ -106,11 +106,10 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
     came from the run, which were fitted, their L1 before and after)."""
     from tqdm import tqdm
 
-    from geoavatar.apps.common import open_run, run_device
+    from geoavatar.apps.common import open_run
     from geoavatar.data.dataset import DataConfig, HeadAvatarDataset
-    from geoavatar.render.camera import Camera
-    from geoavatar.train.avatar_tracking import AvatarFrame, AvatarTrackingConfig, track_frames
-    from geoavatar.train.checkpoint import RunError
+    from geoavatar.prep.photometric import residual_report
+    from geoavatar.train.avatar_tracking import track_frames
 
     run = open_run(run_dir, device, flame_dir=flame_dir)
     if subject.head_model != run.info.head_model:
@@ -122,56 +121,60 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
         config = AvatarTrackingConfig(steps=steps)
     except ValueError as err:
         raise OptionError(f"--steps: {err}") from None
-    values = HeadParams.from_npz({k: v.float() for k, v in subject.params.items()})  # [T, ...]
-    own_dataset = Path(subject.root).resolve() == Path(run.info.data_root).resolve()
-    trained = set(run.info.timesteps.get("train", [])) if own_dataset and not refit_trained else set()
-    if trained and list(subject.timesteps) != run.info.timesteps["all"]:
-        raise RunError(f"{subject.root}: its timesteps differ from those the run {run_dir} trained on; the dataset "
-                       "changed since training")
-    refined = HeadParams.from_npz(run.info.frame_params)  # [T, ...] rows = the run's timesteps
-    rows = {key: getattr(values, key).clone() for key in FRAME_KEYS}
-    for row, timestep in enumerate(subject.timesteps):
-        if timestep in trained:
-            for key in FRAME_KEYS:
-                rows[key][row] = getattr(refined, key)[row]
+    trained = _trained_timesteps(subject, run, refit_trained)
+    rows = _start_rows(subject, run, trained)  # key -> [T, ...]
     dataset = HeadAvatarDataset(subject, "all", DataConfig(resolution=run.info.resolution, cache="none"))
     to_fit = [index for index in range(len(dataset)) if dataset.timesteps[index] not in trained]
-    target_device = run_device(run)
-
-    def frames():
-        for index in to_fit:
-            item = dataset[index]
-            on = lambda x: x.to(target_device)  # noqa: E731
-            params = HeadParams.from_npz({k: on(v) for k, v in item["params"].items()})
-            camera = Camera(on(item["viewmat"]), on(item["K"]), item["width"], item["height"])
-            yield AvatarFrame(params, camera, on(item["image"]), on(item["mask"]), on(item["background"]))
-
-    with tqdm(total=len(to_fit), desc="track (avatar)", unit="frame", disable=not progress) as bar:
-        result = track_frames(run.avatar, run.head, run.deformer, frames(), config, progress=bar.update) \
-            if to_fit else None
-    fitted_rows = [dataset.frames[index].row for index in to_fit]
-    if result is not None:
-        for i, row in enumerate(fitted_rows):
+    report = {"avatar": str(Path(run_dir).resolve()), "steps": steps, "from_run": sorted(trained),
+              "fitted": [int(dataset.timesteps[index]) for index in to_fit], "l1": None}
+    if to_fit:
+        with tqdm(total=len(to_fit), desc="track (avatar)", unit="frame", disable=not progress) as bar:
+            result = track_frames(run.avatar, run.head, run.deformer, _avatar_frames(dataset, to_fit, run), config,
+                                  progress=bar.update)
+        for i, index in enumerate(to_fit):
             for key in FRAME_KEYS:
-                rows[key][row] = getattr(result.params, key)[i].to(rows[key].device)
-    listed = lambda values: [None if not np.isfinite(v) else round(float(v), 5) for v in values]  # noqa: E731
-    before = result.loss_before if result is not None else np.zeros(0)
-    after = result.loss_after if result is not None else np.zeros(0)
-    report = {
-        "avatar": str(Path(run_dir).resolve()), "steps": steps,
-        "from_run": sorted(int(t) for t in trained),
-        "fitted": [int(subject.timesteps[row]) for row in fitted_rows],
-        "l1": {"mean_before": _finite_mean(before), "mean": _finite_mean(after),
-               "per_frame_before": listed(before), "per_frame": listed(after)},
-    }
-    log(f"track: {len(fitted_rows)} frame(s) fitted against the avatar ({len(trained)} kept the run's refined "
-        f"parameters); L1 {report['l1']['mean_before']:.4f} -> {report['l1']['mean']:.4f}")
-    return values.replace(**rows), report
+                rows[key][dataset.frames[index].row] = getattr(result.params, key)[i].cpu()
+        report["l1"] = residual_report(result.loss_after, result.loss_before)  # null: an empty mask, not fitted
+    l1 = report["l1"] or {"mean_before": float("nan"), "mean": float("nan")}
+    log(f"track: {len(to_fit)} frame(s) fitted against the avatar ({len(trained)} kept the run's refined parameters); "
+        f"L1 {l1['mean_before']:.4f} -> {l1['mean']:.4f}")
+    return HeadParams.from_npz({**subject.params, **rows}).map(lambda x: x.float()), report
 
 
-def _finite_mean(values: np.ndarray) -> float | None:
-    finite = values[np.isfinite(values)]
-    return round(float(finite.mean()), 5) if finite.size else None
+def _trained_timesteps(subject, run, refit_trained: bool) -> set[int]:
+    """The run's training timesteps when `subject` is the run's own dataset (and not --refit-trained), else none."""
+    from geoavatar.train.checkpoint import RunError
+
+    if refit_trained or Path(subject.root).resolve() != Path(run.info.data_root).resolve():
+        return set()
+    if list(subject.timesteps) != run.info.timesteps["all"]:
+        raise RunError(f"{subject.root}: its timesteps differ from those the run {run.info.run_dir} trained on; the "
+                       "dataset changed since training")
+    return {int(t) for t in run.info.timesteps.get("train", [])}
+
+
+def _start_rows(subject, run, trained: set[int]) -> dict:
+    """Per-frame keys [T, ...]: the run's refined rows for `trained` timesteps, the dataset's for the others."""
+    rows = {key: subject.params[key].float().clone() for key in FRAME_KEYS}
+    for row, timestep in enumerate(subject.timesteps):
+        if timestep in trained:  # the run's rows follow the same timesteps (_trained_timesteps checked)
+            for key in FRAME_KEYS:
+                rows[key][row] = run.info.frame_params[key][row].float()
+    return rows
+
+
+def _avatar_frames(dataset, indices: list[int], run):
+    """AvatarFrames of the dataset's items `indices` on the run's device (decoded one at a time)."""
+    from geoavatar.apps.common import run_device
+    from geoavatar.render.camera import Camera
+    from geoavatar.train.avatar_tracking import AvatarFrame
+
+    device = run_device(run)
+    for index in indices:
+        item = dataset[index]
+        params = HeadParams.from_npz({k: v.to(device) for k, v in item["params"].items()})
+        camera = Camera(item["viewmat"].to(device), item["K"].to(device), item["width"], item["height"])
+        yield AvatarFrame(params, camera, item["image"].to(device), item["mask"].to(device), item["background"].to(device))
 
 
 def _in_width_of(like: np.ndarray, values: np.ndarray, dtype=None) -> np.ndarray:
@@ -303,7 +306,8 @@ def track(
         before, after = summary["mean_before"], summary["mean"]
     else:
         report["avatar_tracking"] = avatar_report
-        before, after = avatar_report["l1"]["mean_before"] or 0.0, avatar_report["l1"]["mean"] or 0.0
+        l1 = avatar_report["l1"] or {"mean_before": float("nan"), "mean": float("nan")}
+        before, after = l1["mean_before"], l1["mean"]
     write_tracked_copy(subject, fitted, Path(out), report)
     print(f"tracked {subject.num_timesteps} frames in {seconds:.1f} s; residual {before:.4f} -> {after:.4f}; "
           f"dataset: {out}", file=sys.stderr if not progress else sys.stdout)
