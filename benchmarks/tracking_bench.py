@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 FRAME_KEYS = ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
+COLUMNS = ("rotation_deg", "translation_mm", "jaw_deg", "face_mm", "lips_mm", "face_aligned_mm", "lips_aligned_mm")
 
 
 def load_params(root: Path, folder: str, timesteps) -> dict[str, torch.Tensor]:
@@ -54,15 +55,38 @@ def errors(head, params: dict, truth: dict) -> dict[str, np.ndarray]:
     """Per-frame errors of `params` against `truth`."""
     with torch.no_grad():
         a, b = head.forward_params(params).vertices, head.forward_params(truth).vertices  # [T, V, 3]
-    distance = (a - b).norm(dim=-1) * 1000  # [T, V] mm
-    face, lips = (torch.as_tensor(np.asarray(head.regions[name])) for name in ("face", "lips"))
     return {
         "rotation_deg": angle_deg(params["rotation"], truth["rotation"]),
         "translation_mm": (params["translation"] - truth["translation"]).norm(dim=-1).numpy() * 1000,
         "jaw_deg": angle_deg(params["jaw_pose"], truth["jaw_pose"]),
-        "face_mm": distance[:, face].mean(1).numpy(),
-        "lips_mm": distance[:, lips].mean(1).numpy(),
+        **vertex_errors(head, a, b),
     }
+
+
+def vertex_errors(head, a: torch.Tensor, b: torch.Tensor) -> dict[str, np.ndarray]:
+    """Per-frame mean face / lips distance (mm) of posed vertices a to b [T, V, 3], as they are and after the one
+    similarity transform (scale, rotation, translation) that best maps all of a's face onto b's over the video:
+    what is left when the video-wide offset and a monocular fit's focal / depth scale are forgiven."""
+    face, lips = (torch.as_tensor(np.asarray(head.regions[name])) for name in ("face", "lips"))
+    aligned = _video_similarity(a[:, face].reshape(-1, 3).double(), b[:, face].reshape(-1, 3).double())(a.double())
+    out = {}
+    for suffix, points in (("", a.double()), ("_aligned", aligned)):
+        distance = (points - b.double()).norm(dim=-1) * 1000  # [T, V] mm
+        out[f"face{suffix}_mm"] = distance[:, face].mean(1).numpy()
+        out[f"lips{suffix}_mm"] = distance[:, lips].mean(1).numpy()
+    return out
+
+
+def _video_similarity(x: torch.Tensor, y: torch.Tensor):
+    """The least-squares similarity y ~ s R x + t (Umeyama) of points x, y [N, 3], as a function of points [..., 3]."""
+    mx, my = x.mean(0), y.mean(0)
+    xc, yc = x - mx, y - my
+    u, sigma, vt = torch.linalg.svd(yc.T @ xc / len(x))
+    d = torch.ones(3, dtype=x.dtype)
+    d[2] = torch.sign(torch.det(u @ vt))
+    rotation = u @ torch.diag(d) @ vt
+    scale = (sigma * d).sum() / xc.square().sum(1).mean()
+    return lambda points: scale * points @ rotation.T + (my - scale * rotation @ mx)
 
 
 def main() -> int:
@@ -126,9 +150,10 @@ def main() -> int:
                 summary = {k: float(v[ids].mean()) for k, v in values.items()}
                 results[subject][f"{name}/{kind}"] = summary
                 rows.append(f"| {subject} | {name} ({len(ids)}) | {kind} | " + " | ".join(
-                    f"{summary[k]:.2f}" for k in ("rotation_deg", "translation_mm", "jaw_deg", "face_mm", "lips_mm")) + " |")
-    print("| subject | frames | parameters | rotation (deg) | translation (mm) | jaw (deg) | face (mm) | lips (mm) |")
-    print("|---|---|---|---|---|---|---|---|")
+                    f"{summary[k]:.2f}" for k in COLUMNS) + " |")
+    print("| subject | frames | parameters | rotation (deg) | translation (mm) | jaw (deg) | face (mm) | lips (mm) "
+          "| face, video-wide similarity removed (mm) | lips, the same (mm) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     for subject, result in results.items():
         before, after = result["load_average_1min_before_after"]
@@ -192,11 +217,8 @@ def camera_errors(head, params: dict, view: torch.Tensor, truth: dict, truth_vie
 
     a, origin_a, rot_a = in_camera(params, view)
     b, origin_b, rot_b = in_camera(truth, truth_view)
-    distance = (a - b).norm(dim=-1) * 1000
-    face, lips = (torch.as_tensor(np.asarray(head.regions[name])) for name in ("face", "lips"))
     return {"rotation_deg": angle_deg(rot_a, rot_b), "translation_mm": (origin_a - origin_b).norm(dim=-1).numpy() * 1000,
-            "jaw_deg": angle_deg(params["jaw_pose"], truth["jaw_pose"]),
-            "face_mm": distance[:, face].mean(1).numpy(), "lips_mm": distance[:, lips].mean(1).numpy()}
+            "jaw_deg": angle_deg(params["jaw_pose"], truth["jaw_pose"]), **vertex_errors(head, a, b)}
 
 
 def fit_with(synth: Path, tracked: Path, settings: list[str]) -> None:
