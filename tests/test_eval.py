@@ -203,3 +203,19 @@ def test_eval_out_never_overwrites_a_run_report(run_e, tmp_path, capsys):
         assert eval_runs([run_e], out=table, max_frames=1, lpips_net="alex", progress=False, device="cpu") == 0
     assert "-comparison" in json.loads((tmp_path / "one.json").read_text())["format"]
     assert (tmp_path / "one.md").read_text().count("E · tiny") >= 1
+
+
+def test_comparison_labels_tell_runs_of_one_preset_and_dataset_apart():
+    from pathlib import Path
+
+    from geoavatar.eval.evaluate import EvalResult
+    from geoavatar.eval.report import distinct_labels
+
+    def result(run_dir: str, label: str) -> EvalResult:
+        return EvalResult(Path(run_dir), label, "E", "s0", "test", 1, "last", [], {}, {}, 0.0)
+
+    results = [result("runs/old/E", "E · s0"), result("runs/new/E", "E · s0"), result("runs/E_long", "E · s0"),
+               result("runs/A", "A · s0")]
+    labels = [r.label for r in distinct_labels(results)]
+    assert labels == ["E · s0 (runs/old/E)", "E · s0 (runs/new/E)", "E · s0 (E_long)", "A · s0"]
+    assert len(set(labels)) == len(labels)

@@ -71,8 +71,8 @@ def eval_runs(
         progress: Show progress bars.
     """
     from geoavatar.eval.evaluate import EvalConfig, evaluate_run
-    from geoavatar.eval.report import (check_comparison_target, extra_sections, comparison_markdown, metric_table,
-                                       write_comparison, write_run_report)
+    from geoavatar.eval.report import (check_comparison_target, comparison_markdown, distinct_labels, extra_sections,
+                                       metric_table, write_comparison, write_run_report)
     from geoavatar.train.checkpoint import load_run
     from geoavatar.runtime import resolve_device
 
@@ -100,6 +100,7 @@ def eval_runs(
         print(metric_table(results, mark_best=False), end="")
         print(extra_sections(results), end="")
         return 0
+    results = distinct_labels(results)  # two runs of one preset on one dataset: their folders tell them apart
     target = out if out is not None else _common_parent(list(runs)) / f"eval_{split}_comparison.md"
     written = write_comparison(results, target)
     print(comparison_markdown(results), end="")

@@ -275,6 +275,18 @@ def check_comparison_target(path: str | Path) -> None:
                           "comparison table; --out names the comparison file, not a folder (give a new name)")
 
 
+def distinct_labels(results: Sequence[EvalResult]) -> list[EvalResult]:
+    """The results with every label that names more than one of them ('E · s0', the same preset on the same dataset)
+    followed by its run folder's name, or its whole path where those are alike too, so each column says which run."""
+    from collections import Counter
+    from dataclasses import replace
+
+    counts = Counter(r.label for r in results)
+    named = [replace(r, label=f"{r.label} ({Path(r.run_dir).name})") if counts[r.label] > 1 else r for r in results]
+    counts = Counter(r.label for r in named)
+    return [replace(n, label=f"{r.label} ({r.run_dir})") if counts[n.label] > 1 else n for n, r in zip(named, results)]
+
+
 def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[str, Path]:
     """The comparison Markdown at `path` (.md added when missing) and a JSON of every summary beside it."""
     markdown, summary = comparison_paths(path)
@@ -286,5 +298,5 @@ def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[st
 
 __all__ = ["COLUMNS", "MetricColumn", "ablation_table", "check_comparison_target", "comparison_paths", "extra_sections",
            "side_view_table", "view_range_table", "view_table",
-           "comparison_markdown", "eval_dir", "metric_table",
+           "comparison_markdown", "distinct_labels", "eval_dir", "metric_table",
            "run_json", "run_markdown", "write_comparison", "write_frame_images", "write_run_report"]
