@@ -6,7 +6,8 @@
 For each subject: generate (or reuse) WORK/synth<k>, run `geoavatar track` into WORK/tracked<k>, then compare the
 written parameters (flame_param/ of the synthetic dataset: truth + tracker-like error) and the fitted ones
 with the truth (flame_param_gt/), per split (train / test frames of the dataset): head rotation error (deg),
-translation error (mm), jaw error (deg), mean posed-vertex error over the face region and over the lips (mm).
+skull orientation error (deg: head and neck rotation together), translation error (mm), jaw error (deg), mean
+posed-vertex error over the face region and over the lips (mm).
 Prints a Markdown table and writes WORK/tracking_bench.json (WORK/tracking_bench_NAME.json with --tracked NAME).
 
 With --prepare the subject's frames also go through `geoavatar prepare` as a video (WORK/synth<k>.mp4 ->
@@ -31,7 +32,7 @@ import numpy as np
 import torch
 
 FRAME_KEYS = ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
-COLUMNS = ("rotation_deg", "translation_mm", "jaw_deg", "face_mm", "lips_mm", "face_aligned_mm", "lips_aligned_mm")
+COLUMNS = ("rotation_deg", "skull_deg", "translation_mm", "jaw_deg", "face_mm", "lips_mm", "face_aligned_mm", "lips_aligned_mm")
 
 
 def load_params(root: Path, folder: str, timesteps) -> dict[str, torch.Tensor]:
@@ -57,10 +58,26 @@ def errors(head, params: dict, truth: dict) -> dict[str, np.ndarray]:
         a, b = head.forward_params(params).vertices, head.forward_params(truth).vertices  # [T, V, 3]
     return {
         "rotation_deg": angle_deg(params["rotation"], truth["rotation"]),
+        "skull_deg": skull_orientation_error(head, params, a, truth, b),
         "translation_mm": (params["translation"] - truth["translation"]).norm(dim=-1).numpy() * 1000,
         "jaw_deg": angle_deg(params["jaw_pose"], truth["jaw_pose"]),
         **vertex_errors(head, a, b),
     }
+
+
+def skull_orientation_error(head, params: dict, a: torch.Tensor, truth: dict, b: torch.Tensor) -> np.ndarray:
+    """[T] degrees between the skull's orientations of the posed vertices a and b [T, V, 3] (in one frame of axes):
+    the rotation from each identity's rest skull to its posed skull (eval.view_angles), so the head's and the neck's
+    rotation count together, however a fit splits them."""
+    from scipy.spatial.transform import Rotation
+
+    from geoavatar.eval.view_angles import face_rotation, rest_skull
+    from geoavatar.head.params import HeadParams
+    from geoavatar.head.regions import skull_vertex_ids
+
+    ids = skull_vertex_ids(head)
+    rotations = [face_rotation(rest_skull(head, HeadParams.from_npz(p)), x[:, ids]) for p, x in ((params, a), (truth, b))]
+    return np.degrees(Rotation.from_matrix((rotations[0].transpose(1, 2) @ rotations[1]).numpy()).magnitude())
 
 
 def vertex_errors(head, a: torch.Tensor, b: torch.Tensor) -> dict[str, np.ndarray]:
@@ -151,9 +168,9 @@ def main() -> int:
                 results[subject][f"{name}/{kind}"] = summary
                 rows.append(f"| {subject} | {name} ({len(ids)}) | {kind} | " + " | ".join(
                     f"{summary[k]:.2f}" for k in COLUMNS) + " |")
-    print("| subject | frames | parameters | rotation (deg) | translation (mm) | jaw (deg) | face (mm) | lips (mm) "
-          "| face, video-wide similarity removed (mm) | lips, the same (mm) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| subject | frames | parameters | rotation (deg) | skull orientation (deg) | translation (mm) | jaw (deg) "
+          "| face (mm) | lips (mm) | face, video-wide similarity removed (mm) | lips, the same (mm) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     for subject, result in results.items():
         before, after = result["load_average_1min_before_after"]
@@ -217,7 +234,8 @@ def camera_errors(head, params: dict, view: torch.Tensor, truth: dict, truth_vie
 
     a, origin_a, rot_a = in_camera(params, view)
     b, origin_b, rot_b = in_camera(truth, truth_view)
-    return {"rotation_deg": angle_deg(rot_a, rot_b), "translation_mm": (origin_a - origin_b).norm(dim=-1).numpy() * 1000,
+    return {"rotation_deg": angle_deg(rot_a, rot_b), "skull_deg": skull_orientation_error(head, params, a, truth, b),
+            "translation_mm": (origin_a - origin_b).norm(dim=-1).numpy() * 1000,
             "jaw_deg": angle_deg(params["jaw_pose"], truth["jaw_pose"]), **vertex_errors(head, a, b)}
 
 
