@@ -133,17 +133,20 @@ class MeshPriorConfig:
     # Metres behind the mesh surface before a Gaussian counts as behind: room for tracking error and for the
     # Gaussians' own offsets from their faces (the rigid set's few millimetres).
     margin: float = 0.005
-    # The same behind term at a camera turned about the head (the view the video never shows) ...
+    # The same behind term at a camera turned about the head (turned_yaw / turned_pitch): a view the video never shows.
     lambda_turned_behind: float = 0.0
-    # ... and the image mean of the rendered alpha outside the posed mesh's silhouette there, dilated by
-    # `outside_dilate` (room for hair, beard and ears the head model lacks): floaters and blobs grown off the head.
+    # Image mean of the rendered alpha outside the posed mesh's silhouette at the turned camera, the silhouette
+    # dilated by `outside_dilate`: floaters and blobs grown off the head.
     lambda_turned_outside: float = 0.0
-    outside_dilate: float = 0.08  # of the longer image side (10 px at 128 px)
-    # The turned camera: the training camera turned about the head centre (head.regions.skull_centre) by a
-    # uniform random yaw in [-turned_yaw, turned_yaw] and pitch in [-turned_pitch, turned_pitch] degrees, a pure
-    # function of (seed, step) (resumable), every `turned_every` steps (each costs a mesh z-buffer and a render).
+    # Dilation of that silhouette, as a fraction of the longer image side (10 px at 128 px): room for the hair,
+    # beard and ears the head model lacks.
+    outside_dilate: float = 0.08
+    # Largest |yaw| of the turned camera, degrees: the training camera turned about the head centre
+    # (head.regions.skull_centre) by a uniform random yaw and pitch, a pure function of (seed, step) (resumable).
     turned_yaw: float = 60.0
+    # Largest |pitch| of the turned camera, degrees.
     turned_pitch: float = 20.0
+    # Take the turned camera every this many steps (each costs a mesh z-buffer and a render with its backward).
     turned_every: int = 1
 
     @property
