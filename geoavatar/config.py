@@ -119,7 +119,9 @@ class LossConfig:
 class MeshPriorConfig:
     """Losses on where the avatar's rendered weight lies relative to the tracked, posed head mesh (issue #18). They need
     no ground truth (the mesh is the trainer's own posed head), so they work on real videos too. All off by default:
-    BENCHMARKS.md, "Novel views (issue #18, fifth round)" has the measurements that decide.
+    on the generated subjects (BENCHMARKS.md, "Novel views (issue #18, fifth round)") lambda_behind 0.1 made the avatar
+    a thin surface on the skin and lowered every view (front -1.9 dB, yaw +-30 -0.8); the turned camera at 0.01 helps
+    side views on one subject of three and pitch -20 on all, but costs the front 0.2-0.35 dB on most runs.
 
     Why: a view-independent colour composited from layers at different depths adds up from the training camera only;
     on generated subjects a tenth of a bare-face pixel's colour came from Gaussians >= 2 cm behind the skin (the far
