@@ -28,6 +28,7 @@ from geoavatar.head.regions import face_parts
 from geoavatar.render.camera import Camera, world_to_camera
 from geoavatar.render.mesh import rasterize_mesh
 from geoavatar.train.checkpoint import load_run, open_run_dataset
+from geoavatar.train.mesh_prior import behind_surface
 
 torch.set_num_threads(1)
 run = load_run(sys.argv[1])
@@ -53,13 +54,9 @@ for fr in render_run_frames(run, ds, indices):
     moments = torch.stack([z, z * z, torch.ones_like(z)], -1)
     with torch.no_grad():
         res = rasterize_gaussians(g._replace(colors=moments), camera, None, check_values=False)
-        # each centre against the mesh depth at the pixel it projects to (+inf off the mesh: never "behind")
-        cam = world_to_camera(g.means, item["viewmat"])  # [N, 3]
-        uv = (cam @ item["K"].T)[:, :2] / cam[:, 2:3].clamp_min(1e-6)
-        px = uv[:, 0].floor().long().clamp(0, w - 1), uv[:, 1].floor().long().clamp(0, h - 1)
-        surface = frags.depth[px[1], px[0]]  # [N]
-        ahead = (surface - cam[:, 2]) * 1000.0  # mm in front of the visible surface (negative: behind it)
-        behind, in_mouth = ahead < -TOL, mouth_structure[run.avatar.binding]
+        # each centre against the mesh depth at the pixel it projects to (the training loss's test, mesh_prior.py)
+        behind = behind_surface(world_to_camera(g.means, item["viewmat"]), frags.depth, item["K"], TOL / 1000.0)
+        in_mouth = mouth_structure[run.avatar.binding]
         normal = g.frames.rotation[run.avatar.binding, :, 1]  # [N, 3] world normal of each Gaussian's face
         away = (normal * (g.means - camera_centre)).sum(-1) > 0  # its face turns its back on the camera
         other = behind & ~in_mouth

@@ -18,14 +18,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_centre
 from geoavatar.render.camera import Camera, centred_intrinsics, orbit_viewmat, world_to_camera
-from geoavatar.render.mesh import rasterize_mesh
+from geoavatar.render.mesh import dilate_mask, rasterize_mesh
 
 # (name, yaw, pitch) in degrees: the side views of `side_view_shares` (+ yaw toward the camera's right).
 SIDE_VIEWS: tuple[tuple[str, float, float], ...] = (
@@ -43,14 +42,6 @@ class FloaterConfig:
 
     def dilate_px(self, width: int, height: int) -> int:
         return max(1, int(round(self.dilate * max(width, height)))) if self.dilate > 0 else 0
-
-
-def dilate_mask(mask: Tensor, pixels: int) -> Tensor:
-    """[H, W] bool grown by `pixels` in every direction (a square structuring element)."""
-    if pixels <= 0 or not bool(mask.any()):
-        return mask
-    size = 2 * pixels + 1
-    return F.max_pool2d(mask[None, None].float(), size, stride=1, padding=pixels)[0, 0] > 0
 
 
 def head_silhouette(vertices: Tensor, faces: Tensor, camera: Camera, dilate_px: int = 0) -> Tensor:

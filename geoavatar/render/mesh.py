@@ -316,6 +316,14 @@ def face_normals(vertices: Tensor, faces: Tensor) -> Tensor:
     return F.normalize(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), dim=-1, eps=1e-20)
 
 
+def dilate_mask(mask: Tensor, pixels: int) -> Tensor:
+    """[H, W] bool grown by `pixels` in every direction (a square structuring element)."""
+    if pixels <= 0 or not bool(mask.any()):
+        return mask
+    size = 2 * pixels + 1
+    return F.max_pool2d(mask[None, None].float(), size, stride=1, padding=pixels)[0, 0] > 0
+
+
 # --- shading -----------------------------------------------------------------------------------
 
 
@@ -436,6 +444,6 @@ def render_mesh(
 
 
 __all__ = [
-    "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "vertex_normals", "face_normals",
+    "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "dilate_mask", "vertex_normals", "face_normals",
     "Lighting", "shade", "MeshImage", "render_mesh", "box_downsample", "scale_intrinsics",
 ]

@@ -12,7 +12,8 @@ One step (GaussianAvatars' loop with GeoAvatar's additions; steps are numbered 1
                 background colour, as GaussianAvatars does, so the avatar never learns clothing/backdrop;
                 the background is the dataset's, or with TrainConfig.background = "random" a random colour
                 per step (step_background), the same one behind the render
-    loss        avatar_loss: L_rgb + L_reg (+ L_angle, + GaussianAvatars' scale loss); NaN/Inf stops the run
+    loss        avatar_loss: L_rgb + L_reg (+ L_angle, + GaussianAvatars' scale loss) (+ mesh_prior_losses: rendered
+                weight behind / outside the posed mesh, TrainConfig.mesh_prior, off by default); NaN/Inf stops the run
                 (the terms are read back in one transfer per step; value checks that wait for the device,
                 rasterize's inputs and NaN/Inf in the learned tensors, run every VALUE_CHECK_EVERY steps,
                 on log steps and before every checkpoint)
@@ -62,6 +63,7 @@ from geoavatar.runtime import resolve_device
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.frame_params import FrameParams
 from geoavatar.train.losses import avatar_loss
+from geoavatar.train.mesh_prior import mesh_prior_losses
 
 OPTIMIZER_NAMES = ("gaussians", "tracking", "deformer")
 MLP_ADAM_EPS = 1e-8  # the mouth MLPs use Adam's usual eps; GaussianAvatars' 1e-15 is for the Gaussians
@@ -417,6 +419,11 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     p = state.avatar.params
     losses = avatar_loss(result.rgb, target, p["means"], p["scales"], state.avatar.binding, state.face_sets,
                          config.loss, visible=result.visible)
+    prior = mesh_prior_losses(g, frame.vertices, data.head, item_camera(item), config.mesh_prior, seed, step,
+                              data.backend)
+    if prior:  # logged by name before the total
+        total = losses.pop("total") + sum(prior.values())
+        losses = {**losses, **prior, "total": total}
     total = losses["total"]
     with torch.no_grad():
         mse = ((result.rgb.detach() - target) ** 2).mean()
