@@ -24,9 +24,8 @@ from pathlib import Path
 from typing import Literal, NamedTuple, Optional
 
 import torch
-from torch import Tensor
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, Camera, RunFrames, RunPath, default_output, head_centre,
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, default_output, head_centre,
                                    open_run, progress, rasterize_gaussians, record_camera, run_background,
                                    side_by_side, to_uint8, torch_threads)
 from geoavatar.avatar import pose_avatar
@@ -35,7 +34,7 @@ from geoavatar.errors import OptionError
 from geoavatar.eval.floaters import DEFAULT_DILATE, FloaterConfig, head_silhouette, outside_share
 from geoavatar.io.atomic import atomic_write_png
 from geoavatar.io.video import Mp4Writer
-from geoavatar.render.camera import centred_intrinsics, orbit_viewmat
+from geoavatar.render.camera import orbit_cameras
 from geoavatar.train.checkpoint import RunError
 
 
@@ -48,15 +47,6 @@ def sweep_angles(frames: int, yaw_max: float, pitch_max: float) -> list[tuple[fl
     pitch_frames = frames - yaw_frames
     angles += [(0.0, pitch_max * math.sin(2 * math.pi * i / pitch_frames)) for i in range(pitch_frames)]
     return angles
-
-
-def orbit_cameras(base: Camera, centre: Tensor, angles: list[tuple[float, float]]) -> list[Camera]:
-    """Cameras turned about `centre` [3] by (yaw, pitch) degrees and aimed at it, at base's distance and focal
-    lengths, `centre` in the middle of the image (render.camera.orbit_viewmat: positive yaw toward the camera's
-    right, positive pitch up; centred_intrinsics)."""
-    viewmat = base.viewmat.to(centre)
-    K = centred_intrinsics(base.K, base.width, base.height)
-    return [Camera(orbit_viewmat(viewmat, centre, yaw, pitch), K, base.width, base.height) for yaw, pitch in angles]
 
 
 class OrbitResult(NamedTuple):

@@ -23,7 +23,7 @@ from torch import Tensor
 from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_centre
-from geoavatar.render.camera import Camera, centred_intrinsics, orbit_viewmat, world_to_camera
+from geoavatar.render.camera import Camera, orbit_cameras, world_to_camera
 from geoavatar.render.mesh import dilate_mask, rasterize_mesh
 
 # (name, yaw, pitch) in degrees: the side views of `side_view_shares` (+ yaw toward the camera's right).
@@ -70,12 +70,10 @@ def side_view_shares(run, params: HeadParams, timestep: int | None, camera: Came
     posed = pose_avatar(run.avatar, run.head, params, timestep, run.deformer)
     vertices = posed.vertices  # [V, 3]
     centre = skull_centre(vertices, run.head)  # [3]
-    viewmat = camera.viewmat.to(vertices)
-    K = centred_intrinsics(camera.K.to(vertices), camera.width, camera.height)  # the aimed centre mid-image
     dilate = config.dilate_px(camera.width, camera.height)
+    views = orbit_cameras(camera, centre, [(yaw, pitch) for _, yaw, pitch in config.views])
     shares = {}
-    for name, yaw, pitch in config.views:
-        view = Camera(orbit_viewmat(viewmat, centre, yaw, pitch), K, camera.width, camera.height)
+    for (name, _, _), view in zip(config.views, views):
         alpha = rasterize_gaussians(posed.gaussians, view, None, backend).alpha  # [H, W, 1]
         shares[name] = outside_share(alpha, head_silhouette(vertices, run.head.faces, view, dilate))
     return shares

@@ -204,6 +204,16 @@ def orbit_viewmat(
     return look_at(centre + turn @ offset, centre, turn @ up)
 
 
+def orbit_cameras(base: "Camera", centre: Tensor, angles: list[tuple[float, float]]) -> list["Camera"]:
+    """Cameras turned about `centre` [3] by (yaw, pitch) degrees and aimed at it, at base's distance and focal
+    lengths, `centre` in the middle of the image (orbit_viewmat: positive yaw toward the camera's right, positive
+    pitch up; centred_intrinsics), on centre's device and dtype. `geoavatar orbit`, eval's side views and the
+    trainer's turned camera (train/mesh_prior.py) place their cameras with it."""
+    viewmat = base.viewmat.to(centre)
+    K = centred_intrinsics(base.K.to(centre), base.width, base.height)
+    return [Camera(orbit_viewmat(viewmat, centre, yaw, pitch), K, base.width, base.height) for yaw, pitch in angles]
+
+
 def _homogeneous(matrix: Tensor, name: str) -> Tensor:
     if matrix.shape[-2:] == (4, 4):
         return matrix
@@ -217,5 +227,5 @@ def _homogeneous(matrix: Tensor, name: str) -> Tensor:
 __all__ = [
     "Camera", "look_at", "intrinsics_from_fov", "centred_intrinsics", "fov_from_intrinsics", "world_to_camera", "project",
     "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "scale_intrinsics",
-    "orbit_viewmat",
+    "orbit_viewmat", "orbit_cameras",
 ]

@@ -21,7 +21,7 @@ from geoavatar.avatar.binding import GlobalGaussians
 from geoavatar.avatar.render import rasterize_gaussians
 from geoavatar.config import MeshPriorConfig
 from geoavatar.head.regions import skull_centre
-from geoavatar.render.camera import Camera, centred_intrinsics, orbit_viewmat, world_to_camera
+from geoavatar.render.camera import Camera, orbit_cameras, world_to_camera
 from geoavatar.render.mesh import dilate_mask, rasterize_mesh
 
 
@@ -78,10 +78,7 @@ def turned_angles(config: MeshPriorConfig, seed: int, step: int) -> tuple[float,
 def turned_camera(camera: Camera, vertices: Tensor, head, yaw: float, pitch: float) -> Camera:
     """`camera` turned about the posed head's centre by yaw / pitch (degrees), aimed at it with the principal point
     mid-image: as `geoavatar orbit` and eval's side views turn it."""
-    centre = skull_centre(vertices.detach(), head)  # [3]
-    viewmat = orbit_viewmat(camera.viewmat.to(centre), centre, yaw, pitch)
-    K = centred_intrinsics(camera.K.to(centre), camera.width, camera.height)
-    return Camera(viewmat, K, camera.width, camera.height)
+    return orbit_cameras(camera, skull_centre(vertices.detach(), head), [(yaw, pitch)])[0]
 
 
 def mesh_prior_losses(
