@@ -59,7 +59,7 @@ from geoavatar.eval.floaters import (DEFAULT_DILATE, FloaterConfig, dilate_mask,
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
 from geoavatar.eval.view_angles import rest_skull, view_directions, within_trained_views, yaw_pitch
 from geoavatar.render.camera import world_to_camera
-from geoavatar.render.mesh import rasterize_mesh
+from geoavatar.render.mesh import dilation_pixels, rasterize_mesh
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
 from geoavatar.train.frame_params import FrameParams
 from geoavatar.head.params import HeadParams
@@ -322,8 +322,7 @@ def evaluate_run(
             )
             mask = None
             if selected is not None:
-                dilate = max(1, int(round(config.mouth_dilate * max(item["width"], item["height"])))) \
-                    if config.mouth_dilate > 0 else 0
+                dilate = dilation_pixels(config.mouth_dilate, item["width"], item["height"])
                 mask = mouth_mask(frame.vertices, run.head.faces, selected, item["viewmat"], item["K"],
                                   item["width"], item["height"], dilate)
                 box = crop_box(mask, config.mouth_min_crop)

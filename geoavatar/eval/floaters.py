@@ -24,7 +24,7 @@ from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_centre
 from geoavatar.render.camera import Camera, orbit_cameras, world_to_camera
-from geoavatar.render.mesh import dilate_mask, rasterize_mesh
+from geoavatar.render.mesh import dilate_mask, dilation_pixels, rasterize_mesh
 
 # (name, yaw, pitch) in degrees: the side views of `side_view_shares` (+ yaw toward the camera's right).
 SIDE_VIEWS: tuple[tuple[str, float, float], ...] = (
@@ -41,7 +41,7 @@ class FloaterConfig:
     views: tuple[tuple[str, float, float], ...] = SIDE_VIEWS
 
     def dilate_px(self, width: int, height: int) -> int:
-        return max(1, int(round(self.dilate * max(width, height)))) if self.dilate > 0 else 0
+        return dilation_pixels(self.dilate, width, height)
 
 
 def head_silhouette(vertices: Tensor, faces: Tensor, camera: Camera, dilate_px: int = 0) -> Tensor:

@@ -316,6 +316,11 @@ def face_normals(vertices: Tensor, faces: Tensor) -> Tensor:
     return F.normalize(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), dim=-1, eps=1e-20)
 
 
+def dilation_pixels(fraction: float, width: int, height: int) -> int:
+    """A dilation given as a fraction of the longer image side, in whole pixels (at least 1 when > 0; 0 for 0)."""
+    return max(1, int(round(fraction * max(width, height)))) if fraction > 0 else 0
+
+
 def dilate_mask(mask: Tensor, pixels: int) -> Tensor:
     """[H, W] bool grown by `pixels` in every direction (a square structuring element)."""
     if pixels <= 0 or not bool(mask.any()):
@@ -444,6 +449,6 @@ def render_mesh(
 
 
 __all__ = [
-    "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "dilate_mask", "vertex_normals", "face_normals",
+    "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "dilate_mask", "dilation_pixels", "vertex_normals", "face_normals",
     "Lighting", "shade", "MeshImage", "render_mesh", "box_downsample", "scale_intrinsics",
 ]
