@@ -125,8 +125,9 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
     rows = _start_rows(subject, run, trained)  # key -> [T, ...]
     dataset = HeadAvatarDataset(subject, "all", DataConfig(resolution=run.info.resolution, cache="none"))
     to_fit = [index for index in range(len(dataset)) if dataset.timesteps[index] not in trained]
+    nothing = np.zeros(0)
     report = {"avatar": str(Path(run_dir).resolve()), "steps": steps, "from_run": sorted(trained),
-              "fitted": [int(dataset.timesteps[index]) for index in to_fit], "l1": None}
+              "fitted": [int(dataset.timesteps[index]) for index in to_fit], "l1": residual_report(nothing, nothing)}
     if to_fit:
         with tqdm(total=len(to_fit), desc="track (avatar)", unit="frame", disable=not progress) as bar:
             result = track_frames(run.avatar, run.head, run.deformer, _avatar_frames(dataset, to_fit, run), config,
@@ -135,7 +136,7 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
             for key in FRAME_KEYS:
                 rows[key][dataset.frames[index].row] = getattr(result.params, key)[i].cpu()
         report["l1"] = residual_report(result.loss_after, result.loss_before)  # null: an empty mask, not fitted
-    l1 = report["l1"] or {"mean_before": float("nan"), "mean": float("nan")}
+    l1 = report["l1"]  # means NaN when no frame had pixels to compare
     log(f"track: {len(to_fit)} frame(s) fitted against the avatar ({len(trained)} kept the run's refined parameters); "
         f"L1 {l1['mean_before']:.4f} -> {l1['mean']:.4f}")
     return HeadParams.from_npz({**subject.params, **rows}).map(lambda x: x.float()), report
@@ -306,8 +307,7 @@ def track(
         before, after = summary["mean_before"], summary["mean"]
     else:
         report["avatar_tracking"] = avatar_report
-        l1 = avatar_report["l1"] or {"mean_before": float("nan"), "mean": float("nan")}
-        before, after = l1["mean_before"], l1["mean"]
+        before, after = avatar_report["l1"]["mean_before"], avatar_report["l1"]["mean"]
     write_tracked_copy(subject, fitted, Path(out), report)
     print(f"tracked {subject.num_timesteps} frames in {seconds:.1f} s; residual {before:.4f} -> {after:.4f}; "
           f"dataset: {out}", file=sys.stderr if not progress else sys.stdout)

@@ -98,13 +98,16 @@ def track_frame(avatar: GaussianAvatar, head: HeadModel, deformer: MouthDeformer
     target = composite_target(frame.image, frame.mask, frame.background)  # [H, W, 3]
     values = {key: getattr(frame.params, key).detach().clone().float().requires_grad_(True) for key in config.keys}
     optimizer = torch.optim.Adam([{"params": [values[key]], "lr": config.rates[key]} for key in config.keys])
-    with torch.no_grad():
-        before = float(image_loss(avatar, head, deformer, frame.params, frame, target))
+    before = None  # the first step's loss: its parameters are the start
     for _ in range(config.steps):
         loss = image_loss(avatar, head, deformer, frame.params.replace(**values), frame, target)
+        before = float(loss.detach()) if before is None else before
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
+    if before is None:  # no step
+        with torch.no_grad():
+            before = float(image_loss(avatar, head, deformer, frame.params, frame, target))
     fitted = frame.params.replace(**{key: value.detach() for key, value in values.items()}).detach()
     with torch.no_grad():
         after = float(image_loss(avatar, head, deformer, fitted, frame, target))
