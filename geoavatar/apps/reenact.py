@@ -61,10 +61,11 @@ from typing import Literal, Optional
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, Camera, RunFrames, RunPath, check_threads,
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, check_threads,
                                    default_output, evenly_spaced, fit_height, open_run, progress, record_camera, render_params,
                                    run_background, side_by_side, to_uint8, torch_threads)
 from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
+from geoavatar.data.dataset import item_camera
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
@@ -245,7 +246,7 @@ def reenact_video(
             if camera_mode == "avatar":
                 camera = fixed_camera
             else:
-                camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+                camera = item_camera(item)
                 if run.info.resolution is not None and max(camera.width, camera.height) > run.info.resolution:
                     camera = camera.resized(run.info.resolution)
             pred = to_uint8(render_params(run, frame_of(params, row_of[item["timestep"]]), camera, None, background,

@@ -14,9 +14,10 @@ from typing import Literal, Optional
 
 import torch
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, Camera, RunFrames, RunPath, default_output, error_map,
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, default_output, error_map,
                                    evenly_spaced, open_run, open_run_dataset, progress, render_params, side_by_side,
                                    to_uint8, torch_threads)
+from geoavatar.data.dataset import item_camera
 from geoavatar.errors import OptionError
 from geoavatar.io.video import Mp4Writer
 from geoavatar.render import composite_target
@@ -52,7 +53,7 @@ def render_split_video(
         for index in progress(indices, enabled=show_progress, desc=f"render {split}"):
             item = dataset[index]
             params, timestep = frames.params(item["timestep"])
-            camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+            camera = item_camera(item)
             background = item["background"].to(device)
             pred = render_params(run, params, camera, timestep, background, backend)  # [H, W, 3]
             target = composite_target(item["image"].to(device), item["mask"].to(device), background)

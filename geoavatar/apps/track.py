@@ -167,15 +167,13 @@ def _start_rows(subject, run, trained: set[int]) -> dict:
 def _avatar_frames(dataset, indices: list[int], run):
     """AvatarFrames of the dataset's items `indices` on the run's device (decoded one at a time)."""
     from geoavatar.apps.common import run_device
-    from geoavatar.render.camera import Camera
+    from geoavatar.data.dataset import item_camera, item_to
     from geoavatar.train.avatar_tracking import AvatarFrame
 
-    device = run_device(run)
     for index in indices:
-        item = dataset[index]
-        params = HeadParams.from_npz({k: v.to(device) for k, v in item["params"].items()})
-        camera = Camera(item["viewmat"].to(device), item["K"].to(device), item["width"], item["height"])
-        yield AvatarFrame(params, camera, item["image"].to(device), item["mask"].to(device), item["background"].to(device))
+        item = item_to(dataset[index], run_device(run))
+        yield AvatarFrame(HeadParams.from_npz(item["params"]), item_camera(item), item["image"], item["mask"],
+                          item["background"])
 
 
 def _in_width_of(like: np.ndarray, values: np.ndarray, dtype=None) -> np.ndarray:

@@ -51,6 +51,7 @@ from geoavatar.data.layout import EXTRA_SPLIT_FILES
 from geoavatar.data.errors import DatasetError
 from geoavatar.data.splits import Split, SplitConfig
 from geoavatar.data.subject import FrameRecord, Subject
+from geoavatar.render.camera import Camera
 
 log = logging.getLogger(__name__)
 
@@ -287,5 +288,17 @@ def open_dataset(root: str | os.PathLike, split: str = "train", config: DataConf
     return HeadAvatarDataset(open_subject(root), split, config, head_options=head_options)
 
 
-__all__ = ["DataConfig", "HeadAvatarDataset", "check_frame_files", "check_head_model", "decode_frame", "open_dataset",
-           "open_subject"]
+def item_to(item: dict, device: torch.device | str) -> dict:
+    """A dataset item with its tensors, and those of its `params` dict, on `device`."""
+    out = {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in item.items()}
+    out["params"] = {k: v.to(device) for k, v in item["params"].items()}
+    return out
+
+
+def item_camera(item: dict) -> Camera:
+    """The camera of a dataset item (viewmat [4, 4], K [3, 3], image size)."""
+    return Camera(item["viewmat"], item["K"], item["width"], item["height"])
+
+
+__all__ = ["DataConfig", "HeadAvatarDataset", "check_frame_files", "check_head_model", "decode_frame", "item_camera",
+           "item_to", "open_dataset", "open_subject"]

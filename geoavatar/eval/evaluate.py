@@ -52,6 +52,7 @@ from torch import Tensor
 
 from geoavatar.avatar import TimestepMode, frame_timestep, render_avatar
 from geoavatar.data import HeadAvatarDataset, evenly_spaced
+from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.errors import OptionError
 from geoavatar.eval import metrics
 from geoavatar.eval.floaters import (DEFAULT_DILATE, FloaterConfig, dilate_mask, head_silhouette, outside_share,
@@ -64,7 +65,7 @@ from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
 from geoavatar.train.frame_params import FrameParams
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
-from geoavatar.render import Camera, composite_target
+from geoavatar.render import composite_target
 
 SPLITS = ("test", "val", "train", "novel")
 TRAINED_VIEW_TOLERANCE = 5.0  # degrees: a frame's view counts as trained when a training frame saw the face so
@@ -176,12 +177,6 @@ class RenderedFrame(NamedTuple):
 # --- rendering the frames of a run ---------------------------------------------------------------
 
 
-def _item_to(item: dict, device: torch.device) -> dict:
-    out = {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in item.items()}
-    out["params"] = {k: v.to(device) for k, v in item["params"].items()}
-    return out
-
-
 @torch.no_grad()
 def render_run_frames(
     run: LoadedRun,
@@ -198,12 +193,11 @@ def render_run_frames(
     train_timesteps = set(run.info.timesteps.get("train", []))
     refined = FrameParams(run.info.frame_params, refine=False).to(device)
     for index in (range(len(dataset)) if indices is None else indices):
-        item = _item_to(dataset[index], device)
+        item = item_to(dataset[index], device)
         seen = item["timestep"] in train_timesteps
         params = refined(item["row"]) if seen else HeadParams.from_npz(item["params"])
         timestep = frame_timestep(item["timestep"], train_timesteps, timestep_mode)
-        camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
-        frame = render_avatar(run.avatar, run.head, params, camera, timestep, run.deformer, item["background"], backend)
+        frame = render_avatar(run.avatar, run.head, params, item_camera(item), timestep, run.deformer, item["background"], backend)
         pred = frame.result.rgb.clamp(0.0, 1.0)
         target = composite_target(item["image"], item["mask"], item["background"])
         yield RenderedFrame(index, item, pred, target, frame.vertices, frame.result.alpha, params, timestep)
@@ -342,7 +336,7 @@ def evaluate_run(
             record.view_yaw, record.view_pitch = round(float(yaw), 2), round(float(pitch), 2)
             record.trained_view = bool(within_trained_views(direction, trained, TRAINED_VIEW_TOLERANCE)[0])
             if config.floaters:
-                camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+                camera = item_camera(item)
                 silhouette = head_silhouette(frame.vertices, run.head.faces, camera,
                                              floater_config.dilate_px(item["width"], item["height"]))
                 record.outside = outside_share(frame.alpha, silhouette)

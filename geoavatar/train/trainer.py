@@ -54,11 +54,12 @@ from geoavatar.avatar.colour_init import face_colours
 from geoavatar.avatar.model import rgb_to_sh_dc
 from geoavatar.config import PresetName, TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
+from geoavatar.data.dataset import item_camera
 from geoavatar.data.splits import evenly_spaced
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png
-from geoavatar.render import Camera, composite_target
+from geoavatar.render import composite_target
 from geoavatar.runtime import resolve_device
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.frame_params import FrameParams
@@ -393,11 +394,6 @@ def psnr_of(mse: float) -> float:
 
 def _item_to(item: dict, device: torch.device) -> dict:
     return {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in item.items()}
-
-
-def item_camera(item: dict) -> Camera:
-    """The camera of a dataset item (viewmat [4, 4], K [3, 3], image size)."""
-    return Camera(item["viewmat"], item["K"], item["width"], item["height"])
 
 
 def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, step: int, seed: int,
