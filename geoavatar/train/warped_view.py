@@ -67,7 +67,7 @@ def warp_to_camera(
     seen_s = rasterize_mesh(world_to_camera(vertices, src_view), faces, src_K, source.width, source.height)
     px = uv[:, 0].floor().long().clamp(0, source.width - 1)
     py = uv[:, 1].floor().long().clamp(0, source.height - 1)
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] < source.width) & (uv[:, 1] >= 0) & (uv[:, 1] < source.height)
+    inside = (in_source[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < source.width) & (uv[:, 1] >= 0) & (uv[:, 1] < source.height)
     visible = inside & (in_source[:, 2] <= seen_s.depth[py, px] + depth_tolerance)  # [h*w] not hidden in the source
     camera_centre = -src_view[:3, :3].T @ src_view[:3, 3]  # [3] world
     normal = normals.detach().to(vertices)[face_id].reshape(-1, 3)  # [h*w, 3]
@@ -86,8 +86,6 @@ def warped_view_loss(render: Tensor, warped: WarpedView) -> Tensor:
     """Mean L1 over the valid pixels of `render` [h, w, 3] against the warped colour (0 when none is valid)."""
     weight = warped.valid.to(render.dtype)[..., None]  # [h, w, 1]
     return ((render - warped.colour).abs() * weight).sum() / (3.0 * weight.sum()).clamp_min(1.0)
-
-
 
 
 def turned_view_term(
