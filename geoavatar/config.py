@@ -116,6 +116,36 @@ class LossConfig:
 
 
 @dataclass
+class WarpedViewConfig:
+    """A loss at a camera turned about the head whose target is the training frame warped through the posed head mesh
+    (train/warped_view.py, issue #18): a Lambertian skin point the training camera sees has the same colour from
+    the side, so the avatar is asked to show it there too. No ground truth beyond the frame itself; on real videos the
+    mesh is the tracker's, so its error moves the warped colours.
+
+    Off by default (weight 0): on the generated subjects weight 0.05 lifted the held-out yaw +-30 views 0.3 dB on
+    average with lower LPIPS, for 1.4x the training time, and moved the front by -0.17..+0.08 dB (-0.32 at 6000
+    steps); larger weights cost it 1-2 dB; the real videos' fronts held (-0.02 dB) with no visible change (BENCHMARKS.md, "Novel views (issue #18,
+    sixth round)")."""
+
+    weight: float = 0.0  # weight of the mean L1 over the valid pixels of the turned render
+    turned_yaw: float = 30.0  # largest |yaw| of the turned camera, degrees (uniform, seeded per step)
+    turned_pitch: float = 15.0  # largest |pitch|, degrees
+    every: int = 1  # take the turned camera every this many steps (each costs two mesh z-buffers and a render)
+    # APS parts whose faces lie on skin the head model fits: not the scalp (hair lies centimetres above it), forehead
+    # (fringes), ears and neck (hair, collars) or the mouth interior (hidden by the lips)
+    parts: tuple[str, ...] = ("face", "nose", "eye_region", "lips")
+    depth_tolerance: float = 0.005  # metres behind the training camera's z-buffer that still counts as seen there
+    max_angle: float = 70.0  # degrees between a face's normal and the training camera's line of sight, at most
+    # The loss moves only the Gaussians' colours (and their shading), not where they are, how large or how opaque
+    # (hair the head model lacks may cover the skin at the turned camera, which the warp cannot know). Measured: the
+    # front drops as much as with every parameter free (BENCHMARKS.md, issue #18 sixth round), so off.
+    colours_only: bool = False
+
+    def active(self, step: int) -> bool:
+        return self.weight > 0 and step % self.every == 0
+
+
+@dataclass
 class MeshPriorConfig:
     """Losses on where the avatar's rendered weight lies relative to the tracked, posed head mesh (issue #18). They need
     no ground truth (the mesh is the trainer's own posed head), so they work on real videos too. All off by default:
@@ -223,6 +253,7 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)  # the learned avatar
     loss: LossConfig = field(default_factory=LossConfig)  # L = L_rgb + L_reg (+ L_angle, scale loss)
     mesh_prior: MeshPriorConfig = field(default_factory=MeshPriorConfig)  # rendered weight behind / off the posed mesh
+    warped_view: WarpedViewConfig = field(default_factory=WarpedViewConfig)  # the frame warped to a turned camera
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # adaptive density control
     lr: LearningRates = field(default_factory=LearningRates)  # Adam learning rates
 
@@ -289,6 +320,19 @@ class TrainConfig:
                 problems.append(f"mesh_prior.{name} must be >= 0 (got {getattr(mp, name)})")
         if mp.turned_every < 1:
             problems.append(f"mesh_prior.turned_every must be >= 1 (got {mp.turned_every})")
+        wv = self.warped_view
+        for name in ("weight", "turned_yaw", "turned_pitch", "depth_tolerance"):
+            if getattr(wv, name) < 0:
+                problems.append(f"warped_view.{name} must be >= 0 (got {getattr(wv, name)})")
+        if wv.every < 1:
+            problems.append(f"warped_view.every must be >= 1 (got {wv.every})")
+        if not 0 < wv.max_angle <= 90:
+            problems.append(f"warped_view.max_angle must lie in (0, 90] degrees (got {wv.max_angle})")
+        from geoavatar.head.regions import PART_NAMES
+
+        unknown = [name for name in wv.parts if name not in PART_NAMES]
+        if unknown or not wv.parts:
+            problems.append(f"warped_view.parts must be some of {', '.join(PART_NAMES)} (got {', '.join(wv.parts) or 'none'})")
         d = self.densify
         if d.every < 1 or d.reset_opacity_every < 1:
             problems.append("densify.every and densify.reset_opacity_every must be >= 1")

@@ -96,11 +96,11 @@ def test_outside_term_counts_alpha_beside_the_dilated_silhouette():
 
 def test_turned_angles_are_seeded_and_within_range():
     config = MeshPriorConfig(turned_yaw=45.0, turned_pitch=10.0)
-    drawn = [turned_angles(config, 3, step) for step in range(1, 200)]
-    assert drawn == [turned_angles(config, 3, step) for step in range(1, 200)]
+    drawn = [turned_angles(config.turned_yaw, config.turned_pitch, 3, step) for step in range(1, 200)]
+    assert drawn == [turned_angles(config.turned_yaw, config.turned_pitch, 3, step) for step in range(1, 200)]
     assert all(abs(y) <= 45.0 and abs(p) <= 10.0 for y, p in drawn)
     assert max(y for y, _ in drawn) > 30.0 and min(y for y, _ in drawn) < -30.0
-    assert turned_angles(config, 4, 7) != turned_angles(config, 3, 7)
+    assert turned_angles(config.turned_yaw, config.turned_pitch, 4, 7) != turned_angles(config.turned_yaw, config.turned_pitch, 3, 7)
 
 
 def test_trainer_logs_the_mesh_prior_terms(tmp_path):

@@ -67,12 +67,12 @@ def camera_prior_terms(
     return terms
 
 
-def turned_angles(config: MeshPriorConfig, seed: int, step: int) -> tuple[float, float]:
-    """(yaw, pitch) in degrees of `step`'s turned camera: uniform in the configured ranges, a pure function of
-    (seed, step) so that a resumed run draws the same ones."""
+def turned_angles(max_yaw: float, max_pitch: float, seed: int, step: int) -> tuple[float, float]:
+    """(yaw, pitch) in degrees of `step`'s turned camera: uniform in [-max_yaw, max_yaw] x [-max_pitch, max_pitch], a
+    pure function of (seed, step) so that a resumed run draws the same ones."""
     generator = torch.Generator().manual_seed(seed * 1_000_003 + 7_919 * step + 2)
     u = torch.rand(2, generator=generator, dtype=torch.float64).tolist()
-    return (2.0 * u[0] - 1.0) * config.turned_yaw, (2.0 * u[1] - 1.0) * config.turned_pitch
+    return (2.0 * u[0] - 1.0) * max_yaw, (2.0 * u[1] - 1.0) * max_pitch
 
 
 def turned_camera(camera: Camera, vertices: Tensor, head, yaw: float, pitch: float) -> Camera:
@@ -98,7 +98,7 @@ def mesh_prior_losses(
         out["behind"] = config.lambda_behind * camera_prior_terms(
             gaussians, vertices, head.faces, camera, config.margin, None, backend)["behind"]
     if config.at_turned_camera(step):
-        yaw, pitch = turned_angles(config, seed, step)
+        yaw, pitch = turned_angles(config.turned_yaw, config.turned_pitch, seed, step)
         view = turned_camera(camera, vertices, head, yaw, pitch)
         dilate = max(1, int(round(config.outside_dilate * max(camera.width, camera.height))))
         terms = camera_prior_terms(gaussians, vertices, head.faces, view, config.margin, dilate, backend)

@@ -65,6 +65,7 @@ from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.frame_params import FrameParams
 from geoavatar.train.losses import avatar_loss
 from geoavatar.train.mesh_prior import mesh_prior_losses
+from geoavatar.train.warped_view import turned_view_term
 
 OPTIMIZER_NAMES = ("gaussians", "tracking", "deformer")
 MLP_ADAM_EPS = 1e-8  # the mouth MLPs use Adam's usual eps; GaussianAvatars' 1e-15 is for the Gaussians
@@ -135,6 +136,11 @@ class TrainingData:
     device: torch.device
     backend: str
     data_config: DataConfig
+
+    def usable_faces(self, parts: tuple[str, ...]) -> Tensor:
+        """[F] bool on the device: faces of the named APS parts (none when the head model has no parts)."""
+        ids = [self.part_names.index(name) for name in parts if name in self.part_names]
+        return torch.isin(self.part_of_face, torch.tensor(ids, dtype=torch.long)).to(self.device)
 
     def dataset_record(self) -> dict:
         split = self.train_set.split
@@ -417,6 +423,10 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
                          config.loss, visible=result.visible)
     prior = mesh_prior_losses(g, frame.vertices, data.head, item_camera(item), config.mesh_prior, seed, step,
                               data.backend)
+    if config.warped_view.active(step):
+        prior["warped_view"] = turned_view_term(g, frame.vertices, data.head, data.usable_faces(config.warped_view.parts),
+                                                item, item_camera(item), background, config.warped_view, seed, step,
+                                                data.backend)
     if prior:  # logged by name before the total
         total = losses.pop("total") + sum(prior.values())
         losses = {**losses, **prior, "total": total}
