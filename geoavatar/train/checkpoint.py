@@ -132,6 +132,8 @@ def dataclass_from_dict(cls: type, data: dict, where: str = "config") -> Any:
         hint = hints.get(name)
         if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             value = dataclass_from_dict(hint, value, f"{where}.{name}")
+        elif typing.get_origin(hint) is tuple and isinstance(value, list):  # JSON has no tuples
+            value = tuple(value)
         values[name] = value
     return cls(**values)
 
