@@ -52,4 +52,5 @@ for t, index, image, mask in synth._render_frames(actor, renderer, truth, jobs, 
                                 transform_matrix=c2w.tolist()))
 train["camera_indices"] = sorted({frame["camera_index"] for frame in train["frames"]})
 (dst / "transforms_train.json").write_text(json.dumps(train, indent=1))
-print(f"{dst}: {len(jobs)} turned views added to the training split ({', '.join(views)}, one training frame in {every})")
+print(f"{dst}: {len(jobs)} turned views added to the training split ({', '.join(views)}, "
+      f"one training frame in {every})")

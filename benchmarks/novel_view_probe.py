@@ -46,7 +46,7 @@ for fr in render_run_frames(run, ds, list(range(0, len(ds), step))):
     rows[ds.frames[fr.index].view].append((float((1 - alpha).mean()), float((alpha < 0.9).float().mean()),
                                           float((alpha < 0.5).float().mean()), mse, *best))
 
-print(f"{sys.argv[1]}: holes inside the true mask, and the best image shift (every {step}th frame)")
+print(f"{sys.argv[1]}: holes inside the true mask, and the best image shift (one frame in {step})")
 print(f"{'view':9s} {'n':>3s} {'1-alpha %':>9s} {'<0.9 %':>7s} {'<0.5 %':>7s} {'PSNR':>6s} {'shifted':>8s}"
       f" {'dx med':>7s} {'dy med':>7s}")
 for view, r in rows.items():

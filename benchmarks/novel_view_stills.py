@@ -3,7 +3,8 @@
 Columns: the ground truth, then each run; rows: (timestep, view) pairs of the novel split. Written 2x upscaled and
 quantised to 256 colours.
 
-usage: python benchmarks/novel_view_stills.py OUT.png RUN [RUN ...] [--rows 150:yaw+30,132:yaw-30,150:front,132:yaw+30,150:yaw-60]
+usage: python benchmarks/novel_view_stills.py OUT.png RUN [RUN ...] [--rows T:VIEW,...]
+    (default rows 150:yaw+30,132:yaw-30,150:front,132:yaw+30,150:yaw-60)
 """
 
 import sys

@@ -124,8 +124,8 @@ class WarpedViewConfig:
 
     Off by default (weight 0): on the generated subjects weight 0.05 lifted the held-out yaw +-30 views 0.3 dB on
     average with lower LPIPS, for 1.4x the training time, and moved the front by -0.17..+0.08 dB (-0.32 at 6000
-    steps); larger weights cost it 1-2 dB; the real videos' fronts held (-0.02 dB) with no visible change (BENCHMARKS.md, "Novel views (issue #18,
-    sixth round)")."""
+    steps); larger weights cost it 1-2 dB; the real videos' fronts held (-0.02 dB) with no visible change
+    (BENCHMARKS.md, "Novel views (issue #18, sixth round)")."""
 
     weight: float = 0.0  # weight of the mean L1 over the valid pixels of the turned render
     turned_yaw: float = 30.0  # largest |yaw| of the turned camera, degrees (uniform, seeded per step)
@@ -332,7 +332,8 @@ class TrainConfig:
 
         unknown = [name for name in wv.parts if name not in PART_NAMES]
         if unknown or not wv.parts:
-            problems.append(f"warped_view.parts must be some of {', '.join(PART_NAMES)} (got {', '.join(wv.parts) or 'none'})")
+            given = ", ".join(wv.parts) or "none"
+            problems.append(f"warped_view.parts must be some of {', '.join(PART_NAMES)} (got {given})")
         d = self.densify
         if d.every < 1 or d.reset_opacity_every < 1:
             problems.append("densify.every and densify.reset_opacity_every must be >= 1")

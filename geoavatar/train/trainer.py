@@ -424,9 +424,9 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     prior = mesh_prior_losses(g, frame.vertices, data.head, item_camera(item), config.mesh_prior, seed, step,
                               data.backend)
     if config.warped_view.active(step):
-        prior["warped_view"] = turned_view_term(g, frame.vertices, data.head, data.usable_faces(config.warped_view.parts),
-                                                item, item_camera(item), background, config.warped_view, seed, step,
-                                                data.backend)
+        usable = data.usable_faces(config.warped_view.parts)  # [F] bool
+        prior["warped_view"] = turned_view_term(g, frame.vertices, data.head, usable, item, item_camera(item),
+                                                background, config.warped_view, seed, step, data.backend)
     if prior:  # logged by name before the total
         total = losses.pop("total") + sum(prior.values())
         losses = {**losses, **prior, "total": total}

@@ -1,4 +1,4 @@
-"""The training frame seen from a turned camera, warped through the posed head mesh (TrainConfig.warped_view, issue #18).
+"""The training frame seen from a turned camera, warped through the posed head mesh (TrainConfig.warped_view, #18).
 
 A monocular video films a turning head from one camera, so a surface point's view direction and its world normal
 change together: the avatar can explain a pose-dependent brightness by its shading *or* by how its layers composite
@@ -67,7 +67,8 @@ def warp_to_camera(
     seen_s = rasterize_mesh(world_to_camera(vertices, src_view), faces, src_K, source.width, source.height)
     px = uv[:, 0].floor().long().clamp(0, source.width - 1)
     py = uv[:, 1].floor().long().clamp(0, source.height - 1)
-    inside = (in_source[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < source.width) & (uv[:, 1] >= 0) & (uv[:, 1] < source.height)
+    inside = ((in_source[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < source.width)
+              & (uv[:, 1] >= 0) & (uv[:, 1] < source.height))
     visible = inside & (in_source[:, 2] <= seen_s.depth[py, px] + depth_tolerance)  # [h*w] not hidden in the source
     camera_centre = -src_view[:3, :3].T @ src_view[:3, 3]  # [3] world
     normal = normals.detach().to(vertices)[face_id].reshape(-1, 3)  # [h*w, 3]
