@@ -109,13 +109,15 @@ def test_trainer_logs_the_warped_view_term_and_the_config_checks_its_options(tmp
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ShortVideoWarning)
         generate_dataset(data, SynthConfig(subject=0, frames=8, size=48, seed=0), progress=False)
-        config = replace(preset("E", steps=2), warped_view=WarpedViewConfig(weight=0.5, every=2))
+        # preset A: face sets without APS parts, the loss must still find its skin faces
+        config = replace(preset("A", steps=2), warped_view=WarpedViewConfig(weight=0.5, every=2))
         result = train(RunOptions(data=data, out=tmp_path / "run", device="cpu", progress=False, log_every=1), config)
     assert result.status == "finished"
     log = (tmp_path / "run" / "train.log").read_text()
     step1 = next(line for line in log.splitlines() if "step 1:" in line and " total " in line)
     step2 = next(line for line in log.splitlines() if "step 2:" in line and " total " in line)
     assert "warped_view" not in step1 and "warped_view" in step2  # every 2nd step
+    assert float(step2.split("warped_view ")[1].split()[0]) > 0  # pixels were valid and the render differs
     with pytest.raises(ValueError, match="warped_view.parts"):
         replace(config, warped_view=WarpedViewConfig(parts=("cheeks",))).validate()
     with pytest.raises(ValueError, match="warped_view.max_angle"):

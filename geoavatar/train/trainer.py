@@ -58,6 +58,7 @@ from geoavatar.data.dataset import item_camera
 from geoavatar.data.splits import evenly_spaced
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError
+from geoavatar.head.regions import face_parts
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png
 from geoavatar.render import composite_target
 from geoavatar.runtime import resolve_device
@@ -136,11 +137,7 @@ class TrainingData:
     device: torch.device
     backend: str
     data_config: DataConfig
-
-    def usable_faces(self, parts: tuple[str, ...]) -> Tensor:
-        """[F] bool on the device: faces of the named APS parts (none when the head model has no parts)."""
-        ids = [self.part_names.index(name) for name in parts if name in self.part_names]
-        return torch.isin(self.part_of_face, torch.tensor(ids, dtype=torch.long)).to(self.device)
+    warp_faces: Tensor | None = None  # [F] bool on the device: faces of warped_view.parts (None: the loss is off)
 
     def dataset_record(self) -> dict:
         split = self.train_set.split
@@ -214,18 +211,21 @@ def open_training_data(options: RunOptions, config: TrainConfig) -> TrainingData
     val_set = HeadAvatarDataset(subject, "val", data_config, check_head=False)
     head = ckpt.load_head_for(subject.head_model, config.model.mouth, options.flame_dir).to(device)
     if config.model.face_sets == "aps":
-        from geoavatar.head.regions import face_parts
-
         parts = face_parts(head.data)
         part_of_face, part_names = torch.as_tensor(parts.part_of_face), list(parts.part_names)
     else:
         part_of_face, part_names = torch.zeros(head.num_faces, dtype=torch.long), []
+    warp_faces = None
+    if config.warped_view.weight > 0:  # its skin parts whatever the preset's face sets (face_parts: ValueError)
+        parts = face_parts(head.data)
+        wanted = [parts.part_names.index(name) for name in config.warped_view.parts]
+        warp_faces = torch.from_numpy(np.isin(parts.part_of_face, wanted)).to(device)
     extent = densify_ops.scene_extent(camera_centres(train_set), config.densify.min_scene_extent)
     return TrainingData(
         subject=subject, train_set=train_set, val_set=val_set if len(val_set) else None, head=head,
         part_of_face=part_of_face, part_names=part_names, extent=extent,
         num_frames=max(subject.timesteps) + 1, device=device,
-        backend=options.backend, data_config=data_config,
+        backend=options.backend, data_config=data_config, warp_faces=warp_faces,
     )
 
 
@@ -424,8 +424,7 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     prior = mesh_prior_losses(g, frame.vertices, data.head, item_camera(item), config.mesh_prior, seed, step,
                               data.backend)
     if config.warped_view.active(step):
-        usable = data.usable_faces(config.warped_view.parts)  # [F] bool
-        prior["warped_view"] = turned_view_term(g, frame.vertices, data.head, usable, item, item_camera(item),
+        prior["warped_view"] = turned_view_term(g, frame.vertices, data.head, data.warp_faces, item, item_camera(item),
                                                 background, config.warped_view, seed, step, data.backend)
     if prior:  # logged by name before the total
         total = losses.pop("total") + sum(prior.values())

@@ -13,8 +13,9 @@ Lambertian surface under room-fixed lights, the same colour from a camera turned
 valid: the mesh face at p belongs to the skin parts the head model fits (not hair, which lies above the scalp, nor
 the mouth interior), the same point is the visible surface from the training camera (depth test against its
 z-buffer), the training mask covers it there, and the training camera sees it at most `max_angle` off its normal
-(grazing pixels would be stretched over many turned-view pixels). The mesh and the image carry no gradient; only the
-turned render does.
+(grazing pixels would be stretched over many turned-view pixels). The target carries no gradient; the turned render
+does, and through the posed Gaussians it reaches what the training camera's loss reaches: the Gaussians and, via the
+posed vertices, the per-frame tracking refinement and the mouth deformer (BENCHMARKS.md's figures were measured so).
 """
 
 from __future__ import annotations
@@ -29,9 +30,9 @@ from torch import Tensor
 from geoavatar.avatar.binding import GlobalGaussians
 from geoavatar.avatar.render import rasterize_gaussians
 from geoavatar.config import WarpedViewConfig
-from geoavatar.render.camera import Camera, world_to_camera
-from geoavatar.render.mesh import rasterize_mesh
-from geoavatar.train.mesh_prior import turned_angles, turned_camera
+from geoavatar.render.camera import Camera, rigid_inverse, world_to_camera
+from geoavatar.render.mesh import interpolate, rasterize_mesh
+from geoavatar.train.mesh_prior import behind_surface, turned_angles, turned_camera
 
 
 class WarpedView(NamedTuple):
@@ -58,19 +59,16 @@ def warp_to_camera(
     seen_t = rasterize_mesh(world_to_camera(vertices, target.viewmat.to(vertices)), faces, target.K.to(vertices),
                             target.width, target.height)
     face_id = seen_t.face_id.clamp_min(0)  # [h, w]
-    corners = vertices[faces[face_id]]  # [h, w, 3, 3] the visible face's corners
-    points = (seen_t.bary[..., None] * corners).sum(-2)  # [h, w, 3] world point each target pixel sees
+    points = interpolate(seen_t, vertices, faces)  # [h, w, 3] world point each target pixel sees
     src_view, src_K = source.viewmat.to(vertices), source.K.to(vertices)
     in_source = world_to_camera(points.reshape(-1, 3), src_view)  # [h*w, 3]
     z = in_source[:, 2].clamp_min(1e-6)
     uv = (in_source @ src_K.T)[:, :2] / z[:, None]  # [h*w, 2] source pixels (centres at +0.5)
     seen_s = rasterize_mesh(world_to_camera(vertices, src_view), faces, src_K, source.width, source.height)
-    px = uv[:, 0].floor().long().clamp(0, source.width - 1)
-    py = uv[:, 1].floor().long().clamp(0, source.height - 1)
     inside = ((in_source[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < source.width)
               & (uv[:, 1] >= 0) & (uv[:, 1] < source.height))
-    visible = inside & (in_source[:, 2] <= seen_s.depth[py, px] + depth_tolerance)  # [h*w] not hidden in the source
-    camera_centre = -src_view[:3, :3].T @ src_view[:3, 3]  # [3] world
+    visible = inside & ~behind_surface(in_source, seen_s.depth, src_K, depth_tolerance)  # [h*w] not hidden there
+    camera_centre = rigid_inverse(src_view)[:3, 3]  # [3] world
     normal = normals.detach().to(vertices)[face_id].reshape(-1, 3)  # [h*w, 3]
     to_camera = F.normalize(camera_centre - points.reshape(-1, 3), dim=-1)
     facing = (normal * to_camera).sum(-1) >= math.cos(math.radians(max_angle))
