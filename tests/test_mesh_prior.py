@@ -100,7 +100,8 @@ def test_turned_angles_are_seeded_and_within_range():
     assert drawn == [turned_angles(config.turned_yaw, config.turned_pitch, 3, step) for step in range(1, 200)]
     assert all(abs(y) <= 45.0 and abs(p) <= 10.0 for y, p in drawn)
     assert max(y for y, _ in drawn) > 30.0 and min(y for y, _ in drawn) < -30.0
-    assert turned_angles(config.turned_yaw, config.turned_pitch, 4, 7) != turned_angles(config.turned_yaw, config.turned_pitch, 3, 7)
+    ranges = (config.turned_yaw, config.turned_pitch)
+    assert turned_angles(*ranges, 4, 7) != turned_angles(*ranges, 3, 7)
 
 
 def test_trainer_logs_the_mesh_prior_terms(tmp_path):

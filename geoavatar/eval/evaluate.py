@@ -197,7 +197,8 @@ def render_run_frames(
         seen = item["timestep"] in train_timesteps
         params = refined(item["row"]) if seen else HeadParams.from_npz(item["params"])
         timestep = frame_timestep(item["timestep"], train_timesteps, timestep_mode)
-        frame = render_avatar(run.avatar, run.head, params, item_camera(item), timestep, run.deformer, item["background"], backend)
+        frame = render_avatar(run.avatar, run.head, params, item_camera(item), timestep, run.deformer,
+                              item["background"], backend)
         pred = frame.result.rgb.clamp(0.0, 1.0)
         target = composite_target(item["image"], item["mask"], item["background"])
         yield RenderedFrame(index, item, pred, target, frame.vertices, frame.result.alpha, params, timestep)

@@ -449,6 +449,7 @@ def render_mesh(
 
 
 __all__ = [
-    "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "dilate_mask", "dilation_pixels", "vertex_normals", "face_normals",
+    "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "dilate_mask", "dilation_pixels", "vertex_normals",
+    "face_normals",
     "Lighting", "shade", "MeshImage", "render_mesh", "box_downsample", "scale_intrinsics",
 ]

@@ -13,7 +13,8 @@ One step (GaussianAvatars' loop with GeoAvatar's additions; steps are numbered 1
                 the background is the dataset's, or with TrainConfig.background = "random" a random colour
                 per step (step_background), the same one behind the render
     loss        avatar_loss: L_rgb + L_reg (+ L_angle, + GaussianAvatars' scale loss) (+ mesh_prior_losses: rendered
-                weight behind / outside the posed mesh, TrainConfig.mesh_prior, off by default); NaN/Inf stops the run
+                weight behind / outside the posed mesh, TrainConfig.mesh_prior; + turned_view_term: the frame warped
+                to a turned camera, TrainConfig.warped_view; both off by default); NaN/Inf stops the run
                 (the terms are read back in one transfer per step; value checks that wait for the device,
                 rasterize's inputs and NaN/Inf in the learned tensors, run every VALUE_CHECK_EVERY steps,
                 on log steps and before every checkpoint)
@@ -210,14 +211,14 @@ def open_training_data(options: RunOptions, config: TrainConfig) -> TrainingData
         raise DatasetError(f"{subject.root}: the training split is empty (every frame is a test frame?)")
     val_set = HeadAvatarDataset(subject, "val", data_config, check_head=False)
     head = ckpt.load_head_for(subject.head_model, config.model.mouth, options.flame_dir).to(device)
+    # APS needs the parts, and so does the warped view whatever the face sets (face_parts: ValueError without them)
+    parts = face_parts(head.data) if config.model.face_sets == "aps" or config.warped_view.weight > 0 else None
     if config.model.face_sets == "aps":
-        parts = face_parts(head.data)
         part_of_face, part_names = torch.as_tensor(parts.part_of_face), list(parts.part_names)
     else:
         part_of_face, part_names = torch.zeros(head.num_faces, dtype=torch.long), []
     warp_faces = None
-    if config.warped_view.weight > 0:  # its skin parts whatever the preset's face sets (face_parts: ValueError)
-        parts = face_parts(head.data)
+    if config.warped_view.weight > 0:
         wanted = [parts.part_names.index(name) for name in config.warped_view.parts]
         warp_faces = torch.from_numpy(np.isin(parts.part_of_face, wanted)).to(device)
     extent = densify_ops.scene_extent(camera_centres(train_set), config.densify.min_scene_extent)
@@ -415,16 +416,16 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     background = step_background(item["background"], config.background, seed, step)  # [3]
     target = composite_target(item["image"], item["mask"], background)
     params = state.frames(item["row"])
-    frame = render_avatar(state.avatar, data.head, params, item_camera(item), item["timestep"], state.deformer,
+    camera = item_camera(item)
+    frame = render_avatar(state.avatar, data.head, params, camera, item["timestep"], state.deformer,
                           background, data.backend, check_values=check_values)
     result, g = frame.result, frame.gaussians
     p = state.avatar.params
     losses = avatar_loss(result.rgb, target, p["means"], p["scales"], state.avatar.binding, state.face_sets,
                          config.loss, visible=result.visible)
-    prior = mesh_prior_losses(g, frame.vertices, data.head, item_camera(item), config.mesh_prior, seed, step,
-                              data.backend)
+    prior = mesh_prior_losses(g, frame.vertices, data.head, camera, config.mesh_prior, seed, step, data.backend)
     if config.warped_view.active(step):
-        prior["warped_view"] = turned_view_term(g, frame.vertices, data.head, data.warp_faces, item, item_camera(item),
+        prior["warped_view"] = turned_view_term(g, frame.vertices, data.head, data.warp_faces, item, camera,
                                                 background, config.warped_view, seed, step, data.backend)
     if prior:  # logged by name before the total
         total = losses.pop("total") + sum(prior.values())
