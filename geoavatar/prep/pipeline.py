@@ -6,7 +6,10 @@ Output folder OUT:
     OUT/dataset/          the VHAP / GaussianAvatars layout (LayoutWriter: appears atomically)
     OUT/overlay.mp4       tracked mesh + landmarks over the frames (green: MediaPipe, red: model)
     OUT/report.json       per-frame reprojection error, frames without a face (missing_source_frames: source
-                          frame numbers; interpolated_frames: dataset timesteps), focal, fps
+                          frame numbers; interpolated_frames: dataset timesteps), focal, fps; "capture": the
+                          capture check (geoavatar.prep.coverage: head turns, jaw, expressions, gaze per split,
+                          test frames outside training, the verdict)
+    OUT/coverage.png      the capture check's picture
     OUT/.prepare/         work files of the stages and their completion markers
 
 Stages (each writes `.prepare/<stage>.json` last, holding its key; a re-run skips a stage whose marker
@@ -17,7 +20,7 @@ holds the key it would have now, and redoes it and every stage that depends on i
     tracking   the head-model fit (geoavatar.prep.tracking)
     photometric  every frame refined against its crop (geoavatar.prep.photometric); with --no-photometric it only
                records that it was skipped and the dataset is written from the landmark fit
-    write      the dataset through LayoutWriter, then the overlay video and the report
+    write      the dataset through LayoutWriter, then the overlay video, the capture check and the report
 
 A stage's key is the sha256 of the canonical JSON of {its version, its config, its upstream stages'
 keys}. Its config is derived from PrepareConfig: every field names the stage that reads it
@@ -50,7 +53,7 @@ from geoavatar.prep.errors import PrepareError
 STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
 # ones depending on it) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 2, "write": 4}
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 2, "write": 5}
 # The stages whose outputs a stage reads: a rerun of one redoes these dependants.
 DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "frames": (),
@@ -483,8 +486,28 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
         from geoavatar.prep.photometric import residual_report
 
         report["photometric_residual"] = residual_report(fit["residual"], fit["residual_before"])  # null: no face
+    report["capture"] = write_capture_check(config, params, fit["viewmat"], count - test, count)
     atomic_write_json(Path(config.out) / "report.json", report)
     return {"dataset": str(dataset), "frames": int(count), "test_frames": int(test)}
+
+
+def write_capture_check(config: PrepareConfig, params: dict[str, np.ndarray], viewmat: np.ndarray, train: int,
+                        count: int) -> dict:
+    """The capture check (geoavatar.prep.coverage) of the written fit: OUT/coverage.png; returns its report.
+    params: the fit's npz arrays (per-frame keys [T, ...]); the first `train` rows are the training frames."""
+    import torch
+
+    from geoavatar.head import HeadModel
+    from geoavatar.head.params import HeadParams
+    from geoavatar.prep.coverage import capture_check
+
+    data, _ = load_tracking_head(config)
+    values = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in params.items()}
+    if "static_offset" in values:
+        values["static_offset"] = values["static_offset"].reshape(1, -1, 3)
+    splits = {"train": np.arange(train), "test": np.arange(train, count)}
+    return capture_check(HeadModel(data), HeadParams.from_npz(values), np.broadcast_to(viewmat, (count, 4, 4)), splits,
+                         np.arange(count), Path(config.out) / "coverage.png")
 
 
 def overlay_frames(config: PrepareConfig, work: Path, rows=None):

@@ -109,6 +109,7 @@ class SynthConfig:
     workers: int = field(default_factory=lambda: default_workers())  # rendering processes (1: inline)
     novel_views: bool = False  # also render test timesteps from the NOVEL_VIEWS cameras (transforms_novel.json)
     novel_every: int = 2  # every this many test timesteps get the novel views
+    still_head: bool = False  # the head never turns or nods (motion.script_motion's still_head)
 
 
 def check_output_folder(out: Path) -> bool:
@@ -240,7 +241,7 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
     actor = actor_for_subject(subject.index)
     camera = frontal_camera(actor, config.size, config.fov_deg)
     renderer = ActorRenderer(actor, camera, subject.background_rgb, ssaa=config.ssaa)
-    motion = script_motion(config.frames, config.seed, config.fps)
+    motion = script_motion(config.frames, config.seed, config.fps, still_head=config.still_head)
     gt, mapping = motion_to_params(motion, actor)
     written = apply_tracking_noise(gt, config.tracking_noise, config.fps, config.seed,
                                    num_expr_used=actor.head.exprdirs.shape[-1],
@@ -289,6 +290,7 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
             "subject": subject.summary(),
             "seed": config.seed,
             "frames": config.frames,
+            "still_head": config.still_head,
             "fps": config.fps,
             "size": config.size,
             "fov_deg_vertical": config.fov_deg,
