@@ -30,6 +30,7 @@ def prepare(
     static_offset: bool = True,
     photometric: bool = True,
     overlay: bool = True,
+    workers: Optional[int] = None,
     progress: bool = True,
 ) -> int:
     """Prepare a dataset from a monocular head video: crop, landmarks, masks, head-model tracking (a landmark fit,
@@ -60,12 +61,14 @@ def prepare(
             --no-photometric writes the landmark fit as is (faster). Re-running with it on over a
             --no-photometric folder reuses every earlier stage and adds the photometric one.
         overlay: Write OUT/overlay.mp4.
+        workers: Worker processes (default: one per core this process may use, at most 8; each holds about
+            0.5 GB). The dataset does not depend on it.
         progress: Show progress bars.
     """
     config = PrepareConfig(
         video=video, out=out, head=head, size=size, fps=fps, max_frames=max_frames, missing=missing,
         test_fraction=test_fraction, flame_dir=flame_dir, flame_landmarks=flame_landmarks,
-        static_offset=static_offset, photometric=photometric, overlay=overlay,
+        static_offset=static_offset, photometric=photometric, overlay=overlay, workers=workers,
         progress=progress,
     )
     try:

@@ -248,30 +248,30 @@ def capture_report(measures: FrameMeasures, splits: dict[str, np.ndarray], times
     return report
 
 
-def _turn_advice(summary: dict) -> str | None:
-    """Advice on the head's yaw (side views), or None when it turns TURN_DEG to both sides."""
-    low, high = summary["yaw"]["min"], summary["yaw"]["max"]
-    guessed = f"side views beyond yaw {low - TRAINED_VIEW_TOLERANCE:+.0f}..{high + TRAINED_VIEW_TOLERANCE:+.0f} deg will be guesses"
-    if high - low < STILL_DEG:
-        return f"the head hardly turns (yaw {low:+.0f}..{high:+.0f} deg): turn your head slowly left and right; {guessed}"
-    # yaw > 0: the camera sees the head's left side, i.e. the head turned to its own right
-    short_left, short_right = high < TURN_DEG, -low < TURN_DEG
-    if not (short_left or short_right):
-        return None
-    where = "left and right" if short_left and short_right else ("to your right" if short_left else "to your left")
-    return f"the head turns only to yaw {low:+.0f}..{high:+.0f} deg: turn it further {where} (to about {TURN_DEG:.0f} deg); {guessed}"
+# Advice on the head's reach, per measure: the reach wanted each way, the verb, what to do when the head hardly moves,
+# and where to move when the high side, the low side or both fall short. yaw > 0: the camera sees the head's left side,
+# i.e. the head turned to its own right; pitch > 0: the camera sees it from above, the head bowed.
+POSE_ADVICE = {
+    "yaw": (TURN_DEG, "turns", "turn your head slowly left and right", "turn it further",
+            ("to your right", "to your left", "left and right")),
+    "pitch": (NOD_DEG, "nods", "nod slowly up and down", "tilt it further", ("down", "up", "up and down")),
+}
 
 
-def _nod_advice(summary: dict) -> str | None:
-    """Advice on the head's pitch, or None when it nods NOD_DEG up and down."""
-    low, high = summary["pitch"]["min"], summary["pitch"]["max"]  # pitch > 0: seen from above, the head bowed
+def _pose_advice(summary: dict, name: str) -> str | None:
+    """Advice on the head's yaw or pitch, or None when it reaches far enough both ways."""
+    reach, verb, still, further, (high_way, low_way, both_ways) = POSE_ADVICE[name]
+    low, high = summary[name]["min"], summary[name]["max"]
+    span = f"{name} {low:+.0f}..{high:+.0f} deg"
+    guessed = "" if name != "yaw" else (f"; side views beyond yaw {low - TRAINED_VIEW_TOLERANCE:+.0f}.."
+                                        f"{high + TRAINED_VIEW_TOLERANCE:+.0f} deg will be guesses")
     if high - low < STILL_DEG:
-        return f"the head hardly nods (pitch {low:+.0f}..{high:+.0f} deg): nod slowly up and down"
-    short_down, short_up = high < NOD_DEG, -low < NOD_DEG
-    if not (short_down or short_up):
+        return f"the head hardly {verb} ({span}): {still}{guessed}"
+    short_high, short_low = high < reach, -low < reach
+    if not (short_high or short_low):
         return None
-    where = "up and down" if short_down and short_up else ("down" if short_down else "up")
-    return f"the head nods only to pitch {low:+.0f}..{high:+.0f} deg: tilt it further {where}"
+    where = both_ways if short_high and short_low else (high_way if short_high else low_way)
+    return f"the head {verb} only to {span}: {further} {where} (to about {reach:.0f} deg){guessed}"
 
 
 def _expression_advice(summary: dict) -> list[str]:
@@ -298,7 +298,7 @@ def advice(report: dict) -> list[str]:
     """What to film differently, most important first (empty: the video covers what an avatar needs)."""
     splits = report["splits"]
     summary = splits.get("train") or next(iter(splits.values()))
-    items = [text for text in (_turn_advice(summary), _nod_advice(summary)) if text]
+    items = [text for text in (_pose_advice(summary, "yaw"), _pose_advice(summary, "pitch")) if text]
     items += _expression_advice(summary)
     outside = report.get("test_outside")
     if outside and outside["share"] > TEST_OUTSIDE_SHARE:
@@ -348,62 +348,73 @@ def _outside_rows(report: dict, timesteps: np.ndarray) -> np.ndarray:
 def plot_coverage(measures: FrameMeasures, splits: dict[str, np.ndarray], report: dict, timesteps, path) -> Path:
     """coverage.png: the views of the face (yaw x pitch, per split, test frames outside training marked) beside
     every measure over the frames (the test segment shaded), under the verdict. Written atomically."""
+    import textwrap
     import warnings
 
     from geoavatar.io.atomic import atomic_file
 
-    with warnings.catch_warnings():  # matplotlib's import warns about its own pyparsing use
-        warnings.simplefilter("ignore", DeprecationWarning)
+    with warnings.catch_warnings():  # matplotlib warns about its own use of pyparsing (import, first text)
+        warnings.simplefilter("ignore")
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-    import textwrap
 
-    timesteps = np.asarray(timesteps)
-    outside = _outside_rows(report, timesteps)
-    figure = plt.figure(figsize=(13, 7.5), dpi=100)
-    grid = figure.add_gridspec(len(TIMELINES), 2, width_ratios=(1.0, 1.6), hspace=0.45, wspace=0.18,
-                               top=0.86, bottom=0.07, left=0.06, right=0.98)
-    views = figure.add_subplot(grid[:, 0])
-    for name, rows in splits.items():
-        views.scatter(measures.yaw[rows], measures.pitch[rows], s=7, alpha=0.6, color=SPLIT_COLOURS.get(name, "grey"),
-                      label=f"{name} ({len(rows)} frames)")
-    if outside.size:
-        views.scatter(measures.yaw[outside], measures.pitch[outside], s=22, marker="x", color=OUTSIDE_COLOUR,
-                      label=f"test, outside training ({outside.size})")
-    views.add_patch(matplotlib.patches.Rectangle((-TURN_DEG, -NOD_DEG), 2 * TURN_DEG, 2 * NOD_DEG, fill=False,
-                                                 linestyle="--", color="grey", label="advised reach"))
-    reach = max(35.0, float(np.nanmax(np.abs(np.r_[measures.yaw, measures.pitch]))) + 5.0)
-    views.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", xlabel="yaw (deg; + sees the head's left side)",
-              ylabel="pitch (deg; + sees it from above)", title="where the camera saw the face from")
-    views.grid(alpha=0.3)
-    views.legend(loc="lower left", fontsize=8)
-    frames = np.arange(len(timesteps))
-    test = np.asarray(splits.get("test", []), np.int64)
-    for k, (title, names, lines) in enumerate(TIMELINES):
-        axis = figure.add_subplot(grid[k, 1])
-        for index, name in enumerate(names):
-            axis.plot(frames, getattr(measures, name), lw=1.0, color=("#333333", "#8e44ad")[index], label=name)
-        for value in lines:
-            axis.axhline(value, color="grey", lw=0.7, ls="--")
-        if test.size:
-            axis.axvspan(test.min() - 0.5, test.max() + 0.5, color=SPLIT_COLOURS["test"], alpha=0.15, lw=0)
-        if outside.size:
-            axis.plot(outside, np.full(outside.size, axis.get_ylim()[1]), "|", color=OUTSIDE_COLOUR, ms=6)
-        axis.set_title(title, fontsize=9, loc="left")
-        axis.tick_params(labelsize=8)
-        axis.set_xlim(-0.5, len(frames) - 0.5)
-        if len(names) > 1:
-            axis.legend(fontsize=7, loc="upper left", ncol=2)
-        if k == len(TIMELINES) - 1:
-            axis.set_xlabel("frame (shaded: the test segment)", fontsize=8)
-    figure.suptitle("\n".join(textwrap.wrap(report["verdict"], 150)), fontsize=10, x=0.01, ha="left")
-    path = Path(path)
-    with atomic_file(path, suffix=".png") as tmp:
-        figure.savefig(tmp, format="png")
-    plt.close(figure)
+        timesteps = np.asarray(timesteps)
+        outside = _outside_rows(report, timesteps)
+        figure = plt.figure(figsize=(13, 7.5), dpi=100)
+        grid = figure.add_gridspec(len(TIMELINES), 2, width_ratios=(1.0, 1.6), hspace=0.45, wspace=0.18,
+                                   top=0.86, bottom=0.07, left=0.06, right=0.98)
+        _draw_views(figure.add_subplot(grid[:, 0]), measures, splits, outside)
+        test = np.asarray(splits.get("test", []), np.int64)
+        for k, panel in enumerate(TIMELINES):
+            _draw_timeline(figure.add_subplot(grid[k, 1]), panel, measures, test, outside, last=k == len(TIMELINES) - 1)
+        figure.suptitle("\n".join(textwrap.wrap(report["verdict"], 150)), fontsize=10, x=0.01, ha="left")
+        path = Path(path)
+        with atomic_file(path, suffix=".png") as tmp:
+            figure.savefig(tmp, format="png")
+        plt.close(figure)
     return path
+
+
+def _draw_views(axis, measures: FrameMeasures, splits: dict[str, np.ndarray], outside: np.ndarray) -> None:
+    """Yaw x pitch of every frame, one colour per split, the test frames outside training as crosses."""
+    from matplotlib.patches import Rectangle
+
+    for name, rows in splits.items():
+        axis.scatter(measures.yaw[rows], measures.pitch[rows], s=7, alpha=0.6, color=SPLIT_COLOURS.get(name, "grey"),
+                     label=f"{name} ({len(rows)} frames)")
+    if outside.size:
+        axis.scatter(measures.yaw[outside], measures.pitch[outside], s=22, marker="x", color=OUTSIDE_COLOUR,
+                     label=f"test, outside training ({outside.size})")
+    axis.add_patch(Rectangle((-TURN_DEG, -NOD_DEG), 2 * TURN_DEG, 2 * NOD_DEG, fill=False, linestyle="--",
+                             color="grey", label="advised reach"))
+    reach = max(35.0, float(np.nanmax(np.abs(np.r_[measures.yaw, measures.pitch]))) + 5.0)
+    axis.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", xlabel="yaw (deg; + sees the head's left side)",
+             ylabel="pitch (deg; + sees it from above)", title="where the camera saw the face from")
+    axis.grid(alpha=0.3)
+    axis.legend(loc="lower left", fontsize=8)
+
+
+def _draw_timeline(axis, panel, measures: FrameMeasures, test: np.ndarray, outside: np.ndarray, last: bool) -> None:
+    """One TIMELINES panel over the frames: its measures, reference lines, the test segment shaded."""
+    title, names, lines = panel
+    frames = np.arange(measures.yaw.size)
+    for index, name in enumerate(names):
+        axis.plot(frames, getattr(measures, name), lw=1.0, color=("#333333", "#8e44ad")[index], label=name)
+    for value in lines:
+        axis.axhline(value, color="grey", lw=0.7, ls="--")
+    if test.size:
+        axis.axvspan(test.min() - 0.5, test.max() + 0.5, color=SPLIT_COLOURS["test"], alpha=0.15, lw=0)
+    if outside.size:
+        axis.plot(outside, np.full(outside.size, axis.get_ylim()[1]), "|", color=OUTSIDE_COLOUR, ms=6)
+    axis.set_title(title, fontsize=9, loc="left")
+    axis.tick_params(labelsize=8)
+    axis.set_xlim(-0.5, frames.size - 0.5)
+    if len(names) > 1:
+        axis.legend(fontsize=7, loc="upper left", ncol=2)
+    if last:
+        axis.set_xlabel("frame (shaded: the test segment)", fontsize=8)
 
 
 # --- entry points --------------------------------------------------------------------------------
@@ -411,7 +422,7 @@ def plot_coverage(measures: FrameMeasures, splits: dict[str, np.ndarray], report
 
 def capture_check(head, params: HeadParams, viewmat, splits: dict[str, np.ndarray], timesteps, picture) -> dict:
     """measure_frames + capture_report + plot_coverage (to `picture`): prepare's write stage and the
-    `geoavatar coverage` command. Returns the report."""
+    `geoavatar coverage` command. viewmat [4, 4] (one camera) or [T, 4, 4]. Returns the report."""
     measures = measure_frames(head, params, torch.as_tensor(np.asarray(viewmat), dtype=torch.float32))
     report = capture_report(measures, splits, timesteps)
     plot_coverage(measures, splits, report, timesteps, picture)

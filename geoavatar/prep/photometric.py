@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -133,25 +134,37 @@ class PhotometricTargets:
         each crop is resampled (area) to `size` x `size` (whole frames: the longer side to `size`)."""
         T, H, W = images.shape[:3]
         masks = np.full((T, H, W), 255, np.uint8) if masks is None else np.asarray(masks).reshape(T, H, W)
+        return cls.from_frames(zip(images, masks), T, viewmat, K, size, boxes)
+
+    @classmethod
+    def from_frames(cls, frames: Iterable[tuple[np.ndarray, np.ndarray]], count: int, viewmat: np.ndarray,
+                    K: np.ndarray, size: int, boxes: np.ndarray | None = None) -> "PhotometricTargets":
+        """from_arrays over `count` (image [H,W,3] uint8, mask [H,W] uint8) pairs read one at a time: only the
+        resampled crops are held, never the full-size frames (a long video's frames do not fit in memory)."""
+        T = count
         K_source = torch.as_tensor(np.asarray(K), dtype=torch.float32).expand(T, 3, 3).clone()
         view = torch.as_tensor(np.asarray(viewmat), dtype=torch.float32).expand(T, 4, 4).clone()
-        if boxes is None:
-            scale = min(1.0, size / max(H, W))
-            boxes = np.array([[0.0, 0.0, max(H, W)]] * T)
-            out_w, out_h = max(1, round(W * scale)), max(1, round(H * scale))
-        else:
-            out_w = out_h = size
-        rgb_out = np.zeros((T, out_h, out_w, 3), np.float32)
-        mask_out = np.zeros((T, out_h, out_w, 1), np.float32)
         K_out = K_source.clone()
-        for t in range(T):
-            x0, y0, side = (float(v) for v in boxes[t])
+        rgb_out = mask_out = None
+        for t, (image, mask) in enumerate(frames):
+            H, W = image.shape[:2]
+            if boxes is None:
+                scale = min(1.0, size / max(H, W))
+                box, out_w, out_h = (0.0, 0.0, max(H, W)), max(1, round(W * scale)), max(1, round(H * scale))
+            else:
+                box, out_w, out_h = boxes[t], size, size
+            if rgb_out is None:
+                rgb_out = np.zeros((T, out_h, out_w, 3), np.float32)
+                mask_out = np.zeros((T, out_h, out_w, 1), np.float32)
+            x0, y0, side = (float(v) for v in box)
             region = (x0, y0, x0 + side * out_w / max(out_w, out_h), y0 + side * out_h / max(out_w, out_h))
-            rgb_out[t] = _resample(images[t], region, (out_w, out_h))
-            mask_out[t, ..., 0] = _resample(masks[t], region, (out_w, out_h))
+            rgb_out[t] = _resample(image, region, (out_w, out_h))
+            mask_out[t, ..., 0] = _resample(np.asarray(mask).reshape(H, W), region, (out_w, out_h))
             s = max(out_w, out_h) / side
             K_out[t, 0, :] = s * (K_source[t, 0, :] - x0 * K_source[t, 2, :])
             K_out[t, 1, :] = s * (K_source[t, 1, :] - y0 * K_source[t, 2, :])
+        if rgb_out is None or t + 1 != T:
+            raise ValueError(f"photometric: {count} frames announced, {0 if rgb_out is None else t + 1} given")
         return cls(torch.as_tensor(rgb_out) / 255.0, torch.as_tensor(mask_out) / 255.0, view, K_out, K_source)
 
     @property

@@ -30,7 +30,6 @@ import json
 import logging
 import math
 import multiprocessing
-import os
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -361,11 +360,9 @@ _STATE: dict = {}  # actor, renderer, ground truth: inherited by forked workers
 
 def default_workers() -> int:
     """Worker processes for rendering: the cores this process may use (at most 8)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(8, cores))
+    from geoavatar.runtime import available_cores
+
+    return max(1, min(8, available_cores()))
 
 
 def _render_one(job: tuple[int, int, Camera | None]) -> tuple[int, int, np.ndarray, np.ndarray]:
