@@ -89,3 +89,19 @@ def test_the_command_prints_the_verdict_and_bad_input_is_one_line(still, tmp_pat
     assert main(["coverage", str(tmp_path / "missing")]) == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "missing: dataset folder not found" in error
+
+
+def test_blinks_the_tracking_smoothed_away_are_told_apart_from_no_blinks():
+    measures = _measures(np.zeros(20), np.full(20, 12.0), 20)
+    measures.eyes[:] = np.linspace(0.7, 1.1, 20)  # the tracked eyelids never close
+    measures.smile[5], measures.brows[6] = 5.0, 3.0  # a smile and raised brows: only the blinks are in question
+    splits = {"train": np.arange(20)}
+    never = coverage.capture_report(measures, splits, np.arange(20))
+    assert "blink now and then" in " ".join(never["advice"])
+    detected = np.ones(20)
+    detected[[4, 5, 12]] = 0.2  # the face mesh saw two short blinks
+    seen = coverage.capture_report(measures, splits, np.arange(20), detected_eyes=detected)
+    assert seen["splits"]["train"]["face_mesh_blinks"] == 2
+    assert not any("blink now and then" in item for item in seen["advice"])
+    assert any(item.startswith("the face mesh saw 2 blink(s) but the tracked eyelids close only to 70%")
+               for item in seen["advice"])

@@ -138,6 +138,27 @@ def test_rerun_skips_complete_stages(prepared):
     assert (out / "dataset" / "transforms.json").stat().st_mtime_ns == before
 
 
+@needs_video
+def test_tracking_in_chunks_takes_the_same_steps(prepared, monkeypatch):
+    """The tracker's data term differentiated a few frames at a time (a long video's graph would not fit) sums to
+    the gradient of the whole: the fit is the same up to the float rounding of the sums."""
+    from geoavatar.prep import tracking
+    from geoavatar.prep.pipeline import load_tracking_head
+
+    config, out, _, _ = prepared
+    marks = np.load(out / ".prepare" / "landmarks.npz")
+    _, model = load_tracking_head(config)
+    principal = np.full((6, 2), 64.0)
+    settings = tracking.TrackingConfig(rigid_steps=10, full_steps=15, fit_static_offset=False)
+    fits = []
+    for chunk in (1024, 4):  # one chunk of 6 frames; chunks of 3
+        monkeypatch.setattr(tracking, "DATA_CHUNK", chunk)
+        fits.append(tracking.track(model, marks["filtered"], marks["confidence"], principal, 128, settings))
+    for key, value in fits[0].params.items():
+        np.testing.assert_allclose(fits[1].params[key], value, atol=2e-5, err_msg=key)
+    assert fits[1].log[-1].split(",")[1] == fits[0].log[-1].split(",")[1]  # the data term, as logged
+
+
 def test_landmark_head_matches_full_model():
     from geoavatar.head import HeadModel, load_head_data
     from geoavatar.head.smooth_offset import smooth_offset

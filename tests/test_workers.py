@@ -8,7 +8,9 @@ import os
 import pytest
 
 from geoavatar.prep.errors import PrepareError
-from geoavatar.prep.segments import segments
+import numpy as np
+
+from geoavatar.prep.segments import blend_weights, segment_rows, segments
 from geoavatar.prep.workers import WorkerPool, report_progress, split_range, worker_cache
 
 
@@ -43,6 +45,15 @@ def test_segments_have_balanced_cores_and_overlapping_fits():
     assert [(s.start, s.stop) for s in segments(252, 300, 8)] == [(0, 252)]
     spans = segments(5400, 300, 8)
     assert len(spans) == 18 and all(s.stop - s.start == 300 for s in spans) and spans[-1].stop == 5400
+    # the written parameters pass from one fit to the next across the overlap: shares sum to 1 on every frame
+    total, first = np.zeros(5400), None
+    for span in spans:
+        rows, core = segment_rows(span)
+        weights = blend_weights(rows, core)
+        total[rows] += weights
+        first = weights if first is None else first
+    np.testing.assert_allclose(total, 1.0)
+    assert (first[:292] == 1).all() and np.all(np.diff(first[292:]) < 0) and first[-1] < 0.1  # ramps over 16 frames
 
 
 @pytest.mark.parametrize("workers", [1, 2])

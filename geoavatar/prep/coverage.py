@@ -51,7 +51,7 @@ SMILE_MM = 3.0
 BROW_RAISE_MM = 2.0
 BROW_LOWER_MM = -1.5
 # Advice thresholds: the head turns enough when the views reach TURN_DEG to each side, NOD_DEG up and down.
-TURN_DEG = 20.0
+TURN_DEG = 15.0
 NOD_DEG = 10.0
 STILL_DEG = 10.0  # a yaw or pitch span under this: the head hardly turns / nods (tracking wobbles a few degrees)
 JAW_OPEN_DEG = 10.0
@@ -177,9 +177,19 @@ def _events(flags: np.ndarray) -> int:
     return int(np.count_nonzero(flags[1:] & ~flags[:-1]) + (1 if flags.size and flags[0] else 0))
 
 
-def summarize_split(m: FrameMeasures) -> dict:
+def eye_openness(points: np.ndarray) -> np.ndarray:
+    """[T] the face mesh's own eye opening: the smaller eyelid gap of detected landmarks [T, 478, >=2] over its
+    median over the frames (1: as usual, below BLINK_OPENNESS: a blink)."""
+    gaps = [np.linalg.norm(points[:, list(upper), :2].mean(1) - points[:, list(lower), :2].mean(1), axis=-1)
+            for upper, lower in EYELIDS]
+    gap = np.minimum(*gaps)
+    return gap / max(float(np.median(gap)), 1e-9)
+
+
+def summarize_split(m: FrameMeasures, detected_eyes: np.ndarray | None = None) -> dict:
     """Range of every measure over one split's frames (min, 5th / 50th / 95th percentile, max) and how often
-    the face smiles, raises or lowers its brows, blinks, opens the jaw."""
+    the face smiles, raises or lowers its brows, blinks, opens the jaw; with the face mesh's eye opening of the
+    frames (`eye_openness`), how often it saw a blink too (the tracking can smooth a short one away)."""
     out: dict = {"frames": int(m.yaw.size)}
     for name in MEASURES:
         values = _finite(getattr(m, name))
@@ -192,6 +202,8 @@ def summarize_split(m: FrameMeasures) -> dict:
     out["shows"] = {"smile": share(m.smile >= SMILE_MM), "brow_raise": share(m.brows >= BROW_RAISE_MM),
                     "brow_lower": share(m.brows <= BROW_LOWER_MM), "eyes_closed": share(closed),
                     "jaw_open": share(m.jaw >= JAW_OPEN_DEG), "blinks": _events(closed)}
+    if detected_eyes is not None:
+        out["face_mesh_blinks"] = _events(detected_eyes < BLINK_OPENNESS)
     return out
 
 
@@ -226,14 +238,16 @@ def timestep_ranges(timesteps) -> str:
     return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs)
 
 
-def capture_report(measures: FrameMeasures, splits: dict[str, np.ndarray], timesteps) -> dict:
+def capture_report(measures: FrameMeasures, splits: dict[str, np.ndarray], timesteps,
+                   detected_eyes: np.ndarray | None = None) -> dict:
     """The capture check of a video: per split the range of every measure, the test frames outside training
     (by reason, as timestep ranges), the advice and a one-line verdict. splits: name -> row ids into measures;
-    timesteps [T] the dataset timestep of each row."""
+    timesteps [T] the dataset timestep of each row; detected_eyes [T] the face mesh's eye opening, or None."""
     timesteps = np.asarray(timesteps)
     report: dict = {"units": dict(UNITS), "splits": {}}
     for name, rows in splits.items():
-        report["splits"][name] = summarize_split(measures.rows(np.asarray(rows, np.int64)))
+        rows = np.asarray(rows, np.int64)
+        report["splits"][name] = summarize_split(measures.rows(rows), None if detected_eyes is None else detected_eyes[rows])
     train, test = (np.asarray(splits.get(name, []), np.int64) for name in ("train", "test"))
     if train.size and test.size:
         reasons = outside_training(measures.rows(train), measures.rows(test))
@@ -283,11 +297,15 @@ def _expression_advice(summary: dict) -> list[str]:
                      "open; its inside will be guessed")
     shows = summary["shows"]
     if summary["smile"] is not None:  # the landmark measures exist
+        seen_blinks = summary.get("face_mesh_blinks", 0)  # blinks the tracking smoothed away are still blinks filmed
         missing = [what for what, seen in (("smile", shows["smile"]), ("raise your eyebrows", shows["brow_raise"]),
-                                           ("blink", shows["blinks"])) if not seen]
+                                           ("blink", shows["blinks"] or seen_blinks)) if not seen]
         if missing:
             listed = ", ".join(missing[:-1]) + (" and " if len(missing) > 1 else "") + missing[-1]
             items.append(f"{listed} now and then: expressions the video never shows will be guesses")
+        if seen_blinks and not shows["blinks"]:
+            items.append(f"the face mesh saw {seen_blinks} blink(s) but the tracked eyelids close only to "
+                         f"{summary['eyes']['min']:.0%} of their rest: the avatar will not learn closed eyes")
     spans = [summary[name]["max"] - summary[name]["min"] for name in ("gaze_yaw", "gaze_pitch") if summary[name]]
     if spans and max(spans) < GAZE_DEG:
         items.append("the eyes never look around: move your gaze now and then")
@@ -295,18 +313,19 @@ def _expression_advice(summary: dict) -> list[str]:
 
 
 def advice(report: dict) -> list[str]:
-    """What to film differently, most important first (empty: the video covers what an avatar needs)."""
+    """What to film differently, most important first (empty: the video covers what an avatar needs): the head's
+    reach (what novel views need), then a test segment beyond training (it decides what the scores mean), then the
+    jaw, the expressions and the gaze."""
     splits = report["splits"]
     summary = splits.get("train") or next(iter(splits.values()))
     items = [text for text in (_pose_advice(summary, "yaw"), _pose_advice(summary, "pitch")) if text]
-    items += _expression_advice(summary)
     outside = report.get("test_outside")
     if outside and outside["share"] > TEST_OUTSIDE_SHARE:
         reasons = sorted(outside["by_measure"].items(), key=lambda item: -item[1]["frames"])
         why = ", ".join(f"{name} {item['frames']}" for name, item in reasons[:3])
         items.append(f"the test segment leaves what training saw in {outside['share']:.0%} of its frames ({why} frames): "
                      "its scores measure unseen poses and expressions; end the video as it began")
-    return items
+    return items + _expression_advice(summary)
 
 
 def verdict(report: dict) -> str:
@@ -330,7 +349,7 @@ TIMELINES = (  # panel title, measures drawn in it, reference lines
     ("view yaw / pitch (deg)", ("yaw", "pitch"), (-TURN_DEG, TURN_DEG)),
     ("jaw opening (deg)", ("jaw",), (JAW_OPEN_DEG,)),
     ("smile / brows (mm)", ("smile", "brows"), (SMILE_MM, BROW_RAISE_MM)),
-    ("eye opening (of rest)", ("eyes",), (BLINK_OPENNESS,)),
+    ("eye opening (of rest)", ("eyes", "face mesh eyes"), (BLINK_OPENNESS,)),
     ("gaze yaw / pitch (deg)", ("gaze_yaw", "gaze_pitch"), ()),
 )
 
@@ -345,9 +364,11 @@ def _outside_rows(report: dict, timesteps: np.ndarray) -> np.ndarray:
     return np.flatnonzero(np.isin(timesteps, list(wanted)))
 
 
-def plot_coverage(measures: FrameMeasures, splits: dict[str, np.ndarray], report: dict, timesteps, path) -> Path:
+def plot_coverage(measures: FrameMeasures, splits: dict[str, np.ndarray], report: dict, timesteps, path,
+                  detected_eyes: np.ndarray | None = None) -> Path:
     """coverage.png: the views of the face (yaw x pitch, per split, test frames outside training marked) beside
-    every measure over the frames (the test segment shaded), under the verdict. Written atomically."""
+    every measure over the frames (the test segment shaded; the face mesh's own eye opening beside the tracked one
+    when given), under the verdict. Written atomically."""
     import textwrap
     import warnings
 
@@ -367,8 +388,11 @@ def plot_coverage(measures: FrameMeasures, splits: dict[str, np.ndarray], report
                                    top=0.86, bottom=0.07, left=0.06, right=0.98)
         _draw_views(figure.add_subplot(grid[:, 0]), measures, splits, outside)
         test = np.asarray(splits.get("test", []), np.int64)
+        series = {name: getattr(measures, name) for name in MEASURES}
+        if detected_eyes is not None:
+            series["face mesh eyes"] = detected_eyes
         for k, panel in enumerate(TIMELINES):
-            _draw_timeline(figure.add_subplot(grid[k, 1]), panel, measures, test, outside, last=k == len(TIMELINES) - 1)
+            _draw_timeline(figure.add_subplot(grid[k, 1]), panel, series, test, outside, last=k == len(TIMELINES) - 1)
         figure.suptitle("\n".join(textwrap.wrap(report["verdict"], 150)), fontsize=10, x=0.01, ha="left")
         path = Path(path)
         with atomic_file(path, suffix=".png") as tmp:
@@ -396,12 +420,15 @@ def _draw_views(axis, measures: FrameMeasures, splits: dict[str, np.ndarray], ou
     axis.legend(loc="lower left", fontsize=8)
 
 
-def _draw_timeline(axis, panel, measures: FrameMeasures, test: np.ndarray, outside: np.ndarray, last: bool) -> None:
-    """One TIMELINES panel over the frames: its measures, reference lines, the test segment shaded."""
+def _draw_timeline(axis, panel, series: dict[str, np.ndarray], test: np.ndarray, outside: np.ndarray,
+                   last: bool) -> None:
+    """One TIMELINES panel over the frames: its measures (those `series` has), reference lines, the test segment
+    shaded."""
     title, names, lines = panel
-    frames = np.arange(measures.yaw.size)
+    names = [name for name in names if name in series]
+    frames = np.arange(series["yaw"].size)
     for index, name in enumerate(names):
-        axis.plot(frames, getattr(measures, name), lw=1.0, color=("#333333", "#8e44ad")[index], label=name)
+        axis.plot(frames, series[name], lw=1.0, color=("#333333", "#8e44ad")[index], label=name)
     for value in lines:
         axis.axhline(value, color="grey", lw=0.7, ls="--")
     if test.size:
@@ -420,12 +447,14 @@ def _draw_timeline(axis, panel, measures: FrameMeasures, test: np.ndarray, outsi
 # --- entry points --------------------------------------------------------------------------------
 
 
-def capture_check(head, params: HeadParams, viewmat, splits: dict[str, np.ndarray], timesteps, picture) -> dict:
-    """measure_frames + capture_report + plot_coverage (to `picture`): prepare's write stage and the
-    `geoavatar coverage` command. viewmat [4, 4] (one camera) or [T, 4, 4]. Returns the report."""
+def capture_check(head, params: HeadParams, viewmat, splits: dict[str, np.ndarray], timesteps, picture,
+                  detected_eyes: np.ndarray | None = None) -> dict:
+    """measure_frames + capture_report + plot_coverage (to `picture`): prepare's write stage (which passes the
+    face mesh's eye opening, `eye_openness`) and the `geoavatar coverage` command. viewmat [4, 4] (one camera) or
+    [T, 4, 4]. Returns the report."""
     measures = measure_frames(head, params, torch.as_tensor(np.asarray(viewmat), dtype=torch.float32))
-    report = capture_report(measures, splits, timesteps)
-    plot_coverage(measures, splits, report, timesteps, picture)
+    report = capture_report(measures, splits, timesteps, detected_eyes)
+    plot_coverage(measures, splits, report, timesteps, picture, detected_eyes)
     return report
 
 
@@ -461,4 +490,4 @@ def dataset_capture_check(root, out, flame_dir=None) -> dict:
 
 
 __all__ = ["FrameMeasures", "MEASURES", "advice", "capture_check", "capture_report", "dataset_capture_check",
-           "measure_frames", "outside_training", "plot_coverage", "summarize_split", "verdict"]
+           "eye_openness", "measure_frames", "outside_training", "plot_coverage", "summarize_split", "verdict"]

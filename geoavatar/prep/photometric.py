@@ -431,10 +431,12 @@ class _Chunk:
 
 def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTargets,
                     config: PhotometricConfig = PhotometricConfig(), landmarks: LandmarkTargets | None = None,
-                    progress=None) -> PhotometricResult:
+                    progress=None, appearance_start: tuple[np.ndarray, np.ndarray] | None = None) -> PhotometricResult:
     """Refine the per-frame parameters `init` [T] against the frames; see the module docstring.
 
-    progress: callable(frames_done) after each chunk step, or None (total = frames x all epochs)."""
+    progress: callable(frames_done) after each chunk step, or None (total = frames x all epochs).
+    appearance_start: (albedo [F, 3], light [9, 3]) of an earlier fit to start from (a long video's segments share the
+    appearance fitted on a sample of all its frames): no albedo initialisation and no appearance-only epochs."""
     T = targets.frames
     if init.batch != T:
         raise ValueError(f"photometric: {init.batch} frames of parameters but {T} images")
@@ -442,7 +444,14 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
     weighted = weighted_faces(head)
     appearance = SurfaceAppearance(head, grow_faces(head, weighted, config.render_rings), config, weighted=weighted)
     finest = targets.level(max(config.sizes))
-    _init_albedo(appearance, head, init, finest, config.chunk)
+    if appearance_start is None:
+        _init_albedo(appearance, head, init, finest, config.chunk)
+    else:
+        for parameter, value in zip((appearance.albedo, appearance.light), appearance_start):
+            if tuple(value.shape) != tuple(parameter.shape):
+                raise ValueError(f"photometric: a start appearance of shape {tuple(value.shape)}, the model has "
+                                 f"{tuple(parameter.shape)}")
+            parameter.data.copy_(torch.as_tensor(value, dtype=torch.float32))
     shape = torch.nn.Parameter(init.shape.clone())
     shared = [{"params": [appearance.albedo], "lr": config.lr_albedo, "base": (config.lr_albedo, config.lr_albedo_pose)},
               {"params": [appearance.light], "lr": config.lr_light, "base": (config.lr_light, config.lr_light)}]
@@ -511,7 +520,7 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
                     out[row] = float(photometric_loss(result.rgb, finest.images[row], weights[row]))
         return out
 
-    schedule = [(config.sizes[0], config.appearance_epochs, True)]
+    schedule = [(config.sizes[0], config.appearance_epochs if appearance_start is None else 0, True)]
     schedule += [(size, epochs, False) for size, epochs in zip(config.sizes, config.epochs)]
     for size, epochs, appearance_only in schedule:
         if epochs <= 0:
@@ -575,9 +584,10 @@ def residual_report(residual: np.ndarray, residual_before: np.ndarray) -> dict:
             "per_frame": listed(residual), "per_frame_before": listed(residual_before)}
 
 
-def total_steps(config: PhotometricConfig, frames: int) -> int:
-    """Frames the progress callback will count: frames x every epoch of the schedule."""
-    return frames * (config.appearance_epochs + sum(config.epochs))
+def total_steps(config: PhotometricConfig, frames: int, appearance_start: bool = False) -> int:
+    """Frames the progress callback will count: frames x every epoch of the schedule (no appearance-only epochs when
+    the fit starts from a given appearance)."""
+    return frames * ((0 if appearance_start else config.appearance_epochs) + sum(config.epochs))
 
 
 __all__ = ["LandmarkTargets", "PhotometricConfig", "PhotometricResult", "PhotometricTargets", "SurfaceAppearance",

@@ -22,6 +22,14 @@ holds the key it would have now, and redoes it and every stage that depends on i
                records that it was skipped and the dataset is written from the landmark fit
     write      the dataset through LayoutWriter, then the overlay video, the capture check and the report
 
+Every stage splits its frames into tasks for a WorkerPool (geoavatar.prep.workers: spawned processes, one torch
+thread each, `workers` of them, by default one per core): decoding + face detection and the crops one range of the
+video per worker, the landmarks, masks and overlay pictures in fixed blocks, the photometric fit in segments
+(geoavatar.prep.segments); the tracking stage is one batched fit (its data term in chunks). The tasks do not depend
+on the worker count, so neither does the dataset. No stage holds every frame's pixels: a long video costs time and
+disk, not memory. A marker's cpu_seconds counts this process and its workers. (Spawned workers import the caller's
+main module: a script that calls run_prepare with more than one worker needs the `if __name__ == "__main__":` guard.)
+
 A stage's key is the sha256 of the canonical JSON of {its version, its config, its upstream stages'
 keys}. Its config is derived from PrepareConfig: every field names the stage that reads it
 (`_stage_field`; the class will not import with a field that does not), and the tracking stage adds
@@ -484,13 +492,15 @@ def _worker_config(config: PrepareConfig) -> PrepareConfig:
     return replace(config, log=print, progress=False)
 
 
-def _segment_jobs(config: PrepareConfig, work: Path, head, init, fit, marks) -> list:
-    """One SegmentJob per photometric segment: its rows of the landmark fit, cameras, crops and landmarks."""
+def _segment_jobs(config: PrepareConfig, work: Path, head, init, fit, marks) -> tuple[list, object]:
+    """The photometric stage's SegmentJobs (one per segment: its rows of the landmark fit, cameras, crops and
+    landmarks) and the appearance sample's (frames spread over the whole video, no pose epochs)."""
     import torch
 
+    from geoavatar.data.splits import evenly_spaced
     from geoavatar.head.params import SUBJECT_KEYS
     from geoavatar.prep.photometric import crop_boxes, weighted_vertex_ids
-    from geoavatar.prep.segments import SegmentJob, segments
+    from geoavatar.prep.segments import SegmentJob, segment_rows, segments
     from geoavatar.prep.tracking import GROUP_OF, GROUP_WEIGHTS
 
     settings = photometric_config(config)
@@ -506,16 +516,19 @@ def _segment_jobs(config: PrepareConfig, work: Path, head, init, fit, marks) -> 
     weights = np.array([GROUP_WEIGHTS[GROUP_OF.get(int(i), "face_oval_lower")] for i in ids])
     params = {k: v.numpy() for k, v in init.to_npz().items()}
     workers = _worker_config(config)
-    jobs = []
-    for span in segments(T, PHOTOMETRIC_SEGMENT, PHOTOMETRIC_OVERLAP):
-        rows = slice(span.fit_start, span.fit_stop)
-        jobs.append(SegmentJob(
-            segment=span, head_key=f"photometric-head:{config.head}:{config.flame_dir}:{config.flame_landmarks}",
+
+    def job(rows: np.ndarray, core: slice, settings) -> SegmentJob:
+        return SegmentJob(
+            rows=rows, keep=core, head_key=f"photometric-head:{config.head}:{config.flame_dir}:{config.flame_landmarks}",
             head_factory=partial(_photometric_head, workers), load=partial(_load_crop, work, keep, marks["found"]),
             settings=settings, params={k: v if k in SUBJECT_KEYS else v[rows] for k, v in params.items()},
             viewmat=viewmat[rows], K=fit["K"][rows], boxes=boxes[rows],
-            landmarks={**{k: v[rows] for k, v in landmarks.items()}, "weights": weights}))
-    return jobs
+            landmarks={**{k: v[rows] for k, v in landmarks.items()}, "weights": weights})
+
+    jobs = [job(*segment_rows(span), settings) for span in segments(T, PHOTOMETRIC_SEGMENT, PHOTOMETRIC_OVERLAP)]
+    sample = job(np.array(evenly_spaced(T, PHOTOMETRIC_SEGMENT)), slice(0, 0),
+                 replace(settings, epochs=(0,) * len(settings.epochs)))
+    return jobs, sample
 
 
 def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
@@ -524,8 +537,8 @@ def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> di
     import torch
 
     from geoavatar.head.params import HeadParams
-    from geoavatar.prep.photometric import residual_report
-    from geoavatar.prep.segments import fit_segments, fitted_frames
+    from geoavatar.prep.photometric import residual_report, total_steps
+    from geoavatar.prep.segments import fit_segments
     from geoavatar.render.camera import project
 
     (work / "photometric.npz").unlink(missing_ok=True)
@@ -538,11 +551,12 @@ def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> di
     if "static_offset" in params:
         params["static_offset"] = params["static_offset"].reshape(1, -1, 3)
     init = HeadParams.from_npz(params)
-    jobs = _segment_jobs(config, work, head, init, fit, marks)
-    settings = jobs[0].settings
-    bar = _bar(config, fitted_frames(jobs) * (settings.appearance_epochs + sum(settings.epochs)), "photometric")
+    jobs, sample = _segment_jobs(config, work, head, init, fit, marks)
+    shared = len(jobs) > 1  # several segments start from one appearance, fitted on the sample first
+    steps = sum(total_steps(job.settings, len(job.rows), appearance_start=shared) for job in jobs)
+    bar = _bar(config, steps + (total_steps(sample.settings, len(sample.rows)) if shared else 0), "photometric")
     try:
-        result = fit_segments(jobs, pool, progress=bar.update)
+        result = fit_segments(jobs, pool, progress=bar.update, sample=sample)
     finally:
         bar.close()
     fitted = {k: v for k, v in result.params.items() if k != "static_offset"}
@@ -561,9 +575,12 @@ def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> di
                      viewmat=fit["viewmat"], K=fit["K"], projected=pixels.numpy(), landmark_ids=ids, errors=errors,
                      residual=result.residual, residual_before=result.residual_before)
     summary = residual_report(result.residual, result.residual_before)
-    log = [f"{len(jobs)} segment(s) of at most {PHOTOMETRIC_SEGMENT} frames (+{PHOTOMETRIC_OVERLAP} overlap)"]
-    log += [f"segment {i} (frames {job.segment.start}-{job.segment.stop - 1}): {line}"
-            for i, (job, lines) in enumerate(zip(jobs, result.logs)) for line in lines]
+    log = [f"{len(jobs)} segment(s) of at most {PHOTOMETRIC_SEGMENT} frames (+{PHOTOMETRIC_OVERLAP} overlap)"
+           + (f", one appearance fitted on {len(sample.rows)} frames first" if shared else "")]
+    log += result.logs[0] if shared else []
+    cores = [job.rows[job.keep] for job in jobs]
+    log += [f"segment {i} (frames {core[0]}-{core[-1]}): {line}"
+            for i, (core, lines) in enumerate(zip(cores, result.logs[shared:])) for line in lines]
     config.log(f"prepare: photometric {log[0]}; residual (masked L1): {summary['mean_before']:.4f} -> {summary['mean']:.4f}")
     return {"residual_before": summary["mean_before"], "residual": summary["mean"],
             "median_error": float(np.median(errors)), "log": log}
@@ -610,20 +627,22 @@ def stage_write(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
         from geoavatar.prep.photometric import residual_report
 
         report["photometric_residual"] = residual_report(fit["residual"], fit["residual_before"])  # null: no face
-    report["capture"] = write_capture_check(config, params, fit["viewmat"], count - test, count)
+    report["capture"] = write_capture_check(config, params, fit["viewmat"], count - test, count, marks["raw"])
     atomic_write_json(Path(config.out) / "report.json", report)
     return {"dataset": str(dataset), "frames": int(count), "test_frames": int(test)}
 
 
 def write_capture_check(config: PrepareConfig, params: dict[str, np.ndarray], viewmat: np.ndarray, train: int,
-                        count: int) -> dict:
+                        count: int, landmarks: np.ndarray) -> dict:
     """The capture check (geoavatar.prep.coverage) of the written fit: OUT/coverage.png; returns its report.
-    params: the fit's npz arrays (per-frame keys [T, ...]); the first `train` rows are the training frames."""
+    params: the fit's npz arrays (per-frame keys [T, ...]); the first `train` rows are the training frames;
+    landmarks [T, 478, 3] the face mesh's unfiltered points (its blinks: the filter and the fit may smooth a short
+    one away)."""
     import torch
 
     from geoavatar.head import HeadModel
     from geoavatar.head.params import HeadParams
-    from geoavatar.prep.coverage import capture_check
+    from geoavatar.prep.coverage import capture_check, eye_openness
 
     data, _ = load_tracking_head(config)
     values = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in params.items()}
@@ -631,7 +650,7 @@ def write_capture_check(config: PrepareConfig, params: dict[str, np.ndarray], vi
         values["static_offset"] = values["static_offset"].reshape(1, -1, 3)
     splits = {"train": np.arange(train), "test": np.arange(train, count)}
     return capture_check(HeadModel(data), HeadParams.from_npz(values), viewmat, splits, np.arange(count),
-                         Path(config.out) / "coverage.png")
+                         Path(config.out) / "coverage.png", detected_eyes=eye_openness(landmarks))
 
 
 @dataclass
