@@ -129,9 +129,10 @@ def table(results: dict) -> str:
     lines = ["| frames | wall | CPU (tree) | peak RSS, tree (sampled) | largest process | load before -> after |",
              "|---|---|---|---|---|---|"]
     for frames, r in results.items():
-        lines.append(f"| {frames} | {r['wall_s'] / 60:.1f} min | {r['cpu_s'] / 60:.1f} min | {r['peak_rss_tree_gb']:.2f} GB "
-                     f"| {r['peak_rss_largest_process_gb']:.2f} GB | {r['load_1min_before_after'][0]} -> "
-                     f"{r['load_1min_before_after'][1]} |")
+        load = r["load_1min_before_after"]
+        lines.append(f"| {frames} | {r['wall_s'] / 60:.1f} min | {r['cpu_s'] / 60:.1f} min "
+                     f"| {r['peak_rss_tree_gb']:.2f} GB | {r['peak_rss_largest_process_gb']:.2f} GB "
+                     f"| {load[0]} -> {load[1]} |")
     lines += ["", "| frames | " + " | ".join(STAGES) + " |", "|---" * (len(STAGES) + 1) + "|"]
     for frames, r in results.items():
         cells = [f"{r['stages'][s]['wall_s']:.0f} / {r['stages'][s]['cpu_s']:.0f}" if s in r["stages"] else "-"

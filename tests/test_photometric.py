@@ -243,7 +243,7 @@ def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path, monkeypat
 
     messages: list[str] = []
     options = dict(video=WOJTEK, size=128, max_frames=5, tracking_steps=(30, 40), progress=False, overlay=False,
-                   photometric_epochs=(1, 1), log=messages.append)
+                   photometric_epochs=(1, 1), workers=1, log=messages.append)  # inline: the recorder above sees the fit
     plain = run_prepare(PrepareConfig(out=tmp_path / "plain", photometric=False, **options))
     work = tmp_path / "plain" / ".prepare"
     assert not (work / "photometric.npz").exists()

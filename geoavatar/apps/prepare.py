@@ -41,7 +41,8 @@ def prepare(
     face flagged), OUT/report.json (per-frame landmark reprojection error and photometric residual, frames
     without a face, the capture check) and OUT/coverage.png; prints the capture check's verdict: which head turns,
     mouth openings, expressions and gaze the video covers, whether its test segment leaves what training saw,
-    and what to film differently. Stages are resumable: a re-run skips the stages whose outputs are complete (OUT/.prepare/).
+    and what to film differently. Stages are resumable: a re-run skips the stages whose outputs are complete
+    (OUT/.prepare/).
 
     Args:
         video: Input video (any container/codec PyAV decodes; rotation metadata is honoured).

@@ -247,7 +247,8 @@ def capture_report(measures: FrameMeasures, splits: dict[str, np.ndarray], times
     report: dict = {"units": dict(UNITS), "splits": {}}
     for name, rows in splits.items():
         rows = np.asarray(rows, np.int64)
-        report["splits"][name] = summarize_split(measures.rows(rows), None if detected_eyes is None else detected_eyes[rows])
+        eyes = None if detected_eyes is None else detected_eyes[rows]
+        report["splits"][name] = summarize_split(measures.rows(rows), eyes)
     train, test = (np.asarray(splits.get(name, []), np.int64) for name in ("train", "test"))
     if train.size and test.size:
         reasons = outside_training(measures.rows(train), measures.rows(test))
@@ -323,8 +324,8 @@ def advice(report: dict) -> list[str]:
     if outside and outside["share"] > TEST_OUTSIDE_SHARE:
         reasons = sorted(outside["by_measure"].items(), key=lambda item: -item[1]["frames"])
         why = ", ".join(f"{name} {item['frames']}" for name, item in reasons[:3])
-        items.append(f"the test segment leaves what training saw in {outside['share']:.0%} of its frames ({why} frames): "
-                     "its scores measure unseen poses and expressions; end the video as it began")
+        items.append(f"the test segment leaves what training saw in {outside['share']:.0%} of its frames "
+                     f"({why} frames): its scores measure unseen poses and expressions; end the video as it began")
     return items + _expression_advice(summary)
 
 
@@ -414,8 +415,8 @@ def _draw_views(axis, measures: FrameMeasures, splits: dict[str, np.ndarray], ou
     axis.add_patch(Rectangle((-TURN_DEG, -NOD_DEG), 2 * TURN_DEG, 2 * NOD_DEG, fill=False, linestyle="--",
                              color="grey", label="advised reach"))
     reach = max(35.0, float(np.nanmax(np.abs(np.r_[measures.yaw, measures.pitch]))) + 5.0)
-    axis.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", xlabel="yaw (deg; + sees the head's left side)",
-             ylabel="pitch (deg; + sees it from above)", title="where the camera saw the face from")
+    axis.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", title="where the camera saw the face from",
+             xlabel="yaw (deg; + sees the head's left side)", ylabel="pitch (deg; + sees it from above)")
     axis.grid(alpha=0.3)
     axis.legend(loc="lower left", fontsize=8)
 

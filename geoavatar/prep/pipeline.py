@@ -326,7 +326,8 @@ def stage_frames(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     with _bar(config, len(indices), "crop") as bar:
         cropped = sum(pool.map(_crop_task, tasks, progress=bar.update))
     if cropped != len(indices):  # the second decoding pass must meet the same frames
-        raise PrepareError(f"video '{config.video}': {cropped} frames decoded on the second pass, {len(indices)} on the first")
+        raise PrepareError(f"video '{config.video}': {cropped} frames decoded on the second pass, "
+                           f"{len(indices)} on the first")
     source_fps = info.fps
     fps = min(config.fps, source_fps) if config.fps else source_fps
     atomic_write_npz(work / "frames.npz", source_index=indices, boxes=boxes, presence=scores,
@@ -516,10 +517,11 @@ def _segment_jobs(config: PrepareConfig, work: Path, head, init, fit, marks) -> 
     weights = np.array([GROUP_WEIGHTS[GROUP_OF.get(int(i), "face_oval_lower")] for i in ids])
     params = {k: v.numpy() for k, v in init.to_npz().items()}
     workers = _worker_config(config)
+    head_key = f"photometric-head:{config.head}:{config.flame_dir}:{config.flame_landmarks}"
 
     def job(rows: np.ndarray, core: slice, settings) -> SegmentJob:
         return SegmentJob(
-            rows=rows, keep=core, head_key=f"photometric-head:{config.head}:{config.flame_dir}:{config.flame_landmarks}",
+            rows=rows, keep=core, head_key=head_key,
             head_factory=partial(_photometric_head, workers), load=partial(_load_crop, work, keep, marks["found"]),
             settings=settings, params={k: v if k in SUBJECT_KEYS else v[rows] for k, v in params.items()},
             viewmat=viewmat[rows], K=fit["K"][rows], boxes=boxes[rows],
@@ -567,7 +569,8 @@ def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> di
     with torch.no_grad():
         refined = HeadParams.from_npz({**values, "static_offset": init.static_offset})
         pixels, _ = project(head.forward_params(refined, vertex_ids=head.landmark_vertex_ids).landmarks,
-                            torch.as_tensor(fit["viewmat"], dtype=torch.float32), torch.as_tensor(fit["K"], dtype=torch.float32))
+                            torch.as_tensor(fit["viewmat"], dtype=torch.float32),
+                            torch.as_tensor(fit["K"], dtype=torch.float32))
     width = np.maximum(np.linalg.norm(points[:, 234, :2] - points[:, 454, :2], axis=-1), 1e-6)
     detected = torch.as_tensor(points[:, ids, :2], dtype=torch.float32)
     errors = np.median((pixels - detected).norm(dim=-1).numpy(), axis=1) / width
@@ -581,7 +584,8 @@ def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> di
     cores = [job.rows[job.keep] for job in jobs]
     log += [f"segment {i} (frames {core[0]}-{core[-1]}): {line}"
             for i, (core, lines) in enumerate(zip(cores, result.logs[shared:])) for line in lines]
-    config.log(f"prepare: photometric {log[0]}; residual (masked L1): {summary['mean_before']:.4f} -> {summary['mean']:.4f}")
+    config.log(f"prepare: photometric {log[0]}; residual (masked L1): {summary['mean_before']:.4f} -> "
+               f"{summary['mean']:.4f}")
     return {"residual_before": summary["mean_before"], "residual": summary["mean"],
             "median_error": float(np.median(errors)), "log": log}
 
@@ -679,7 +683,8 @@ def _overlay_blocks(config: PrepareConfig, work: Path, rows) -> list[_OverlayBlo
     for a, b in split_range(len(rows), math.ceil(len(rows) / OVERLAY_BLOCK)):
         chosen = rows[a:b]
         blocks.append(_OverlayBlock(
-            config=_worker_config(config), rows=chosen, frame_paths=[work / "frames" / f"{keep[r]:05d}.png" for r in chosen],
+            config=_worker_config(config), rows=chosen,
+            frame_paths=[work / "frames" / f"{keep[r]:05d}.png" for r in chosen],
             params={k: v if k in ("shape", "static_offset") else v[chosen] for k, v in params.items()},
             viewmat=fit["viewmat"], K=fit["K"][chosen], detected=marks["filtered"][chosen][:, ids, :2],
             projected=fit["projected"][chosen], lost=~found[keep[chosen]]))

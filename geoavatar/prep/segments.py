@@ -14,9 +14,9 @@ pose moves. Two neighbours' fits of their common frames still differ, most in th
 pins down least (wojtek.mp4, frames 100-299 in two segments: 10.5 mm apart at the cut with their own
 appearances, 6.9 mm with the shared one; the single fit's depth itself drifts ~0.5 mm a frame there), so the
 written parameters pass from one fit to the next across the overlap (`blend_weights`) instead of jumping at the
-cut. The segments do not depend on the number of workers, so the result does not either. A segment reads its frames itself (`SegmentJob.load`)
-and keeps only the resampled crops: memory grows with the segment length and the number of workers, not with
-the video.
+cut. The segments do not depend on the number of workers, so the result does not either. A segment reads its
+frames itself (`SegmentJob.load`) and keeps only the resampled crops: memory grows with the segment length and the
+number of workers, not with the video.
 """
 
 from __future__ import annotations
@@ -164,7 +164,8 @@ def fit_segments(jobs: list[SegmentJob], pool: WorkerPool, progress=None,
         residual[core] = fitted["residual"][job.keep]
         before[core] = fitted["residual_before"][job.keep]
         logs.append(fitted["log"])
-    params = {key: (value / total.reshape(-1, *[1] * (value.ndim - 1))).astype(np.float32) for key, value in sums.items()}
+    params = {key: (value / total.reshape(-1, *[1] * (value.ndim - 1))).astype(np.float32)
+              for key, value in sums.items()}
     return SegmentFits({**params, **subject}, residual, before, logs)
 
 

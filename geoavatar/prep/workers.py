@@ -101,7 +101,7 @@ class WorkerPool:
              window: int | None = None) -> Iterator:
         """function(task) for each task, yielded in order; at most `window` tasks (default: all) submitted ahead."""
         tasks = list(tasks)
-        if self.workers == 1 or len(tasks) <= 1:
+        if self.workers == 1:  # a single task still goes to a worker: this process's memory stays small
             yield from self._inline(function, tasks, progress)
             return
         executor = self._start()
