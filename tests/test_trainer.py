@@ -282,3 +282,40 @@ def test_init_colour_images_starts_from_the_training_frames_colours(subject, tmp
     assert float(colours[:, 0].mean()) > float(colours[:, 2].mean())  # skin and hair are redder than blue
     with pytest.raises(ValueError, match="init_colour"):
         replace(config, model=replace(config.model, init_colour="white")).validate()
+
+
+# The fields a run wrote before #29 removed them (mesh_prior as it was, with its turned-camera term on).
+OLD_MESH_PRIOR = {"lambda_behind": 0.0, "margin": 0.005, "lambda_turned_behind": 0.01, "lambda_turned_outside": 0.0,
+                  "outside_dilate": 0.08, "turned_yaw": 60.0, "turned_pitch": 20.0, "turned_every": 1}
+
+
+def test_a_run_saved_with_removed_options_loads_and_extends_with_a_one_line_note(straight_run, tmp_path, capsys):
+    import json
+    import shutil
+
+    from geoavatar import cli
+
+    old = tmp_path / "old"
+    shutil.copytree(straight_run, old)
+    last = ckpt.run_checkpoint_path(old, "last")
+    payload = ckpt.load_checkpoint(last)
+    stored = json.loads(payload["config"])
+    stored["mesh_prior"] = OLD_MESH_PRIOR
+    stored["loss"]["angle_axis"] = "normal"
+    stored["warped_view"]["colours_only"] = False
+    payload["config"] = json.dumps(stored)
+    ckpt.save_checkpoint(last, payload)
+
+    with pytest.warns(ckpt.RemovedOptionWarning, match=r"loss\.angle_axis, mesh_prior\.\*, warped_view\.colours_only; "
+                                                        r"this run set mesh_prior\.lambda_turned_behind=0\.01"):
+        loaded = ckpt.load_run(old)
+    assert loaded.config == ckpt.load_run(straight_run).config  # nothing else changes
+    assert cli.main(["train", "--out", str(old), "--extend", "1", "--no-progress"]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "removed" in line]
+    assert len(notes) == 1 and notes[0].startswith(f"geoavatar: note: {last} [config]: ignoring options removed")
+    saved = json.loads(ckpt.load_checkpoint(last)["config"])  # the extension is saved without them
+    assert "mesh_prior" not in saved and "angle_axis" not in saved["loss"]
+    assert ckpt.load_checkpoint(last)["step"] == STEPS + 1
+    stored["mesh_prior"]["bogus"] = 1  # a key that never existed is still an error
+    with pytest.raises(ckpt.RunError, match=r"unknown key\(s\) mesh_prior"):
+        ckpt.config_from_json(json.dumps(stored), "old")

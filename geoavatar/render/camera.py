@@ -208,7 +208,7 @@ def orbit_cameras(base: "Camera", centre: Tensor, angles: list[tuple[float, floa
     """Cameras turned about `centre` [3] by (yaw, pitch) degrees and aimed at it, at base's distance and focal
     lengths, `centre` in the middle of the image (orbit_viewmat: positive yaw toward the camera's right, positive
     pitch up; centred_intrinsics), on centre's device and dtype. `geoavatar orbit`, eval's side views and the
-    trainer's turned camera (train/mesh_prior.py) place their cameras with it."""
+    warped view's turned camera (train/warped_view.py) place their cameras with it."""
     viewmat = base.viewmat.to(centre)
     K = centred_intrinsics(base.K.to(centre), base.width, base.height)
     return [Camera(orbit_viewmat(viewmat, centre, yaw, pitch), K, base.width, base.height) for yaw, pitch in angles]

@@ -40,6 +40,7 @@ import io
 import json
 import os
 import typing
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -48,7 +49,7 @@ import torch
 
 from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
-from geoavatar.errors import DiskFullError, GeoAvatarError, disk_full_error
+from geoavatar.errors import DiskFullError, GeoAvatarError, GeoAvatarWarning, disk_full_error
 from geoavatar.io.atomic import atomic_write_bytes
 
 FORMAT = "geoavatar-checkpoint"
@@ -143,10 +144,54 @@ def dataclass_from_dict(cls: type, data: dict, where: str = "config") -> Any:
 FIELDS_ADDED_LATER: dict[str, dict[str, Any]] = {"model": {"normal_shading": False, "init_colour": "grey"}}
 
 
+# Options removed after runs had been written (measured and rejected: docs/REJECTED.md), by dotted name, with the value
+# at which the option changed nothing (None: any value, a setting of a removed term). A stored configuration holding
+# them loads without them, with a one-line note (RemovedOptionWarning); SECTIONS_REMOVED go when nothing is left.
+FIELDS_REMOVED: dict[str, Any] = {
+    "loss.angle_axis": "normal",
+    "warped_view.colours_only": False,
+    "mesh_prior.lambda_behind": 0.0, "mesh_prior.lambda_turned_behind": 0.0, "mesh_prior.lambda_turned_outside": 0.0,
+    "mesh_prior.margin": None, "mesh_prior.outside_dilate": None, "mesh_prior.turned_yaw": None,
+    "mesh_prior.turned_pitch": None, "mesh_prior.turned_every": None,
+}
+SECTIONS_REMOVED = ("mesh_prior",)
+
+
+class RemovedOptionWarning(GeoAvatarWarning):
+    """A stored configuration holds options that no longer exist; it loads without them."""
+
+
+def drop_removed_fields(data: dict, where: str) -> list[str]:
+    """Remove FIELDS_REMOVED from a stored configuration's dict (in place), with a note; the dotted names dropped."""
+    dropped, active = [], []
+    for name, inert in FIELDS_REMOVED.items():
+        section, _, key = name.partition(".")
+        block = data.get(section)
+        if isinstance(block, dict) and key in block:
+            value = block.pop(key)
+            dropped.append(name)
+            if inert is not None and value != inert:
+                active.append(f"{name}={value!r}")
+    for section in SECTIONS_REMOVED:
+        if data.get(section) == {}:
+            del data[section]
+    if dropped:
+        names = sorted({f"{name.partition('.')[0]}.*" if name.partition('.')[0] in SECTIONS_REMOVED else name
+                        for name in dropped})
+        used = (f"this run set {', '.join(active)}, which it now trains and renders without" if active
+                else "none of them was on in this run")
+        warnings.warn(f"{where}: ignoring options removed as measured and rejected (docs/REJECTED.md): "
+                      f"{', '.join(names)}; {used}", RemovedOptionWarning, stacklevel=3)
+    return dropped
+
+
 def config_from_json(text: str, where: str = "config") -> TrainConfig:
-    """A stored TrainConfig; fields it predates (FIELDS_ADDED_LATER) take the value it was trained with."""
+    """A stored TrainConfig; fields it predates (FIELDS_ADDED_LATER) take the value it was trained with, fields
+    removed since (FIELDS_REMOVED) are dropped with a note."""
     try:
         data = json.loads(text)
+        if isinstance(data, dict):
+            drop_removed_fields(data, where)
         for section, added in FIELDS_ADDED_LATER.items():
             if isinstance(data, dict) and isinstance(data.get(section), dict):
                 data[section] = {**added, **data[section]}
@@ -297,6 +342,6 @@ def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None 
 __all__ = [
     "APS_FILE", "CHECKPOINT_DIR", "CONFIG_FILE", "FINAL_CHECKPOINT", "LAST_CHECKPOINT", "LOG_FILE", "VAL_DIR",
     "LoadedRun", "RunError", "RunInfo", "last_good_checkpoint", "open_run_dataset",
-    "FIELDS_ADDED_LATER", "config_from_json", "config_to_dict", "dataclass_from_dict", "load_checkpoint", "load_head_for", "load_run",
+    "FIELDS_ADDED_LATER", "FIELDS_REMOVED", "RemovedOptionWarning", "drop_removed_fields", "config_from_json", "config_to_dict", "dataclass_from_dict", "load_checkpoint", "load_head_for", "load_run",
     "run_checkpoint_path", "save_checkpoint",
 ]

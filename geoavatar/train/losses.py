@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from geoavatar.avatar.aps import BASELINE, FLEXIBLE, MOUTH, RIGID
-from geoavatar.avatar.binding import NORMAL_AXIS, Z_AXIS, polar_coordinates
+from geoavatar.avatar.binding import polar_coordinates
 from geoavatar.config import LossConfig
 
 
@@ -121,8 +121,7 @@ def regularization_losses(
 ) -> dict[str, Tensor]:
     """Weighted regularisers {"reg", "angle", "scale"} (already multiplied by their lambdas)."""
     mask = visible if cfg.visible_only else None
-    axis = NORMAL_AXIS if cfg.angle_axis == "normal" else Z_AXIS
-    r, phi = polar_coordinates(local_means, two_sided=cfg.angle_two_sided, axis=axis)
+    r, phi = polar_coordinates(local_means, two_sided=cfg.angle_two_sided)
     tau = set_thresholds(cfg, local_means.device)[face_sets.to(local_means.device)[binding]]  # [N]
     out = {"reg": cfg.lambda_reg * position_loss(r, tau, mask)}
     if cfg.use_angle:

@@ -12,9 +12,8 @@ One step (GaussianAvatars' loop with GeoAvatar's additions; steps are numbered 1
                 background colour, as GaussianAvatars does, so the avatar never learns clothing/backdrop;
                 the background is the dataset's, or with TrainConfig.background = "random" a random colour
                 per step (step_background), the same one behind the render
-    loss        avatar_loss: L_rgb + L_reg (+ L_angle, + GaussianAvatars' scale loss) (+ mesh_prior_losses: rendered
-                weight behind / outside the posed mesh, TrainConfig.mesh_prior; + turned_view_term: the frame warped
-                to a turned camera, TrainConfig.warped_view; both off by default); NaN/Inf stops the run
+    loss        avatar_loss: L_rgb + L_reg (+ L_angle, + GaussianAvatars' scale loss) (+ turned_view_term: the frame
+                warped to a turned camera, TrainConfig.warped_view, off by default); NaN/Inf stops the run
                 (the terms are read back in one transfer per step; value checks that wait for the device,
                 rasterize's inputs and NaN/Inf in the learned tensors, run every VALUE_CHECK_EVERY steps,
                 on log steps and before every checkpoint)
@@ -36,7 +35,6 @@ from __future__ import annotations
 
 import json
 import math
-import random
 import signal
 import threading
 import time
@@ -66,7 +64,7 @@ from geoavatar.runtime import resolve_device
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.frame_params import FrameParams
 from geoavatar.train.losses import avatar_loss
-from geoavatar.train.mesh_prior import mesh_prior_losses
+from geoavatar.train.randomness import frame_index, restore_rng, rng_state, seed_everything, step_background
 from geoavatar.train.warped_view import turned_view_term
 
 OPTIMIZER_NAMES = ("gaussians", "tracking", "deformer")
@@ -280,39 +278,6 @@ def training_views(data: TrainingData, frames: FrameParams, count: int = INIT_CO
         yield vertices, item["image"], item["mask"], item["viewmat"], item["K"]
 
 
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
-
-
-# --- RNG state as checkpoint-safe values --------------------------------------------------------
-
-
-def rng_state(generator: torch.Generator) -> dict:
-    kind, keys, pos, has_gauss, cached = np.random.get_state()
-    version, internal, gauss_next = random.getstate()
-    return {
-        "torch": torch.get_rng_state(),
-        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
-        "numpy": {"kind": str(kind), "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)), "pos": int(pos),
-                  "has_gauss": int(has_gauss), "cached": float(cached)},
-        "python": {"version": int(version), "internal": [int(v) for v in internal], "gauss_next": gauss_next},
-        "generator": generator.get_state(),
-    }
-
-
-def restore_rng(state: dict, generator: torch.Generator) -> None:
-    torch.set_rng_state(state["torch"])
-    if torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
-        torch.cuda.set_rng_state_all(state["cuda"])
-    n = state["numpy"]
-    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"]))
-    p = state["python"]
-    random.setstate((p["version"], tuple(p["internal"]), p["gauss_next"]))
-    generator.set_state(state["generator"])
-
-
 # --- checkpoints --------------------------------------------------------------------------------
 
 
@@ -379,22 +344,6 @@ def restore_state(payload: dict, data: TrainingData, config: TrainConfig, where:
 # --- one frame ----------------------------------------------------------------------------------
 
 
-def frame_index(step: int, count: int, seed: int) -> int:
-    """Training frame of `step` (1-based): a seeded permutation per epoch, stateless for resuming."""
-    epoch, position = divmod(step - 1, count)
-    generator = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
-    return int(torch.randperm(count, generator=generator)[position])
-
-
-def step_background(dataset_background: Tensor, mode: str, seed: int, step: int) -> Tensor:
-    """[3] the training background of `step` (TrainConfig.background): the dataset's colour, or a uniform
-    random colour that is a pure function of (seed, step), so a resumed run draws the same ones."""
-    if mode == "dataset":
-        return dataset_background
-    generator = torch.Generator().manual_seed(seed * 1_000_003 + 7_919 * step + 1)
-    return torch.rand(3, generator=generator).to(dataset_background)
-
-
 def psnr_of(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
@@ -423,13 +372,11 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     p = state.avatar.params
     losses = avatar_loss(result.rgb, target, p["means"], p["scales"], state.avatar.binding, state.face_sets,
                          config.loss, visible=result.visible)
-    prior = mesh_prior_losses(g, frame.vertices, data.head, camera, config.mesh_prior, seed, step, data.backend)
-    if config.warped_view.active(step):
-        prior["warped_view"] = turned_view_term(g, frame.vertices, data.head, data.warp_faces, item, camera,
-                                                background, config.warped_view, seed, step, data.backend)
-    if prior:  # logged by name before the total
-        total = losses.pop("total") + sum(prior.values())
-        losses = {**losses, **prior, "total": total}
+    if config.warped_view.active(step):  # logged by name before the total
+        warped = turned_view_term(g, frame.vertices, data.head, data.warp_faces, item, camera, background,
+                                  config.warped_view, seed, step, data.backend)
+        total = losses.pop("total") + warped
+        losses = {**losses, "warped_view": warped, "total": total}
     total = losses["total"]
     with torch.no_grad():
         mse = ((result.rgb.detach() - target) ** 2).mean()
@@ -789,6 +736,6 @@ def write_aps_report(run_dir: Path, aps: APSState, config: TrainConfig) -> None:
 
 __all__ = [
     "RunOptions", "StepReport", "TrainResult", "TrainingData", "TrainingDiverged", "TrainingState",
-    "VALUE_CHECK_EVERY", "build_optimizers", "frame_index", "item_camera", "new_state", "open_training_data",
+    "VALUE_CHECK_EVERY", "build_optimizers", "item_camera", "new_state", "open_training_data",
     "restore_state", "state_payload", "train", "train_step", "validation_image",
 ]
