@@ -354,14 +354,15 @@ def preset(name: str = DEFAULT_PRESET, steps: int | None = None) -> TrainConfig:
 
 
 def config_values(config: Any, prefix: str = "") -> dict[str, Any]:
-    """Every leaf field of a (nested) config dataclass by dotted name: {"aps_step": 100000, "loss.tau_rigid": 0.1, ...}."""
+    """Every leaf field of a (nested) config dataclass, or of its asdict() / JSON form, by dotted name:
+    {"aps_step": 100000, "loss.tau_rigid": 0.1, ...}."""
+    items = config.items() if isinstance(config, dict) else ((f.name, getattr(config, f.name)) for f in fields(config))
     out = {}
-    for f in fields(config):
-        value = getattr(config, f.name)
-        if is_dataclass(value):
-            out.update(config_values(value, f"{prefix}{f.name}."))
+    for name, value in items:
+        if is_dataclass(value) or isinstance(value, dict):
+            out.update(config_values(value, f"{prefix}{name}."))
         else:
-            out[f"{prefix}{f.name}"] = value
+            out[f"{prefix}{name}"] = value
     return out
 
 

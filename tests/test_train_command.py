@@ -23,7 +23,8 @@ from geoavatar.config import STEP_FIELDS, TrainConfig, config_values, preset
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.train import budget
 from geoavatar.train import checkpoint as ckpt
-from geoavatar.train.trainer import _flatten as _flat, train
+from geoavatar.config import config_values as _flat
+from geoavatar.train.trainer import train
 from test_trainer import STEPS, TOLERANCE, assert_same, learned_tensors, options, small_config, straight_run, subject  # noqa: F401
 
 QUIET = ["--no-progress", "--val-every", "1000", "--ckpt-every", "1000", "--seed", "3"]

@@ -13,6 +13,7 @@ Images are channel-last, [H, W, C] or [B, H, W, C], values in [0, 1] (the render
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import torch
@@ -66,6 +67,11 @@ def ssim(image: Tensor, target: Tensor, window_size: int = 11, sigma: float = 1.
     c1, c2 = 0.01**2, 0.03**2
     ssim_map = ((2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2))
     return ssim_map.mean()
+
+
+def psnr_from_mse(value: float) -> float:
+    """PSNR in dB for data range 1; inf when the images are identical (the trainer's log and eval's tables)."""
+    return float("inf") if value <= 0.0 else -10.0 * math.log10(value)
 
 
 def rgb_loss(image: Tensor, target: Tensor, lambda_dssim: float = 0.2) -> tuple[Tensor, Tensor, Tensor]:

@@ -51,19 +51,20 @@ from geoavatar.avatar import densify as densify_ops
 from geoavatar.avatar import posed_head
 from geoavatar.avatar.colour_init import face_colours
 from geoavatar.avatar.model import rgb_to_sh_dc
-from geoavatar.config import PresetName, TrainConfig
+from geoavatar.config import PresetName, TrainConfig, config_values
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
-from geoavatar.data.dataset import item_camera
+from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.data.splits import evenly_spaced
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError
 from geoavatar.head.regions import face_parts
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png
 from geoavatar.render import composite_target
+from geoavatar.render.camera import camera_centre
 from geoavatar.runtime import resolve_device
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.frame_params import FrameParams
-from geoavatar.train.losses import avatar_loss
+from geoavatar.train.losses import avatar_loss, psnr_from_mse
 from geoavatar.train.randomness import frame_index, restore_rng, rng_state, seed_everything, step_background
 from geoavatar.train.warped_view import turned_view_term
 
@@ -191,11 +192,6 @@ class TrainResult:
 # --- set-up -----------------------------------------------------------------------------------
 
 
-def camera_centres(dataset: HeadAvatarDataset) -> Tensor:
-    """[C, 3] world positions of the cameras of a split (C = -R^T t of each viewmat)."""
-    viewmats = torch.stack([torch.from_numpy(f.viewmat).double() for f in dataset.frames])  # [M, 4, 4]
-    rot, trans = viewmats[:, :3, :3], viewmats[:, :3, 3]
-    return -(rot.transpose(1, 2) @ trans[..., None]).squeeze(-1).float()
 
 
 def open_training_data(options: RunOptions, config: TrainConfig) -> TrainingData:
@@ -219,7 +215,8 @@ def open_training_data(options: RunOptions, config: TrainConfig) -> TrainingData
     if config.warped_view.weight > 0:
         wanted = [parts.part_names.index(name) for name in config.warped_view.parts]
         warp_faces = torch.from_numpy(np.isin(parts.part_of_face, wanted)).to(device)
-    extent = densify_ops.scene_extent(camera_centres(train_set), config.densify.min_scene_extent)
+    viewmats = torch.stack([torch.from_numpy(f.viewmat).double() for f in train_set.frames])  # [M, 4, 4]
+    extent = densify_ops.scene_extent(camera_centre(viewmats).float(), config.densify.min_scene_extent)
     return TrainingData(
         subject=subject, train_set=train_set, val_set=val_set if len(val_set) else None, head=head,
         part_of_face=part_of_face, part_names=part_names, extent=extent,
@@ -344,12 +341,8 @@ def restore_state(payload: dict, data: TrainingData, config: TrainConfig, where:
 # --- one frame ----------------------------------------------------------------------------------
 
 
-def psnr_of(mse: float) -> float:
-    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
-def _item_to(item: dict, device: torch.device) -> dict:
-    return {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in item.items()}
 
 
 def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, step: int, seed: int,
@@ -361,7 +354,7 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     rasterize's input value checks and the NaN/Inf check of the learned tensors."""
     if check_values is None:
         check_values = step % VALUE_CHECK_EVERY == 0
-    item = _item_to(data.train_set[frame_index(step, len(data.train_set), seed)], data.device)
+    item = item_to(data.train_set[frame_index(step, len(data.train_set), seed)], data.device)
     background = step_background(item["background"], config.background, seed, step)  # [3]
     target = composite_target(item["image"], item["mask"], background)
     params = state.frames(item["row"])
@@ -402,12 +395,10 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
     # Densification after the Adam step (3DGS runs it before, and a densifying step then loses its
     # update: densify replaces the tensors, whose .grad is gone; immaterial every 2000 of 200k steps,
     # but a schedule scaled to a few hundred steps densifies every 1-2 steps and would freeze them).
-    binding, densified = densify_ops.step_post_backward(
-        p, [gaussians_opt], state.avatar.binding, state.stats, config.densify, step,
-        g.frames.scale.detach(), data.extent, result.means2d.grad, result.visible, result.radii,
-        item["width"], item["height"], state.generator,
-    )
-    state.avatar.binding = binding
+    strategy = densify_ops.DensifyStrategy(config.densify, data.extent, state.generator)
+    info = densify_ops.DensifyInfo(state.avatar.binding, g.frames.scale.detach(), result.means2d.grad, result.visible,
+                                   result.radii, item["width"], item["height"])
+    state.avatar.binding, densified = strategy.step_post_backward(p, [gaussians_opt], state.stats, step, info)
     if check_values:
         _assert_finite(state, f"step {step}: after the optimizer step")
 
@@ -418,7 +409,7 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
         aps_ran = True
     state.step = step
 
-    return StepReport(reported, psnr_of(mse_value), state.avatar.num_gaussians, densified, aps_ran)
+    return StepReport(reported, psnr_from_mse(mse_value), state.avatar.num_gaussians, densified, aps_ran)
 
 
 @torch.no_grad()
@@ -428,12 +419,12 @@ def validation_image(data: TrainingData, state: TrainingState) -> tuple[np.ndarr
         return None
     rows, psnrs = [], []
     for index in range(len(data.val_set)):
-        item = _item_to(data.val_set[index], data.device)
+        item = item_to(data.val_set[index], data.device)
         target = composite_target(item["image"], item["mask"], item["background"])
         result = render_avatar(state.avatar, data.head, state.frames(item["row"]), item_camera(item), item["timestep"],
                                state.deformer, item["background"], data.backend).result
         rgb = result.rgb.clamp(0.0, 1.0)
-        psnrs.append(psnr_of(float(((rgb - target) ** 2).mean())))
+        psnrs.append(psnr_from_mse(float(((rgb - target) ** 2).mean())))
         rows.append(torch.cat([target, rgb], dim=1))  # [H, 2W, 3]
     width = max(r.shape[1] for r in rows)
     rows = [torch.nn.functional.pad(r, (0, 0, 0, width - r.shape[1])) for r in rows]
@@ -510,7 +501,7 @@ def default_interval(steps: int, fraction: float) -> int:
 def _check_resume_config(saved: TrainConfig, requested: TrainConfig | None, where: str) -> None:
     if requested is None or requested == saved:
         return
-    flat_saved, flat_req = _flatten(ckpt.config_to_dict(saved)), _flatten(ckpt.config_to_dict(requested))
+    flat_saved, flat_req = config_values(saved), config_values(requested)
     diffs = [f"{k}: run has {flat_saved.get(k)!r}, asked {flat_req.get(k)!r}"
              for k in sorted(set(flat_saved) | set(flat_req)) if flat_saved.get(k) != flat_req.get(k)]
     longer = ("; to train the run longer, use --extend N instead of --steps"
@@ -520,14 +511,6 @@ def _check_resume_config(saved: TrainConfig, requested: TrainConfig | None, wher
                         f"--out{longer}.")
 
 
-def _flatten(data: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 def train(

@@ -31,7 +31,7 @@ from geoavatar.avatar.binding import GlobalGaussians
 from geoavatar.avatar.render import rasterize_gaussians
 from geoavatar.config import WarpedViewConfig
 from geoavatar.head.regions import skull_centre
-from geoavatar.render.camera import Camera, orbit_cameras, rigid_inverse, world_to_camera
+from geoavatar.render.camera import Camera, camera_centre, orbit_cameras, world_to_camera
 from geoavatar.render.mesh import behind_surface, interpolate, rasterize_mesh
 from geoavatar.train.randomness import turned_angles
 
@@ -70,7 +70,7 @@ def warp_to_camera(
               & (uv[:, 1] >= 0) & (uv[:, 1] < source.height))
     visible = inside & ~behind_surface(in_source, seen_s.depth, src_K, depth_tolerance)  # [h*w] not hidden there
     normal = normals.detach().to(vertices)[face_id].reshape(-1, 3)  # [h*w, 3]
-    to_camera = F.normalize(rigid_inverse(src_view)[:3, 3] - points.reshape(-1, 3), dim=-1)  # toward its centre
+    to_camera = F.normalize(camera_centre(src_view) - points.reshape(-1, 3), dim=-1)
     facing = (normal * to_camera).sum(-1) >= math.cos(math.radians(max_angle))
     grid = torch.stack([uv[:, 0] / source.width, uv[:, 1] / source.height], -1) * 2.0 - 1.0  # align_corners=False
     sampled = F.grid_sample(torch.cat([image, mask[..., None]], -1).permute(2, 0, 1)[None].to(vertices),
