@@ -23,7 +23,8 @@ from geoavatar.config import (ABLATIONS, DEFAULT_PRESET, PAPER_STEPS, STEP_FIELD
                               preset as make_preset, with_values)
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.errors import GeoAvatarError, OptionError
-from geoavatar.train.trainer import RunOptions, train as run_training
+from geoavatar.train.options import RunOptions
+from geoavatar.train.trainer import train as run_training
 
 
 @dataclass
