@@ -114,17 +114,7 @@ def train_step(data: TrainingData, state: TrainingState, config: TrainConfig, st
                           background, data.backend, check_values=check_values)
     losses = step_losses(data, state, config, frame, target, item, camera, background, seed, step)
     reported, mse = read_back(losses, frame.result.rgb, target, step)
-
-    for opt in state.optimizers.values():
-        if opt is not None:
-            opt.zero_grad(set_to_none=True)
-    losses["total"].backward()
-    for group in state.optimizers["gaussians"].param_groups:
-        if group["name"] == "means":
-            group["lr"] = position_lr(step, config.lr, data.extent)
-    for opt in state.optimizers.values():
-        if opt is not None:
-            opt.step()
+    optimizer_step(data, state, config, losses["total"], step)
     # Densification after the Adam step (3DGS runs it before, and a densifying step then loses its
     # update: densify replaces the tensors, whose .grad is gone; immaterial every 2000 of 200k steps,
     # but a schedule scaled to a few hundred steps densifies every 1-2 steps and would freeze them).
@@ -161,6 +151,21 @@ def read_back(losses: dict[str, Tensor], rgb: Tensor, target: Tensor, step: int)
         terms = ", ".join(f"{k}={v:.4g}" for k, v in reported.items())
         raise TrainingDiverged(f"step {step}: the loss is not finite ({terms})")
     return reported, values[-1]
+
+
+def optimizer_step(data: TrainingData, state: TrainingState, config: TrainConfig, total: Tensor, step: int) -> None:
+    """Backward from the total loss, then one step of every optimizer (the positions' learning rate decayed to
+    `step`)."""
+    for opt in state.optimizers.values():
+        if opt is not None:
+            opt.zero_grad(set_to_none=True)
+    total.backward()
+    for group in state.optimizers["gaussians"].param_groups:
+        if group["name"] == "means":
+            group["lr"] = position_lr(step, config.lr, data.extent)
+    for opt in state.optimizers.values():
+        if opt is not None:
+            opt.step()
 
 
 def densify_step(data: TrainingData, state: TrainingState, config: TrainConfig, frame: AvatarRender, camera: Camera,
