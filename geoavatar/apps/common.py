@@ -40,6 +40,7 @@ from geoavatar.data.subject import Subject
 from geoavatar.errors import OptionError
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
 from geoavatar.head.regions import skull_centre
+from geoavatar.imaging import fit_height, to_uint8  # the commands' image helpers, kept importable from here
 from geoavatar.render.camera import Camera
 from geoavatar.runtime import num_threads, resolve_device
 from geoavatar.train.checkpoint import LoadedRun, RunError, load_run, open_run_dataset
@@ -185,13 +186,6 @@ def head_centre(run: LoadedRun, params: HeadParams) -> Tensor:
 # --- images ------------------------------------------------------------------------------------------
 
 
-def to_uint8(image: Tensor | np.ndarray) -> np.ndarray:
-    """[H, W, 3] float in [0, 1] -> uint8 numpy (rounded)."""
-    if isinstance(image, Tensor):
-        image = image.detach().float().cpu().numpy()
-    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
 _COLORMAP_CACHE: dict[str, Tensor] = {}
 
 
@@ -228,16 +222,6 @@ def side_by_side(*images: np.ndarray) -> np.ndarray:
     if len(heights) != 1:
         raise ValueError(f"side_by_side: images of different heights {sorted(heights)}")
     return np.concatenate(images, axis=1)
-
-
-def fit_height(image: np.ndarray, height: int) -> np.ndarray:
-    """Resize a uint8 [H, W, 3] image to `height` rows, keeping its aspect ratio (area filter)."""
-    if image.shape[0] == height:
-        return image
-    from PIL import Image
-
-    width = max(1, round(image.shape[1] * height / image.shape[0]))
-    return np.asarray(Image.fromarray(image).resize((width, height), Image.Resampling.BOX))
 
 
 def default_output(run: LoadedRun, folder: str, name: str) -> Path:

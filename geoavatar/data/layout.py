@@ -68,6 +68,7 @@ from geoavatar.data.subject import (
 )
 from geoavatar.errors import DiskFullError
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
+from geoavatar.imaging import to_uint8
 from geoavatar.io.atomic import disk_full_as_error, replace_folder, temporary_folder_for
 from geoavatar.render.camera import opengl_c2w_to_viewmat, viewmat_to_opengl_c2w
 
@@ -596,7 +597,7 @@ def _to_uint8(value: np.ndarray | Tensor, name: str) -> np.ndarray:
     if array.dtype == np.uint8:
         return np.ascontiguousarray(array)
     if np.issubdtype(array.dtype, np.floating):
-        return np.ascontiguousarray(np.clip(np.round(array * 255.0), 0, 255).astype(np.uint8))
+        return np.ascontiguousarray(to_uint8(array))
     if array.dtype == np.bool_:
         return np.ascontiguousarray(array.astype(np.uint8) * 255)
     raise ValueError(f"{name} must be uint8, bool or float in [0, 1], got dtype {array.dtype}")
