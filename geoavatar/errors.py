@@ -20,6 +20,11 @@ class GeoAvatarError(Exception):
     """A problem with the user's input, files, options or machine; the message is one line for them."""
 
 
+def one_line(message: str) -> str:
+    """A message as the one line the CLI prints (whitespace runs, newlines included, become one space)."""
+    return " ".join(message.split()) or "failed (no message)"
+
+
 class GeoAvatarWarning(UserWarning):
     """A note for the user that stops nothing (e.g. a stored run holds options removed since); the CLI prints it as
     one line, `geoavatar: note: <message>`."""
@@ -60,4 +65,4 @@ def disk_full_error(path, err: OSError, what: str = "") -> DiskFullError:
 
 
 __all__ = ["DISK_FULL_ERRNOS", "DiskFullError", "GeoAvatarError", "GeoAvatarWarning", "OptionError", "disk_full_error",
-           "is_disk_full"]
+           "is_disk_full", "one_line"]

@@ -8,9 +8,10 @@ down at the end); `--address auto` joins the cluster this machine belongs to, `-
 one reached through Ray Client. On a cluster every node needs GeoAvatar installed and the datasets and
 DIR at the same paths (a shared file system).
 
-A task trains through `geoavatar train` and evaluates through `geoavatar eval` in its worker process
-(geoavatar.eval.ablation.run_job); the run folders are ordinary RUN folders. Finished runs are skipped,
-interrupted ones resumed, so the command can be repeated until the matrix is complete.
+A task trains through `geoavatar train` and evaluates through `geoavatar eval`, called as functions in
+its worker process (geoavatar.apps.ablation_job.run_job); the run folders are ordinary RUN folders.
+Finished runs are skipped, interrupted ones resumed, so the command can be repeated until the matrix is
+complete.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ from typing import Literal, Optional
 
 from geoavatar.config import ABLATIONS, PAPER_STEPS
 from geoavatar.errors import GeoAvatarError, OptionError
-from geoavatar.eval.ablation import (JobSpec, LOG_DIR, RunMismatch, read_summary, run_folder, run_job, run_state,
-                                     write_ablation, write_mouth_crops)
+from geoavatar.apps.ablation_job import JobSpec, run_job, run_state
+from geoavatar.eval.ablation import LOG_DIR, RunMismatch, read_summary, run_folder, write_ablation, write_mouth_crops
 
 DEFAULT_PRESETS = ("A", "B", "C", "D", "E")
 

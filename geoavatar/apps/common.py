@@ -42,8 +42,8 @@ from geoavatar.head.params import SUBJECT_KEYS, HeadParams
 from geoavatar.head.regions import skull_centre
 from geoavatar.imaging import fit_height, to_uint8  # the commands' image helpers, kept importable from here
 from geoavatar.render.camera import Camera
-from geoavatar.runtime import num_threads, resolve_device
-from geoavatar.train.checkpoint import LoadedRun, RunError, load_run, open_run_dataset
+from geoavatar.runtime import num_threads
+from geoavatar.train.checkpoint import LoadedRun, RunError, open_run, open_run_dataset
 
 # The RUN folder: the first, positional argument of every command (`geoavatar render RUN`).
 RunPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
@@ -62,15 +62,6 @@ def synchronize(device: torch.device | str) -> None:
         torch.cuda.synchronize(device)
     elif device.type == "mps":
         torch.mps.synchronize()
-
-
-def open_run(run_dir: str | os.PathLike, device: str = "auto", flame_dir: str | os.PathLike | None = None) -> LoadedRun:
-    """load_run on the resolved device (auto: CUDA when available). RunError / OptionError on bad input."""
-    try:
-        torch_device = resolve_device(device)
-    except ValueError as err:  # resolve_device's messages name --device
-        raise OptionError(str(err)) from err
-    return load_run(run_dir, torch_device, flame_dir=flame_dir)
 
 
 def run_device(run: LoadedRun) -> torch.device:
