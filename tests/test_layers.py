@@ -30,3 +30,16 @@ def test_no_module_imports_from_a_layer_above_its_own():
     assert result.returncode == 0, f"an import breaks the layers (docs/ARCHITECTURE.md):\n{report}"
     assert f"Layers: {LAYERS}" in " ".join(report.split()), report  # the contract checked is the one documented
     assert "1 kept, 0 broken" in report, report
+
+
+def test_every_package_of_geoavatar_has_a_layer():
+    """A module in no layer would be checked by nothing: each top-level module is named in the contract."""
+    import pkgutil
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    import geoavatar
+
+    contract = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"][0]
+    named = {name.strip() for layer in contract["layers"] for name in layer.replace("|", ":").split(":")}
+    modules = {info.name for info in pkgutil.iter_modules(geoavatar.__path__)}
+    assert modules - named == set(), f"add these to a layer of pyproject.toml's contract: {sorted(modules - named)}"
