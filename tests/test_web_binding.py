@@ -1,0 +1,88 @@
+"""The player's binding maths (web/src/binding.js, run in node) against avatar/binding.py on the same numbers:
+face frames of posed head meshes (centre, scale k, rotation and its quaternion) and the clip's dequantisation."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from geoavatar.avatar.binding import face_frames
+from geoavatar.geometry import quaternion_to_matrix
+from geoavatar.head import load_head_model
+from geoavatar.head.params import HeadParams
+from geoavatar.web.pack import quantise_clip
+
+BINDING_JS = Path(__file__).resolve().parents[1] / "web" / "src" / "binding.js"
+NODE_SCRIPT = """
+import { faceFrames, dequantiseFrame } from %s;
+let input = "";
+process.stdin.on("data", (chunk) => { input += chunk; });
+process.stdin.on("end", () => {
+  const job = JSON.parse(input);
+  const frames = faceFrames(Float32Array.from(job.vertices), Uint32Array.from(job.faces));
+  const decoded = dequantiseFrame(Uint16Array.from(job.codes), job.frame, job.vertexCount, job.offset, job.step);
+  process.stdout.write(JSON.stringify({ frames: Array.from(frames), decoded: Array.from(decoded) }));
+});
+"""
+
+pytestmark = pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed (Node 20: the player's maths)")
+
+
+def run_node(job: dict) -> dict:
+    script = NODE_SCRIPT % json.dumps(BINDING_JS.as_uri())
+    done = subprocess.run(["node", "--input-type=module", "-e", script], input=json.dumps(job), capture_output=True,
+                          text=True, timeout=60, check=True)
+    return json.loads(done.stdout)
+
+
+def posed_heads() -> tuple[torch.Tensor, torch.Tensor]:
+    """[2, V, 3] OpenHead with its mouth, posed twice (turned, jaw open, expressions), and its faces [F, 3]."""
+    head = load_head_model("openhead", mouth="geoavatar")
+    generator = torch.Generator().manual_seed(0)
+    params = HeadParams(shape=torch.randn(head.num_shape, generator=generator) * 0.5,
+                        expr=torch.randn(2, head.num_expr, generator=generator),
+                        rotation=torch.tensor([[0.1, 0.6, -0.05], [-0.2, -0.4, 0.1]]),
+                        neck_pose=torch.zeros(2, 3), jaw_pose=torch.tensor([[0.3, 0.0, 0.0], [0.05, 0.0, 0.0]]),
+                        eyes_pose=torch.zeros(2, 6), translation=torch.tensor([[0.0, 0.0, 0.0], [0.01, -0.02, 0.3]]))
+    with torch.no_grad():
+        return head.forward_params(params).vertices, head.faces
+
+
+def test_face_frames_and_dequantisation_match_python():
+    vertices, faces = posed_heads()  # [2, V, 3], [F, 3]
+    clip = quantise_clip(vertices)
+    decoded_python = torch.from_numpy(clip.vertices()[1])  # [V, 3] what the page decodes for frame 1
+    out = run_node({"vertices": decoded_python.flatten().tolist(), "faces": faces.flatten().tolist(),
+                    "codes": clip.codes.flatten().tolist(), "frame": 1, "vertexCount": int(vertices.shape[1]),
+                    "offset": clip.offset.tolist(), "step": clip.step.tolist()})
+
+    decoded = np.asarray(out["decoded"], dtype=np.float32).reshape(-1, 3)
+    np.testing.assert_allclose(decoded, decoded_python.numpy(), atol=1e-7)
+    assert np.abs(decoded - vertices[1].numpy()).max() < 1e-5  # quantisation: micrometres
+
+    expected = face_frames(decoded_python.double(), faces)
+    js = torch.tensor(out["frames"], dtype=torch.float64).reshape(-1, 8)  # [F, 8]: C, k, q (x y z w)
+    np.testing.assert_allclose(js[:, :3], expected.centre, atol=1e-6)
+    np.testing.assert_allclose(js[:, 3], expected.scale, rtol=1e-5)
+    quat = js[:, [7, 4, 5, 6]]  # w x y z
+    np.testing.assert_allclose(quat, expected.quaternion, atol=2e-5)  # both with w >= 0
+    np.testing.assert_allclose(quaternion_to_matrix(quat), expected.rotation, atol=2e-5)
+    normals = expected.rotation[:, :, 1]  # the shading's normal: R's second column
+    assert (quaternion_to_matrix(quat)[:, :, 1] * normals).sum(-1).min() > 1 - 1e-6
+
+
+def test_quantised_clip_round_trip_and_bad_input():
+    vertices = torch.randn(3, 10, 3) * 0.1
+    clip = quantise_clip(vertices)
+    assert clip.codes.dtype == np.uint16 and clip.codes.shape == (3, 10, 3)
+    assert np.abs(clip.vertices() - vertices.numpy()).max() <= clip.step.max() / 2 + 1e-7
+    with pytest.raises(ValueError, match="NaN"):
+        quantise_clip(torch.full((1, 2, 3), float("nan")))
+    with pytest.raises(ValueError, match=r"\[T, V, 3\]"):
+        quantise_clip(torch.zeros(4, 3))

@@ -1,0 +1,170 @@
+"""The web player: `export --format web` writes a folder that a real browser (Debian's chromium, software WebGL,
+driven by Playwright) plays; the page's frame from the dataset camera scores like the CPU renderer's against the
+same ground truth; deep links, counters and controls; bad input and interrupted exports.
+
+The avatar is a run's step-0 state (colours from the images) thinned to 4000 Gaussians with varied local means,
+rotations, scales, opacities and normal shading, so every part of the GPU placement is exercised on 64 px frames."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from apps_fixtures import make_subject, make_untrained_run
+from geoavatar import cli
+from geoavatar.apps import export as export_app
+from geoavatar.apps.common import RunFrames, open_run, record_camera, render_params, to_uint8
+from geoavatar.apps.web_export import export_web
+from geoavatar.data import open_subject
+from geoavatar.data.dataset import HeadAvatarDataset
+from geoavatar.data import DataConfig
+from geoavatar.render import composite_target
+from geoavatar.web import pack
+from geoavatar.web.browser import browser_missing, canvas_rgb, chromium_page, static_server, wait_drawn
+
+SPLATS = 4000
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return 10.0 * math.log10(255.0 ** 2 / max(mse, 1e-12))
+
+
+def varied_avatar(avatar, count: int = SPLATS, seed: int = 0) -> None:
+    """Keep `count` of the one-per-face Gaussians and give them varied local parameters (in place)."""
+    g = torch.Generator().manual_seed(seed)
+    keep = torch.randperm(avatar.num_gaussians, generator=g)[:count].sort().values
+    p = avatar.params
+    quats = torch.nn.functional.normalize(torch.randn(count, 4, generator=g) * 0.3 + torch.tensor([1.0, 0, 0, 0]), dim=-1)
+    scales = torch.log(torch.rand(count, 3, generator=g) * 0.8 + 1.0) + torch.tensor([0.4, -1.0, 0.4])
+    new = {"means": torch.randn(count, 3, generator=g) * 0.15, "quats": quats, "scales": scales,
+           "f_dc": p["f_dc"].detach()[keep], "opacities": torch.logit(torch.rand(count, generator=g) * 0.4 + 0.55)}
+    if "f_normal" in p:
+        new["f_normal"] = torch.randn(count, 9, generator=g) * 0.08
+    for name, value in new.items():
+        p[name] = torch.nn.Parameter(value)
+    avatar.binding = avatar.binding[keep].clone()
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("web")
+    data = make_subject(root / "data", subject=1, frames=8, size=64)
+    return make_untrained_run(data, root / "run")
+
+
+@pytest.fixture(scope="module")
+def run(run_dir):
+    loaded = open_run(run_dir, "cpu")
+    assert loaded.avatar.normal_shading  # the default: the page must shade
+    varied_avatar(loaded.avatar)
+    return loaded
+
+
+@pytest.fixture(scope="module")
+def player(run, tmp_path_factory):
+    return export_web(run, tmp_path_factory.mktemp("player") / "web", "test", show_progress=False)
+
+
+def test_export_writes_the_player_folder(run, player):
+    manifest = json.loads((player / pack.MANIFEST).read_text())
+    names = sorted(f.name for f in player.iterdir())
+    assert names == sorted([*pack.PLAYER_FILES, pack.MANIFEST, pack.AVATAR_FILE, pack.CLIP_FILE])
+    test_steps = run.info.timesteps["test"]
+    assert manifest["clip"]["timesteps"] == test_steps and manifest["clip"]["frames"] == len(test_steps)
+    avatar = manifest["avatar"]
+    assert (avatar["splats"], avatar["faces"], avatar["vertices"]) == (SPLATS, run.avatar.num_faces, run.head.num_vertices)
+    assert (player / pack.AVATAR_FILE).stat().st_size == SPLATS * 24 * 4 + run.avatar.num_faces * 12
+    assert (player / pack.CLIP_FILE).stat().st_size == len(test_steps) * run.head.num_vertices * 6
+    yaw, pitch = manifest["orbit"]["yaw"], manifest["orbit"]["pitch"]
+    assert yaw[0] <= 0 <= yaw[1] and pitch[0] <= 0 <= pitch[1] and yaw[1] - yaw[0] < 180
+    assert "flame" not in json.dumps(manifest).lower()  # posed vertices and triangles only
+
+
+pytestmark_browser = pytest.mark.skipif(browser_missing() is not None, reason=f"browser tests: {browser_missing()}")
+
+
+def cpu_and_truth(run, timestep: int) -> tuple[np.ndarray, np.ndarray]:
+    """The CPU renderer's frame and the ground truth (photo on the run's background), uint8 [H, W, 3]."""
+    frames = RunFrames(run)
+    params, t = frames.params(timestep)
+    subject = open_subject(run.info.data_root)
+    camera = record_camera(subject, timestep, run.info.resolution)
+    cpu = to_uint8(render_params(run, params, camera, t))
+    dataset = HeadAvatarDataset(subject, "all", DataConfig(resolution=run.info.resolution, cache="none"))
+    item = dataset[dataset.timesteps.index(timestep)]
+    background = torch.tensor(run.info.background, dtype=torch.float32)
+    return cpu, to_uint8(composite_target(item["image"], item["mask"], background))
+
+
+@pytestmark_browser
+def test_browser_frame_matches_the_cpu_renderer_from_the_dataset_camera(run, player):
+    manifest = json.loads((player / pack.MANIFEST).read_text())
+    console: list[str] = []
+    with static_server(player) as url, chromium_page(console=console) as page:
+        for index in (0, 1):
+            page.goto(url + f"index.html?frame={index}&paused=1&view=dataset")
+            wait_drawn(page, index)
+            browser = canvas_rgb(page)
+            cpu, truth = cpu_and_truth(run, manifest["clip"]["timesteps"][index])
+            assert browser.shape == cpu.shape == (manifest["camera"]["height"], manifest["camera"]["width"], 3)
+            assert psnr(browser, cpu) > 30.0, console
+            assert abs(psnr(browser, truth) - psnr(cpu, truth)) < 1.0
+        stats = page.evaluate("window.geoavatar.stats")
+        assert stats["ready"] and stats["drawn"] >= 1 and stats["frameCostMs"] > 0
+    assert not [line for line in console if line.startswith(("error", "pageerror"))], console
+
+
+@pytestmark_browser
+def test_player_plays_scrubs_and_limits_the_orbit(player):
+    with static_server(player) as url, chromium_page(320, 240) as page:
+        page.goto(url + "index.html")
+        page.wait_for_function("window.geoavatar && window.geoavatar.stats.ready", timeout=120_000)
+        page.wait_for_function("window.geoavatar.player.frame === 1", timeout=60_000)  # it plays by itself
+        page.click("#play")  # pause
+        page.fill("#scrub", "0")
+        page.dispatch_event("#scrub", "input")
+        wait_drawn(page, 0)
+        assert page.inner_text("#frame-label").startswith("1 / 2")
+        page.evaluate("p => { p.orbit.yaw = 170; p.placeOrbit(); }", page.evaluate_handle("window.geoavatar.player"))
+        limited = page.evaluate("window.geoavatar.player.orbit.yaw")
+        page.check("#free-orbit")
+        page.evaluate("p => { p.orbit.yaw = 170; p.placeOrbit(); }", page.evaluate_handle("window.geoavatar.player"))
+        free = page.evaluate("window.geoavatar.player.orbit.yaw")
+        limits = json.loads((player / pack.MANIFEST).read_text())["orbit"]["yaw"]
+        assert limited == pytest.approx(limits[1]) and free == pytest.approx(170.0)
+        page.fill("#background", "#ff0000")
+        page.dispatch_event("#background", "input")
+        assert page.evaluate("window.geoavatar.player.background") == [1.0, 0.0, 0.0]
+
+
+def test_bad_input_is_one_line(run_dir, tmp_path, capsys):
+    cases = [
+        (["export", str(tmp_path), "--format", "web"], "not a GeoAvatar run"),
+        (["export", str(run_dir), "--format", "web", "--split", "nope", "--out", str(tmp_path / "w")], "--split"),
+        (["export", str(run_dir), "--format", "web", "--frame", "0"], "--frame"),
+        (["export", str(run_dir), "--format", "web", "--relative"], "--relative"),
+    ]
+    for argv, words in cases:
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and words in err, (argv, err)
+    (tmp_path / "taken").mkdir()
+    assert cli.main(["export", str(run_dir), "--format", "web", "--out", str(tmp_path / "taken")]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def test_interrupted_export_leaves_nothing_that_looks_complete(run, tmp_path, monkeypatch):
+    out = tmp_path / "web"
+
+    def broken_copy(source, target):
+        raise KeyboardInterrupt  # Ctrl-C while the folder is written
+
+    monkeypatch.setattr(pack.shutil, "copyfile", broken_copy)
+    with pytest.raises(KeyboardInterrupt):
+        export_web(run, out, "test", show_progress=False)
+    assert list(tmp_path.iterdir()) == []  # no folder, no leftover temporary one
