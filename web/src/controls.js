@@ -40,15 +40,12 @@ export function buildControls(player) {
       label.textContent = `${frame + 1} / ${player.frameCount} · ${manifest.clip.fps} fps`;
     },
     setStatus(text) { status.textContent = text; },
+    showPlaying(playing) { play.textContent = playing ? "Pause" : "Play"; },
   };
   controls.showFrame(player.frame);
-  play.onclick = () => {
-    player.setPlaying(!player.playing);
-    play.textContent = player.playing ? "Pause" : "Play";
-  };
+  play.onclick = () => player.setPlaying(!player.playing);
   scrub.oninput = () => {
     player.setPlaying(false);
-    play.textContent = "Play";
     player.showFrame(parseInt(scrub.value, 10));
   };
   colour.oninput = () => player.setBackground(rgbOf(colour.value));

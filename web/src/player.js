@@ -225,6 +225,7 @@ class Player {
   setPlaying(playing) {
     this.playing = playing && this.frameCount > 1;
     this.clockOrigin = performance.now() - (this.frame / this.manifest.clip.fps) * 1000;
+    this.controls?.showPlaying(this.playing);
   }
 }
 
