@@ -8,46 +8,20 @@ rotations, scales, opacities and normal shading, so every part of the GPU placem
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
 import torch
 
 from apps_fixtures import make_subject, make_untrained_run
+from web_fixtures import cpu_and_truth, psnr, varied_avatar
 from geoavatar import cli
-from geoavatar.apps import export as export_app
-from geoavatar.apps.common import RunFrames, open_run, record_camera, render_params, to_uint8
+from geoavatar.apps.common import open_run
 from geoavatar.apps.web_export import export_web
-from geoavatar.data import open_subject
-from geoavatar.data.dataset import HeadAvatarDataset
-from geoavatar.data import DataConfig
-from geoavatar.render import composite_target
 from geoavatar.web import pack
 from geoavatar.web.browser import browser_missing, canvas_rgb, chromium_page, static_server, wait_drawn
 
 SPLATS = 4000
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-    return 10.0 * math.log10(255.0 ** 2 / max(mse, 1e-12))
-
-
-def varied_avatar(avatar, count: int = SPLATS, seed: int = 0) -> None:
-    """Keep `count` of the one-per-face Gaussians and give them varied local parameters (in place)."""
-    g = torch.Generator().manual_seed(seed)
-    keep = torch.randperm(avatar.num_gaussians, generator=g)[:count].sort().values
-    p = avatar.params
-    quats = torch.nn.functional.normalize(torch.randn(count, 4, generator=g) * 0.3 + torch.tensor([1.0, 0, 0, 0]), dim=-1)
-    scales = torch.log(torch.rand(count, 3, generator=g) * 0.8 + 1.0) + torch.tensor([0.4, -1.0, 0.4])
-    new = {"means": torch.randn(count, 3, generator=g) * 0.15, "quats": quats, "scales": scales,
-           "f_dc": p["f_dc"].detach()[keep], "opacities": torch.logit(torch.rand(count, generator=g) * 0.4 + 0.55)}
-    if "f_normal" in p:
-        new["f_normal"] = torch.randn(count, 9, generator=g) * 0.08
-    for name, value in new.items():
-        p[name] = torch.nn.Parameter(value)
-    avatar.binding = avatar.binding[keep].clone()
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +35,7 @@ def run_dir(tmp_path_factory):
 def run(run_dir):
     loaded = open_run(run_dir, "cpu")
     assert loaded.avatar.normal_shading  # the default: the page must shade
-    varied_avatar(loaded.avatar)
+    varied_avatar(loaded.avatar, SPLATS)
     return loaded
 
 
@@ -86,19 +60,6 @@ def test_export_writes_the_player_folder(run, player):
 
 
 pytestmark_browser = pytest.mark.skipif(browser_missing() is not None, reason=f"browser tests: {browser_missing()}")
-
-
-def cpu_and_truth(run, timestep: int) -> tuple[np.ndarray, np.ndarray]:
-    """The CPU renderer's frame and the ground truth (photo on the run's background), uint8 [H, W, 3]."""
-    frames = RunFrames(run)
-    params, t = frames.params(timestep)
-    subject = open_subject(run.info.data_root)
-    camera = record_camera(subject, timestep, run.info.resolution)
-    cpu = to_uint8(render_params(run, params, camera, t))
-    dataset = HeadAvatarDataset(subject, "all", DataConfig(resolution=run.info.resolution, cache="none"))
-    item = dataset[dataset.timesteps.index(timestep)]
-    background = torch.tensor(run.info.background, dtype=torch.float32)
-    return cpu, to_uint8(composite_target(item["image"], item["mask"], background))
 
 
 @pytestmark_browser
