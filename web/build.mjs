@@ -1,7 +1,7 @@
-// `make web`: bundle the player (three.js + Spark + src/) into one ES module inside the Python package,
-// beside the page, so that `pip install` / `make` need no node.
+// `make web`: bundle the player (three.js + Spark + src/) into one ES module inside the Python package, beside
+// its page (geoavatar/web/static/index.html, written by hand), so that `pip install` / `make` need no node.
 import { build } from "esbuild";
-import { copyFileSync, mkdirSync } from "node:fs";
+import { mkdirSync } from "node:fs";
 
 const out = new URL("../geoavatar/web/static/", import.meta.url);
 mkdirSync(out, { recursive: true });
@@ -15,5 +15,4 @@ await build({
   legalComments: "eof", // three.js and Spark are MIT: their notices stay in the bundle
   logLevel: "warning",
 });
-copyFileSync(new URL("index.html", import.meta.url), new URL("index.html", out));
 console.log(`built ${out.pathname}`);
