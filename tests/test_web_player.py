@@ -57,6 +57,7 @@ def test_export_writes_the_player_folder(run, player):
     yaw, pitch = manifest["orbit"]["yaw"], manifest["orbit"]["pitch"]
     assert yaw[0] <= 0 <= yaw[1] and pitch[0] <= 0 <= pitch[1] and yaw[1] - yaw[0] < 180
     assert "flame" not in json.dumps(manifest).lower()  # posed vertices and triangles only
+    assert "viewmats" not in manifest  # one camera for the whole clip (the subject's camera does not move)
 
 
 pytestmark_browser = pytest.mark.skipif(browser_missing() is not None, reason=f"browser tests: {browser_missing()}")
@@ -129,3 +130,19 @@ def test_interrupted_export_leaves_nothing_that_looks_complete(run, tmp_path, mo
     with pytest.raises(KeyboardInterrupt):
         export_web(run, out, "test", show_progress=False)
     assert list(tmp_path.iterdir()) == []  # no folder, no leftover temporary one
+
+
+def test_a_driver_clip_is_reenacts_motion_posed_once(run, tmp_path):
+    from geoavatar.apps.common import RunFrames, posed_head_vertices
+    from geoavatar.apps.reenact import driven_clip, frame_of
+
+    driver = make_subject(tmp_path / "driver", subject=2, frames=5, size=32, seed=3)
+    folder = export_web(run, tmp_path / "web", driver=driver, relative=True, fps=12.5, show_progress=False)
+    manifest = json.loads((folder / pack.MANIFEST).read_text())
+    assert manifest["clip"]["frames"] == 5 and manifest["clip"]["fps"] == 12.5
+    assert manifest["clip"]["source"] == "driver driver (relative)"
+    codes = np.frombuffer((folder / pack.CLIP_FILE).read_bytes(), dtype="<u2").reshape(5, -1, 3)
+    decoded = manifest["clip"]["offset"] + codes[4] * np.asarray(manifest["clip"]["step"])
+    _, params = driven_clip(run, RunFrames(run), driver, relative=True)
+    expected = posed_head_vertices(run, frame_of(params, 4), None).detach().numpy()
+    assert np.abs(decoded - expected).max() < 1e-5  # reenact's parameters, posed as every command poses

@@ -117,7 +117,7 @@ class Player {
     const { camera: cam } = this.manifest;
     if (this.options.datasetView) {
       this.renderer.setSize(cam.width, cam.height);
-      placeCamera(this.camera, worldFromViewmat(cam.viewmat), projectionFromIntrinsics(cam.K, cam.width, cam.height));
+      this.placeDatasetCamera();
     } else {
       const stage = document.getElementById("stage");
       const width = stage.clientWidth || window.innerWidth;
@@ -126,6 +126,14 @@ class Player {
       this.viewSize = [width, height];
       this.placeOrbit();
     }
+    this.needsDraw = true;
+  }
+
+  // The dataset camera of the shown frame (a clip whose cameras move lists one per frame).
+  placeDatasetCamera() {
+    const { camera: cam, viewmats } = this.manifest;
+    const viewmat = viewmats ? viewmats[this.frame] : cam.viewmat;
+    placeCamera(this.camera, worldFromViewmat(viewmat), projectionFromIntrinsics(cam.K, cam.width, cam.height));
     this.needsDraw = true;
   }
 
@@ -168,6 +176,7 @@ class Player {
     this.frame = ((frame % this.frameCount) + this.frameCount) % this.frameCount;
     this.dirtyFrame = true;
     this.controls?.showFrame(this.frame);
+    if (this.options.datasetView && this.manifest.viewmats) this.placeDatasetCamera();
     if (this.live?.editing) this.live.resendEdit(); // the edit follows the shown frame
   }
 
