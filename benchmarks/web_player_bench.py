@@ -9,7 +9,8 @@ delivery and latency, fidelity against the CPU renderer, and (on a machine with 
     .venv/bin/python benchmarks/web_player_bench.py fidelity --run RUN [--frames 3] [--stills out.png]
     .venv/bin/python benchmarks/web_player_bench.py gpu-fps [--sizes 512x512 1920x1080]   # hardware WebGL
 
-Without --run, an untrained run of a generated subject is made in a temporary folder and its avatar is given
+`live` starts the browser at nice 10 (--browser-nice): with software GL it would otherwise take the cores the
+tracker needs, which a browser drawing on a GPU does not. Without --run, an untrained run of a generated subject is made in a temporary folder and its avatar is given
 the benchmark's number of Gaussians (tests/web_fixtures.py): sizes and timings depend on the counts, not on
 what was learned. Timings need a quiet machine; the load average is printed with them. Everything is served
 from 127.0.0.1 and drawn by Debian's chromium (geoavatar/web/browser.py).
@@ -131,7 +132,7 @@ def live(args) -> None:
             print(f"load before {side}: {load()}", flush=True)
             viewer = start_viewer(run, port=0, live=True)
             try:
-                with chromium_page(side, side + 40, hardware=args.hardware) as page:
+                with chromium_page(side, side + 40, hardware=args.hardware, nice=args.browser_nice) as page:
                     page.goto(viewer.url)
                     page.wait_for_function("window.geoavatar && window.geoavatar.stats.ready", timeout=300_000)
                     viewer.server.wait_for_client(30.0)
@@ -237,6 +238,8 @@ def main() -> None:
     job.add_argument("--seconds", type=float, default=12.0, help="seconds of video after the identity stage")
     job.add_argument("--threads", type=int, default=1)
     job.add_argument("--hardware", action="store_true")
+    job.add_argument("--browser-nice", type=int, default=10,
+                     help="the browser's CPU priority offset: software GL shares the 2 cores with tracking and posing")
     job = jobs.add_parser("fidelity")
     job.add_argument("--run", type=Path, required=True)
     job.add_argument("--frames", type=int, default=3, help="test frames, evenly spaced")

@@ -45,8 +45,8 @@ from typing import Callable, Iterator, Literal, Optional
 import numpy as np
 import torch
 
-from geoavatar.apps.common import (RunFrames, RunPath, fit_height, open_run, record_camera, run_background, side_by_side,
-                                   to_uint8)
+from geoavatar.apps.common import (RunFrames, RunPath, fit_height, open_run, posed_head_vertices, record_camera,
+                                   run_background, side_by_side, to_uint8)
 from geoavatar.apps.reenact import TRANSFERRED_KEYS, driven_params, reference_frame
 from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.data import DatasetError, open_subject
@@ -464,10 +464,12 @@ def drive_avatar(
         driver_now = {k: getattr(driver.params, k).to(device) for k in TRANSFERRED_KEYS}
         driver_ref = {k: v.to(device) for k, v in tracker.neutral.items()}
         params = HeadParams.from_npz(driven_params(identity, avatar_ref, driver_now, driver_ref, relative))
-        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer)
+        # the browser places the Gaussians itself: without a render only the head is posed
+        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer) if render else None
         if viewer is not None:
-            viewer.show_live(posed.vertices, f"live: frame {index}, {stats.fps:.1f} fps, "
-                                               f"dropped {mailbox.dropped + fitted.dropped}", available)
+            vertices = posed.vertices if posed is not None else posed_head_vertices(run, params, None)
+            viewer.show_live(vertices, f"live: frame {index}, {stats.fps:.1f} fps, "
+                                       f"dropped {mailbox.dropped + fitted.dropped}", available)
         t1 = time.perf_counter()
         timings["pose"] = t1 - t0
         if render:

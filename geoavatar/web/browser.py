@@ -15,6 +15,7 @@ import contextlib
 import functools
 import http.server
 import shutil
+import tempfile
 import threading
 from pathlib import Path
 from typing import Iterator
@@ -45,13 +46,28 @@ def browser_missing() -> str | None:
 
 
 @contextlib.contextmanager
-def chromium_page(width: int = 640, height: int = 480, hardware: bool = False, console: list | None = None):
-    """A Playwright page in headless Chromium (device scale 1); `console` collects the page's console lines."""
+def _niced(executable: str, nice: int) -> Iterator[str]:
+    """`executable` itself, or (nice > 0) a wrapper script that starts it at that lower CPU priority."""
+    if nice <= 0:
+        yield executable
+        return
+    with tempfile.TemporaryDirectory(prefix="geoavatar-browser-") as folder:
+        wrapper = Path(folder) / "chromium"
+        wrapper.write_text(f'#!/bin/sh\nexec nice -n {int(nice)} "{executable}" "$@"\n')
+        wrapper.chmod(0o755)
+        yield str(wrapper)
+
+
+@contextlib.contextmanager
+def chromium_page(width: int = 640, height: int = 480, hardware: bool = False, console: list | None = None,
+                  nice: int = 0):
+    """A Playwright page in headless Chromium (device scale 1); `console` collects the page's console lines;
+    `nice` > 0 runs the browser at a lower CPU priority (a benchmark sharing 2 cores with the live pipeline)."""
     from playwright.sync_api import sync_playwright
 
-    with sync_playwright() as playwright:  # a fresh temporary profile per launch
+    with sync_playwright() as playwright, _niced(chromium_path(), nice) as executable:  # a fresh profile per launch
         args = QUIET + ([] if hardware else SOFTWARE_GL)
-        browser = playwright.chromium.launch(executable_path=chromium_path(), headless=True, args=args)
+        browser = playwright.chromium.launch(executable_path=executable, headless=True, args=args)
         try:
             page = browser.new_page(viewport={"width": width, "height": height}, device_scale_factor=1)
             if console is not None:
