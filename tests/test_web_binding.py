@@ -4,6 +4,7 @@ face frames of posed head meshes (centre, scale k, rotation and its quaternion) 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -86,3 +87,12 @@ def test_quantised_clip_round_trip_and_bad_input():
         quantise_clip(torch.full((1, 2, 3), float("nan")))
     with pytest.raises(ValueError, match=r"\[T, V, 3\]"):
         quantise_clip(torch.zeros(4, 3))
+
+
+@pytest.mark.skipif(not (BINDING_JS.parents[1] / "node_modules" / "esbuild").is_dir(),
+                    reason="web/node_modules is not installed (make web installs it); the committed bundle is used")
+def test_the_committed_bundle_is_built_from_the_current_source(tmp_path):
+    subprocess.run(["node", "build.mjs"], cwd=BINDING_JS.parents[1], env={**os.environ, "GEOAVATAR_WEB_OUT": str(tmp_path)},
+                   check=True, capture_output=True, timeout=120)
+    committed = Path(__file__).resolve().parents[1] / "geoavatar" / "web" / "static" / "player.js"
+    assert (tmp_path / "player.js").read_bytes() == committed.read_bytes(), "web/src changed: run make web"

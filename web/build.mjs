@@ -3,7 +3,10 @@
 import { build } from "esbuild";
 import { mkdirSync } from "node:fs";
 
-const out = new URL("../geoavatar/web/static/", import.meta.url);
+// GEOAVATAR_WEB_OUT: another folder (tests/test_web_binding.py checks that the committed bundle is current)
+const out = process.env.GEOAVATAR_WEB_OUT
+  ? new URL(`file://${process.env.GEOAVATAR_WEB_OUT.replace(/\/?$/, "/")}`)
+  : new URL("../geoavatar/web/static/", import.meta.url);
 mkdirSync(out, { recursive: true });
 await build({
   entryPoints: [new URL("src/player.js", import.meta.url).pathname],
