@@ -127,3 +127,27 @@ def test_a_browser_counts_and_draws_every_live_mesh(run):
         assert viewer.server.sent == len(meshes)
     finally:
         viewer.stop()
+
+
+@pytest.mark.skipif(browser_missing() is not None, reason=f"browser tests: {browser_missing()}")
+def test_the_pages_jaw_slider_is_posed_in_python_and_shown(run):
+    viewer = view_app.start_viewer(run, port=0, expr_sliders=2)
+    try:
+        with chromium_page(320, 240) as page:
+            page.goto(viewer.url + "?frame=2&paused=1")
+            page.wait_for_function("window.geoavatar && window.geoavatar.stats.ready", timeout=120_000)
+            sliders = page.locator("#edits input[type=range]")
+            assert sliders.count() == 3  # two expressions and the jaw
+            sliders.nth(2).fill("0.25")
+            sliders.nth(2).dispatch_event("input")
+            page.wait_for_function("window.geoavatar.stats.received >= 1 && window.geoavatar.player.liveVertices",
+                                   timeout=60_000)
+            shown = np.asarray(page.evaluate("Array.from(window.geoavatar.player.liveVertices)"), dtype=np.float32)
+            page.click("#edits button")  # reset: the page plays its own clip again
+            page.wait_for_function("window.geoavatar.player.liveVertices === null", timeout=30_000)
+        params, _ = RunFrames(run).params(RunFrames(run).timesteps[2])
+        expected = posed_head_vertices(run, view_app.edited_params(run.head, params, [0.0, 0.0], 0.25, 0.0, 0.0,
+                                                                   viewer.centre), None)
+        np.testing.assert_allclose(shown, expected.detach().numpy().reshape(-1), atol=1e-6)
+    finally:
+        viewer.stop()

@@ -45,7 +45,7 @@ export class LiveLink {
   }
 
   resendEdit() {
-    if (!this.edit || this.socket.readyState !== WebSocket.OPEN) return;
+    if (!this.editing || this.socket.readyState !== WebSocket.OPEN) return; // no edit: the clip plays by itself
     this.socket.send(JSON.stringify({ type: "edit", frame: this.player.frame, ...this.edit }));
   }
 }
