@@ -74,7 +74,8 @@ class Player {
   setupRenderer() {
     const { camera: cam, background } = this.manifest;
     this.renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
-    this.renderer.setPixelRatio(this.options.datasetView ? 1 : window.devicePixelRatio);
+    // the dataset view is pixel for pixel; elsewhere at most 2 device pixels a CSS pixel (phones report 3)
+    this.renderer.setPixelRatio(this.options.datasetView ? 1 : Math.min(window.devicePixelRatio, 2));
     document.getElementById("stage").appendChild(this.renderer.domElement);
     this.scene = new THREE.Scene();
     this.camera = new THREE.PerspectiveCamera();
