@@ -11,7 +11,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from apps_fixtures import make_subject, make_untrained_run
 from web_fixtures import cpu_and_truth, psnr, varied_avatar

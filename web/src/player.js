@@ -6,7 +6,7 @@
 //
 // Deep link: index.html?frame=N&paused=1&view=dataset draws clip frame N from the dataset camera at the dataset
 // image size; document.body.dataset.drawnFrame = "N" once that frame is drawn with its splats sorted.
-// window.geoavatar.stats: counters for tests and benchmarks (see README section of docs/web_player.md).
+// window.geoavatar.stats: counters for tests and benchmarks (docs/web_player.md).
 import * as THREE from "three";
 import { SparkRenderer } from "@sparkjsdev/spark";
 import { faceFrames, dequantiseFrame, FACE_STRIDE } from "./binding.js";
@@ -72,7 +72,6 @@ class Player {
   }
 
   setupRenderer() {
-    const { camera: cam, background } = this.manifest;
     this.renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
     // the dataset view is pixel for pixel; elsewhere at most 2 device pixels a CSS pixel (phones report 3)
     this.renderer.setPixelRatio(this.options.datasetView ? 1 : Math.min(window.devicePixelRatio, 2));
@@ -91,7 +90,7 @@ class Player {
       onDirty: () => { this.needsDraw = true; },
     });
     this.scene.add(this.spark);
-    this.setBackground(background);
+    this.setBackground(this.manifest.background);
     this.resize();
     window.addEventListener("resize", () => this.resize());
   }
