@@ -146,3 +146,25 @@ def test_a_driver_clip_is_reenacts_motion_posed_once(run, tmp_path):
     _, params = driven_clip(run, RunFrames(run), driver, relative=True)
     expected = posed_head_vertices(run, frame_of(params, 4), None).detach().numpy()
     assert np.abs(decoded - expected).max() < 1e-5  # reenact's parameters, posed as every command poses
+
+
+def test_a_clip_whose_camera_moves_lists_each_frames_camera(run, tmp_path, monkeypatch):
+    """INSTA-like data moves the camera instead of the head: the dataset view must follow each frame's camera."""
+    from geoavatar.apps import web_export
+
+    still = web_export.record_camera
+
+    def moving(subject, timestep, resolution):
+        camera = still(subject, timestep, resolution)
+        viewmat = camera.viewmat.clone()
+        viewmat[0, 3] += 0.01 * timestep  # the camera slides sideways frame by frame
+        return camera.__class__(viewmat, camera.K, camera.width, camera.height)
+
+    monkeypatch.setattr(web_export, "record_camera", moving)
+    folder = export_web(run, tmp_path / "web", "all", show_progress=False)
+    manifest = json.loads((folder / pack.MANIFEST).read_text())
+    viewmats = np.asarray(manifest["viewmats"])
+    assert viewmats.shape == (manifest["clip"]["frames"], 4, 4)
+    np.testing.assert_allclose(viewmats[:, 0, 3] - viewmats[0, 0, 3], 0.01 * np.asarray(manifest["clip"]["timesteps"]),
+                               atol=1e-6)
+    assert manifest["camera"]["viewmat"] == manifest["viewmats"][0]

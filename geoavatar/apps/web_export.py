@@ -61,14 +61,16 @@ def driven_vertices(run: LoadedRun, params: dict[str, Tensor], show_progress: bo
                         for row in progress(range(count), enabled=show_progress, desc="pose")]).cpu()
 
 
-def orbit_limits(run: LoadedRun, data: Path | None, vertices: Tensor, viewmat: Tensor,
+def orbit_limits(run: LoadedRun, data: Path | None, vertices: Tensor, viewmats: Tensor,
                  margin: float = ORBIT_MARGIN) -> dict[str, list[float]]:
     """Yaw / pitch ranges (degrees, the page's orbit about the dataset camera) that keep the view within the head
-    turns the training frames saw, plus `margin`; each range holds 0 (the dataset view). vertices [T, V, 3]."""
+    turns the training frames saw, plus `margin`; each range holds 0 (the dataset view). vertices [T, V, 3],
+    viewmats [T, 4, 4] (each frame's camera) or [4, 4] (one for all)."""
     dataset = open_run_dataset(run, "train", data)
     rest, trained = trained_view_directions(run, dataset)  # [S, 3], [N, 3] head axes
     skull = skull_vertex_ids(run.head)
-    shown = view_directions(rest, vertices[:, skull].cpu(), viewmat.cpu()[None].expand(len(vertices), 4, 4))
+    viewmats = viewmats.cpu().expand(len(vertices), 4, 4)  # [T, 4, 4]
+    shown = view_directions(rest, vertices[:, skull].cpu(), viewmats)
     shown_yaw, shown_pitch = (float(a.median()) for a in yaw_pitch(shown))
     if trained.numel() == 0:
         return {"yaw": [-margin, margin], "pitch": [-margin, margin]}
@@ -93,7 +95,7 @@ def web_assets(run: LoadedRun, vertices: Tensor, first_params: HeadParams, times
                source: str, data: Path | None, camera_timesteps: list[int]) -> PlayerAssets:
     """The player's manifest and binaries of a posed clip (vertices [T, V, 3])."""
     camera, viewmats = clip_cameras(run, data, camera_timesteps)
-    orbit = orbit_limits(run, data, vertices, camera.viewmat)
+    orbit = orbit_limits(run, data, vertices, torch.stack(viewmats) if viewmats else camera.viewmat)
     orbit["centre"] = [float(c) for c in head_centre(run, first_params).cpu()]
     return player_assets(run.avatar, quantise_clip(vertices), fps, camera, orbit, run_background(run).tolist(),
                          timesteps, source, viewmats=viewmats)
