@@ -96,3 +96,35 @@ def test_the_committed_bundle_is_built_from_the_current_source(tmp_path):
                    check=True, capture_output=True, timeout=120)
     committed = Path(__file__).resolve().parents[1] / "geoavatar" / "web" / "static" / "player.js"
     assert (tmp_path / "player.js").read_bytes() == committed.read_bytes(), "web/src changed: run make web"
+
+
+def test_the_splat_table_holds_what_the_gpu_needs_to_place_the_avatar():
+    """The table's layout read back the way web/src/generator.js reads it (face frames of binding.py) gives the
+    model's own global Gaussians: means, rotations, scales, opacities and shaded colours."""
+    from geoavatar.avatar.model import GaussianAvatar
+    from geoavatar.geometry import quaternion_multiply
+    from geoavatar.web.pack import splat_table
+
+    vertices, faces = posed_heads()
+    avatar = GaussianAvatar(faces, normal_shading=True)
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for name, param in avatar.params.items():
+            param.copy_(torch.randn(param.shape, generator=g) * 0.3)
+    mesh = vertices[0]
+    with torch.no_grad():
+        expected = avatar(mesh)
+    table = torch.from_numpy(splat_table(avatar)).double()  # [N, 24]
+    frames = face_frames(mesh.double(), faces)
+    face = table[:, 3].long()
+    rotation, centre, k = frames.rotation[face], frames.centre[face], frames.scale[face]  # per splat
+    means = k[:, None] * (rotation @ table[:, 0:3, None])[..., 0] + centre
+    quats = quaternion_multiply(frames.quaternion[face], table[:, [7, 4, 5, 6]])  # w x y z
+    shading = torch.stack([table[:, 16:19], torch.cat([table[:, 19:20], table[:, 20:22]], 1),
+                           torch.cat([table[:, 22:24], table[:, 15:16]], 1)], 1)  # [N, 3, 3] rows of F
+    colours = (table[:, 12:15] + (shading @ rotation[:, :, 1:2])[..., 0]).clamp_min(0)
+    np.testing.assert_allclose(means, expected.means.double(), atol=1e-6)
+    np.testing.assert_allclose(quaternion_to_matrix(quats), quaternion_to_matrix(expected.quats.double()), atol=1e-5)
+    np.testing.assert_allclose(k[:, None] * table[:, 8:11], expected.scales.double(), rtol=1e-5)
+    np.testing.assert_allclose(table[:, 11], expected.opacities.double(), rtol=1e-6)
+    np.testing.assert_allclose(colours, expected.colors.double(), atol=1e-5)

@@ -55,18 +55,18 @@ def static_dir() -> Path:
 
 def splat_table(avatar) -> np.ndarray:
     """[N, 24] float32: the avatar's local Gaussians in the row layout of the module docstring."""
-    p = avatar.params
+    p = {name: value.detach().to("cpu", torch.float64) for name, value in avatar.params.items()}  # any device
     n = avatar.num_gaussians
     table = torch.zeros(n, SPLAT_FLOATS, dtype=torch.float64)
-    quats = torch.nn.functional.normalize(p["quats"].detach().double(), dim=-1)  # [N, 4] w x y z
-    table[:, 0:3] = p["means"].detach().double()
-    table[:, 3] = avatar.binding.double()
+    quats = torch.nn.functional.normalize(p["quats"], dim=-1)  # [N, 4] w x y z
+    table[:, 0:3] = p["means"]
+    table[:, 3] = avatar.binding.to("cpu", torch.float64)
     table[:, 4:7], table[:, 7] = quats[:, 1:4], quats[:, 0]  # x y z w (three.js order)
-    table[:, 8:11] = p["scales"].detach().double().exp()
-    table[:, 11] = torch.sigmoid(p["opacities"].detach().double())
-    table[:, 12:15] = SH_C0 * p["f_dc"].detach().double() + 0.5
+    table[:, 8:11] = p["scales"].exp()
+    table[:, 11] = torch.sigmoid(p["opacities"])
+    table[:, 12:15] = SH_C0 * p["f_dc"] + 0.5
     if avatar.normal_shading:
-        shading = p["f_normal"].detach().double().reshape(n, 9)  # F row-major: [F00 F01 F02 F10 F11 F12 F20 F21 F22]
+        shading = p["f_normal"].reshape(n, 9)  # F row-major: [F00 F01 F02 F10 F11 F12 F20 F21 F22]
         table[:, 15] = shading[:, 8]
         table[:, 16:20] = shading[:, 0:4]
         table[:, 20:24] = shading[:, 4:8]
