@@ -13,31 +13,6 @@ function invNorm(x, y, z) {
   return 1 / Math.sqrt(Math.max(x * x + y * y + z * z, EPS));
 }
 
-// Rotation matrix (columns a0, a1, a2) -> unit quaternion written as x, y, z, w at out[o..o+3], w >= 0
-// (Shepperd's method, the best-conditioned of the four candidates, as geometry.matrix_to_quaternion).
-function writeQuaternion(m00, m01, m02, m10, m11, m12, m20, m21, m22, out, o) {
-  const tw = 1 + m00 + m11 + m22;
-  const tx = 1 + m00 - m11 - m22;
-  const ty = 1 - m00 + m11 - m22;
-  const tz = 1 - m00 - m11 + m22;
-  let w, x, y, z;
-  if (tw >= tx && tw >= ty && tw >= tz) {
-    const s = 2 * Math.sqrt(Math.max(tw, EPS));
-    w = s / 4; x = (m21 - m12) / s; y = (m02 - m20) / s; z = (m10 - m01) / s;
-  } else if (tx >= ty && tx >= tz) {
-    const s = 2 * Math.sqrt(Math.max(tx, EPS));
-    w = (m21 - m12) / s; x = s / 4; y = (m10 + m01) / s; z = (m02 + m20) / s;
-  } else if (ty >= tz) {
-    const s = 2 * Math.sqrt(Math.max(ty, EPS));
-    w = (m02 - m20) / s; x = (m10 + m01) / s; y = s / 4; z = (m21 + m12) / s;
-  } else {
-    const s = 2 * Math.sqrt(Math.max(tz, EPS));
-    w = (m10 - m01) / s; x = (m20 + m02) / s; y = (m21 + m12) / s; z = s / 4;
-  }
-  const n = (w < 0 ? -1 : 1) / Math.sqrt(w * w + x * x + y * y + z * z);
-  out[o] = x * n; out[o + 1] = y * n; out[o + 2] = z * n; out[o + 3] = w * n;
-}
-
 // vertices: Float32Array [V * 3]; faces: Uint32Array [F * 3]; out: Float32Array [F * FACE_STRIDE] (returned).
 export function faceFrames(vertices, faces, out) {
   const count = faces.length / 3;
@@ -61,8 +36,25 @@ export function faceFrames(vertices, faces, out) {
     out[o + 2] = z0 + (e0z + e2z) / 3;
     const base = Math.sqrt(Math.max(e0x * e0x + e0y * e0y + e0z * e0z, EPS));
     out[o + 3] = (base + Math.abs(bx * e2x + by * e2y + bz * e2z)) / 2;
-    // rows of R = [a0 | a1 | a2]: R[i][j] = column j, component i
-    writeQuaternion(ax, nx, bx, ay, ny, by, az, nz, bz, out, o + 4);
+    // R = [a0 | a1 | a2] -> unit quaternion x y z w, w >= 0 (Shepperd's method, the trace branch first: R is
+    // orthonormal, so the result is unit to rounding; inline, as a call here cost two thirds of the loop)
+    const trace = ax + ny + bz;
+    let w, x, y, z, t;
+    if (trace > 0) {
+      t = 0.5 / Math.sqrt(trace + 1);
+      w = 0.25 / t; x = (nz - by) * t; y = (bx - az) * t; z = (ay - nx) * t;
+    } else if (ax > ny && ax > bz) {
+      t = 0.5 / Math.sqrt(1 + ax - ny - bz);
+      w = (nz - by) * t; x = 0.25 / t; y = (nx + ay) * t; z = (bx + az) * t;
+    } else if (ny > bz) {
+      t = 0.5 / Math.sqrt(1 + ny - ax - bz);
+      w = (bx - az) * t; x = (nx + ay) * t; y = 0.25 / t; z = (by + nz) * t;
+    } else {
+      t = 0.5 / Math.sqrt(1 + bz - ax - ny);
+      w = (ay - nx) * t; x = (bx + az) * t; y = (by + nz) * t; z = 0.25 / t;
+    }
+    const sign = w < 0 ? -1 : 1;
+    out[o + 4] = x * sign; out[o + 5] = y * sign; out[o + 6] = z * sign; out[o + 7] = w * sign;
   }
   return out;
 }
