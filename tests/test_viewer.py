@@ -57,16 +57,16 @@ def test_view_serves_the_player_and_streams_slider_edits(run):
             fetch(viewer.url + "nothing.bin")
 
         with connect(viewer.url.replace("http", "ws") + "ws") as socket_:
-            socket_.send(json.dumps({"type": "edit", "frame": 1, "expr": [0.8, 0.0, 0.0], "jaw": 0.3}))
+            socket_.send(json.dumps({"type": "edit", "frame": 1, "expr": [0.8, 0.0, 0.0], "jaw": 0.3, "yaw": 20.0}))
             _, mesh = received_mesh(socket_.recv(timeout=30), run.head.num_vertices)
             socket_.send("not json")  # ignored
             socket_.send(json.dumps({"type": "edit", "frame": 99, "expr": [], "jaw": 0.0}))  # out of range: ignored
         params, _ = RunFrames(run).params(RunFrames(run).timesteps[1])
-        expected = posed_head_vertices(run, view_app.edited_params(run.head, params, [0.8, 0.0, 0.0], 0.3, 0.0, 0.0,
+        expected = posed_head_vertices(run, view_app.edited_params(run.head, params, [0.8, 0.0, 0.0], 0.3, 20.0, 0.0,
                                                                    viewer.centre), None)
-        np.testing.assert_allclose(mesh, expected.detach().numpy(), atol=1e-6)
+        np.testing.assert_allclose(mesh, expected.detach().numpy(), atol=1e-5)
         unedited = posed_head_vertices(run, *RunFrames(run).params(RunFrames(run).timesteps[1])).detach().numpy()
-        assert np.abs(mesh - unedited).max() > 1e-3  # the jaw opened
+        assert np.abs(mesh - unedited).max() > 1e-3  # the jaw opened, the head turned
     finally:
         viewer.stop()
     with pytest.raises(OSError):
@@ -137,7 +137,7 @@ def test_the_pages_jaw_slider_is_posed_in_python_and_shown(run):
             page.goto(viewer.url + "?frame=2&paused=1")
             page.wait_for_function("window.geoavatar && window.geoavatar.stats.ready", timeout=120_000)
             sliders = page.locator("#edits input[type=range]")
-            assert sliders.count() == 3  # two expressions and the jaw
+            assert sliders.count() == 5  # two expressions, the jaw, head yaw and pitch
             sliders.nth(2).fill("0.25")
             sliders.nth(2).dispatch_event("input")
             page.wait_for_function("window.geoavatar.stats.received >= 1 && window.geoavatar.player.liveVertices",

@@ -2,7 +2,8 @@
 
 The page is the web player of `geoavatar export --format web` (geoavatar/web: the browser places, rotates,
 scales and shades every splat on its GPU from the posed head mesh), playing the run's whole sequence with its
-controls (play/pause, scrub, orbit, background), plus what needs Python: expression and jaw sliders. A slider
+controls (play/pause, scrub, orbit, background), plus what needs Python: expression, jaw and head-turn sliders
+(turning the head differs from turning the camera: the normal shading's lights stay fixed to the world). A slider
 sends the shown frame and the edits over the page's websocket; this process poses the head with them
 (`edited_params`; an edited frame is a new animation: T = 0) and streams the posed mesh back. Without edits the
 page plays its clip by itself (the T rule of apps/common.py: training frames with their own T and refined
@@ -35,6 +36,7 @@ from geoavatar.web.live import LiveServer
 
 EXPR_RANGE = 3.0  # expression offsets in units of the basis (FLAME's coefficients are ~N(0, 1))
 JAW_RANGE = (-0.1, 0.5)  # radians
+HEAD_RANGE = 45.0  # degrees: the head turned (not the camera: the normal shading's lights stay with the world)
 
 
 def edited_params(head, params: HeadParams, expr_offsets: list[float], jaw: float, yaw_deg: float,
@@ -86,7 +88,7 @@ class LiveViewer:
             names = list(run.head.data.metadata.get("expression_names", []))
             count = min(expr_sliders, run.head.num_expr)
             assets.manifest["edit"] = {"expressions": [names[i] if i < len(names) else f"expr {i}" for i in range(count)],
-                                       "exprRange": EXPR_RANGE, "jawRange": list(JAW_RANGE)}
+                                       "exprRange": EXPR_RANGE, "jawRange": list(JAW_RANGE), "headRange": HEAD_RANGE}
         self.timesteps = timesteps
         self.server = LiveServer(assets, host, port, on_edit=None if live else self.edit).start()
         self.host, self.port = host, self.server.port
@@ -100,14 +102,15 @@ class LiveViewer:
         try:
             index = int(request["frame"])
             expr = [float(v) for v in request.get("expr", [])]
-            jaw = float(request.get("jaw", 0.0))
+            jaw, yaw, pitch = (float(request.get(key, 0.0)) for key in ("jaw", "yaw", "pitch"))
         except (KeyError, TypeError, ValueError):
             return None
-        if not 0 <= index < len(self.timesteps) or not all(map(math.isfinite, [*expr, jaw])):
+        if not 0 <= index < len(self.timesteps) or not all(map(math.isfinite, [*expr, jaw, yaw, pitch])):
             return None
         expr = [min(max(v, -EXPR_RANGE), EXPR_RANGE) for v in expr]
+        yaw, pitch = (min(max(v, -HEAD_RANGE), HEAD_RANGE) for v in (yaw, pitch))
         params, _ = self.frames.params(self.timesteps[index])
-        return edited_params(self.run.head, params, expr, min(max(jaw, JAW_RANGE[0]), JAW_RANGE[1]), 0.0, 0.0,
+        return edited_params(self.run.head, params, expr, min(max(jaw, JAW_RANGE[0]), JAW_RANGE[1]), yaw, pitch,
                              self.centre)
 
     @torch.no_grad()

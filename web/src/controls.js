@@ -75,7 +75,7 @@ function bindOrbit(player, canvas) {
   }, { passive: false });
 }
 
-// `geoavatar view`: expression and jaw sliders, posed in Python and streamed back.
+// `geoavatar view`: expression, jaw and head-turn sliders, posed in Python and streamed back.
 function buildEditSliders(player, panel) {
   const { edit } = player.manifest;
   panel.hidden = false;
@@ -89,7 +89,10 @@ function buildEditSliders(player, panel) {
   };
   const expr = edit.expressions.map((name) => add(name, -edit.exprRange, edit.exprRange, 0.05));
   const jaw = add("jaw open (rad)", edit.jawRange[0], edit.jawRange[1], 0.01);
-  const send = () => player.live?.sendEdit(expr.map((i) => parseFloat(i.value)), parseFloat(jaw.value));
+  const yaw = add("head yaw (deg)", -edit.headRange, edit.headRange, 1);
+  const pitch = add("head pitch (deg)", -edit.headRange, edit.headRange, 1);
+  const send = () => player.live?.sendEdit(expr.map((i) => parseFloat(i.value)), parseFloat(jaw.value),
+    parseFloat(yaw.value), parseFloat(pitch.value));
   for (const input of inputs) input.oninput = send;
   element("button", { textContent: "Reset edits", onclick: () => { for (const i of inputs) i.value = 0; send(); } }, panel);
 }

@@ -2,7 +2,8 @@
 //
 // Server -> page, binary: a 16-byte header (uint32 kind = 1, uint32 sequence number, float64 send time in Unix
 // seconds) and float32 posed vertices [V * 3]. Page -> server, text JSON: {"type": "edit", "frame": clip frame,
-// "expr": [...], "jaw": radians} (view's sliders; all zero = no edit: the page plays its clip again).
+// "expr": [...], "jaw": radians, "yaw", "pitch": degrees} (view's sliders; all zero = no edit: the page plays its clip
+// again).
 const HEADER_BYTES = 16;
 const KIND_VERTICES = 1;
 
@@ -36,9 +37,9 @@ export class LiveLink {
   }
 
   // view's sliders: ask Python for the shown clip frame with these edits (none: back to the clip).
-  sendEdit(expr, jaw) {
-    this.edit = { expr, jaw };
-    this.editing = expr.some((v) => v !== 0) || jaw !== 0;
+  sendEdit(expr, jaw, yaw = 0, pitch = 0) {
+    this.edit = { expr, jaw, yaw, pitch };
+    this.editing = [...expr, jaw, yaw, pitch].some((v) => v !== 0);
     if (this.editing) this.player.setPlaying(false);
     else this.player.showLive(null);
     this.resendEdit();
