@@ -46,10 +46,10 @@ _DESCRIPTIONS = {
     "ablate": "Train + evaluate datasets x ablation presets on Ray; the paper's ablation table and mouth crops.",
     "render": "Self re-enactment video of a run: ground truth | render | error map (mp4).",
     "reenact": "Cross re-enactment: drive a trained avatar with another dataset's or video's motion (mp4).",
-    "drive": "Live driving from a webcam or a video: landmarks, online fit, the avatar rendered (mp4 / viewer).",
+    "drive": "Live driving from a webcam or a video: landmarks, online fit, the avatar rendered (mp4) or streamed to the browser player.",
     "orbit": "Novel views: a yaw/pitch sweep around the head (mp4).",
-    "export": "Export Gaussians as a standard 3DGS PLY (one frame, or a sequence as PLYs / npz).",
-    "view": "Web viewer (viser) with expression, jaw and head-pose sliders and sequence playback.",
+    "export": "Export as a standard 3DGS PLY (one frame, or a sequence as PLYs / npz), or a browser player of a clip (--format web).",
+    "view": "The browser player of a run, with expression and jaw sliders posed in Python and streamed to it.",
     "bench": "Frames per second of the full animation path and of rasterization alone.",
 }
 

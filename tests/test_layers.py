@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-LAYERS = "cli > apps > eval > train | prep > data > avatar > render > head > base > errors"
+LAYERS = "cli > apps > eval > train | prep | web > data > avatar > render > head > base > errors"
 
 
 def _lint_imports() -> str:
