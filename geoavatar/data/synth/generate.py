@@ -425,7 +425,7 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     the bare head model with the same parameters (shows the hair volume, ears, glasses, beard)."""
     from PIL import ImageDraw
 
-    from geoavatar.render.camera import intrinsics_from_fov, look_at
+    from geoavatar.render.camera import camera_centre, intrinsics_from_fov, look_at
     from geoavatar.render.mesh import Lighting, render_mesh
 
     tiles: list[tuple[np.ndarray, str]] = []
@@ -448,7 +448,7 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     neutral = {k: (v if k == "shape" else np.zeros_like(v[:1])) for k, v in params.items()}
     neutral["shape"] = params["shape"]
     vertices = _posed_vertices(actor, neutral, 0, 1)[0]
-    target_y = float(torch.linalg.inv(renderer.camera.viewmat.double())[1, 3])
+    target_y = float(camera_centre(renderer.camera.viewmat.double())[1])  # the camera's height
     for yaw in (75.0, -110.0):
         side = orbit_camera(renderer.camera, yaw, 0.0, torch.tensor([0.0, target_y, 0.0]))
         image, _ = renderer.render(vertices, side, lights_on_camera=True)
