@@ -160,6 +160,20 @@ def open_driver(driver: Path, run: LoadedRun) -> Subject:
     return subject
 
 
+def driven_clip(run: LoadedRun, frames: RunFrames, driver_root: Path, relative: bool = False,
+                driver_neutral: str = "first", avatar_neutral: str = "first",
+                driver_translation: bool = False) -> tuple[Subject, dict[str, Tensor]]:
+    """The driver (`--driver`) and the avatar's parameters [T, ...] for each of its timesteps (driven_params with
+    the neutral frames of the module docstring); reenact's video and `export --format web` both pose these."""
+    subject = open_driver(driver_root, run)
+    driver_values = {k: v.to(frames.device) for k, v in subject.params.items()}
+    driver_ref = reference_frame(driver_values, list(subject.timesteps), driver_neutral, what="--driver-neutral")
+    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, avatar_neutral,
+                                 mean_over=run.info.timesteps.get("train"), what="--avatar-neutral")
+    params = driven_params(frames.identity(), avatar_ref, driver_values, driver_ref, relative, driver_translation)
+    return subject, params
+
+
 DRIVERS_DIR = "drivers"  # RUN/drivers/<video stem>-<hash>/: tracked driver videos, reused by later calls
 DRIVER_SIZE = 256  # side of the driver's face crop: enough for the face mesh, cheap to track
 
@@ -218,14 +232,9 @@ def reenact_video(
         raise OptionError(f"--camera must be avatar or driver, got {camera_mode!r}")
     frames = RunFrames(run)
     device = frames.device
-    subject = open_driver(driver_root, run)
-    driver_values = {k: v.to(device) for k, v in subject.params.items()}
+    subject, params = driven_clip(run, frames, driver_root, relative, driver_neutral, avatar_neutral,
+                                  driver_translation=camera_mode == "driver")
     driver_timesteps = list(subject.timesteps)
-    driver_ref = reference_frame(driver_values, driver_timesteps, driver_neutral, what="--driver-neutral")
-    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, avatar_neutral,
-                                 mean_over=run.info.timesteps.get("train"), what="--avatar-neutral")
-    params = driven_params(frames.identity(), avatar_ref, driver_values, driver_ref, relative,
-                           driver_translation=camera_mode == "driver")
 
     driver_set = HeadAvatarDataset(subject, driver_split, DataConfig(cache="none"), check_head=False)
     if len(driver_set) == 0:
@@ -349,5 +358,5 @@ def reenact(
     return 0
 
 
-__all__ = ["DRIVERS_DIR", "driven_params", "driver_cache_dir", "prepare_driver", "reenact", "reenact_video",
+__all__ = ["DRIVERS_DIR", "driven_clip", "driven_params", "driver_cache_dir", "prepare_driver", "reenact", "reenact_video",
            "reference_frame"]

@@ -7,20 +7,42 @@ index_put_(accumulate=True), the slowest op of the training step after the raste
 data is gathered once from one [F, 17] table and the face gradients go back with one index_add_; the
 backward is plain PyTorch, so it runs on any device. The formulas are documented in binding.py;
 tests/test_avatar.py checks both Functions with gradcheck and against autograd of the plain ops.
+
+On CPU the same maths runs as loops of this layer's native extension (csrc/binding_cpu.cpp, built on first use
+by geoavatar.native), when it builds: tests/test_fused.py checks them against the Functions here.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from geoavatar.native import ExtensionSpec, load_extension as load_native_extension, new_state
 from geoavatar.geometry import quaternion_multiply
 
 _EPS = 1e-12  # F.normalize's and vector_norm's floor, as the plain-op code used
 NORMAL_AXIS = 1  # local axis along the face normal (a1)
 TABLE_WIDTH = 17  # per-face row: R row-major (9), C (3), k (1), face quaternion (4)
 _CONJ = (1.0, -1.0, -1.0, -1.0)
+
+_EXTENSION = ExtensionSpec(
+    name="binding_cpu", source=Path(__file__).with_name("csrc") / "binding_cpu.cpp",
+    what="the avatar's native CPU loops (face placement, polar coordinates)",
+    instead="the avatar places its Gaussians on CPU with PyTorch ops (slower)")
+_state = new_state()
+
+
+def load_extension():
+    """The compiled module of csrc/binding_cpu.cpp (built on first use), or None with one warning."""
+    return load_native_extension(_EXTENSION, _state)
+
+
+def native_loops_available() -> bool:
+    """True when the native placement and polar-coordinate loops are built and loaded (builds them first)."""
+    return load_extension() is not None
 
 
 def _conj(q: Tensor) -> Tensor:
@@ -109,13 +131,11 @@ class _PlaceGaussians(torch.autograd.Function):
 
 class _PlaceGaussiansCPU(torch.autograd.Function):
     """_PlaceGaussians in the native CPU extension (place_forward / place_backward in
-    render/csrc/rasterize_cpu.cpp): one loop over the Gaussians each way instead of some 70 PyTorch ops
+    csrc/binding_cpu.cpp): one loop over the Gaussians each way instead of some 70 PyTorch ops
     (15 % of a 1-thread training step at 100k Gaussians). The table is [M, 17] here, not [17, M]."""
 
     @staticmethod
     def forward(ctx, table: Tensor, means: Tensor, quats: Tensor, log_scales: Tensor, index: Tensor):
-        from geoavatar.render.cpu_backend import load_extension
-
         args = [t.detach().contiguous() for t in (table, means, quats, log_scales)]
         index = index.reshape(-1).contiguous()
         means_g, quats_g, scales_g, aux = load_extension().place_forward(*args, index)
@@ -125,8 +145,6 @@ class _PlaceGaussiansCPU(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_means: Tensor, g_quats: Tensor, g_scales: Tensor):
-        from geoavatar.render.cpu_backend import load_extension
-
         table, means, quats, log_scales, index, aux = ctx.saved_tensors
         dtype = means.dtype
         g_table, g_mu, g_q, g_s = load_extension().place_backward(
@@ -136,14 +154,12 @@ class _PlaceGaussiansCPU(torch.autograd.Function):
 
 
 def _native_placement(*tensors: Tensor) -> bool:
-    """CPU float tensors of one dtype and the native extension loaded (or loadable: as rasterize's "auto"):
-    the native placement and polar coordinates run."""
+    """CPU float tensors of one dtype and the native extension loaded (or loadable: as rasterize's "auto" builds
+    the rasterizer): the native placement and polar coordinates run."""
     dtype = tensors[0].dtype
     if dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu" or t.dtype != dtype for t in tensors):
         return False
-    from geoavatar.render.cpu_backend import cpu_backend_available
-
-    return cpu_backend_available()
+    return native_loops_available()
 
 
 def place_gaussians(
@@ -180,17 +196,17 @@ class _PolarCoordinates(torch.autograd.Function):
     """r = |mu|, phi = atan2(|mu_tangent|, mu_normal) (|mu_normal| when two-sided); phi = 0 at the origin."""
 
     @staticmethod
-    def forward(ctx, means: Tensor, two_sided: bool, axis: int):
+    def forward(ctx, means: Tensor, two_sided: bool):
         mu = _soa(means)  # [3, N]
         r = _norm(mu)  # [N]
         tiny = r <= _EPS
-        tangent_axes = [a for a in range(3) if a != axis]
-        normal = mu[axis]
+        tangent_axes = [a for a in range(3) if a != NORMAL_AXIS]
+        normal = mu[NORMAL_AXIS]
         tangent = _norm(mu[tangent_axes])  # [N]
         normal = torch.where(tiny, 1.0, normal.abs() if two_sided else normal)
         tangent = torch.where(tiny, 0.0, tangent)
         ctx.save_for_backward(mu, r, tangent, normal)
-        ctx.two_sided, ctx.axis = two_sided, axis
+        ctx.two_sided = two_sided
         return r, torch.atan2(tangent, normal)
 
     @staticmethod
@@ -204,22 +220,20 @@ class _PolarCoordinates(torch.autograd.Function):
         g_t = torch.where(tangent > 0, g * normal / torch.where(tangent > 0, tangent, 1.0), 0.0)  # d t = mu_t / t
         g_n = -g * tangent
         if ctx.two_sided:
-            g_n = g_n * torch.sign(mu[ctx.axis])
+            g_n = g_n * torch.sign(mu[NORMAL_AXIS])
         for axis in range(3):
-            if axis != ctx.axis:
+            if axis != NORMAL_AXIS:
                 grad[axis] += g_t * mu[axis]
-        grad[ctx.axis] += g_n
-        return grad.t(), None, None
+        grad[NORMAL_AXIS] += g_n
+        return grad.t(), None
 
 
 class _PolarCoordinatesCPU(torch.autograd.Function):
     """_PolarCoordinates in the native CPU extension (polar_forward / polar_backward in
-    render/csrc/rasterize_cpu.cpp): one loop each way instead of ~25 PyTorch ops."""
+    csrc/binding_cpu.cpp): one loop each way instead of ~25 PyTorch ops."""
 
     @staticmethod
     def forward(ctx, means: Tensor, two_sided: bool):
-        from geoavatar.render.cpu_backend import load_extension
-
         mu = means.detach().contiguous()
         ctx.save_for_backward(mu)
         ctx.two_sided = two_sided
@@ -229,22 +243,18 @@ class _PolarCoordinatesCPU(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_r: Tensor, g_phi: Tensor):
-        from geoavatar.render.cpu_backend import load_extension
-
         (mu,) = ctx.saved_tensors
         grad = load_extension().polar_backward(mu, g_r.to(mu.dtype).contiguous(), g_phi.to(mu.dtype).contiguous(),
                                                ctx.two_sided)
         return grad, None
 
 
-def polar_coordinates(local_means: Tensor, two_sided: bool = False, axis: int = NORMAL_AXIS,
+def polar_coordinates(local_means: Tensor, two_sided: bool = False,
                       native: bool | None = None) -> tuple[Tensor, Tensor]:
-    """r [N], phi [N] of local means [N, 3], phi measured from local `axis` (see binding.polar_coordinates);
-    `native`: the CPU loops (_PolarCoordinatesCPU, the normal axis only), None: where they run."""
+    """r [N], phi [N] of local means [N, 3], phi measured from the face normal (see binding.polar_coordinates);
+    `native`: the CPU loops (_PolarCoordinatesCPU), None: where they run."""
     if native is None:
-        native = axis == NORMAL_AXIS and _native_placement(local_means)
+        native = _native_placement(local_means)
     if native:
-        if axis != NORMAL_AXIS:
-            raise ValueError("the native polar coordinates measure phi from the face normal only")
         return _PolarCoordinatesCPU.apply(local_means, two_sided)
-    return _PolarCoordinates.apply(local_means, two_sided, axis)
+    return _PolarCoordinates.apply(local_means, two_sided)
