@@ -8,7 +8,7 @@ of the tracked parameters alone, so it runs on a fresh `prepare` and on any data
     report = capture_report(measures, {"train": rows, "test": rows}, timesteps)  # JSON-able; report["verdict"]
     plot_coverage(measures, splits, report, "coverage.png")
 
-Measures per frame (conventions of `geoavatar.eval.view_angles`: head axes, +x the head's left, +y up):
+Measures per frame (conventions of `geoavatar.head.view_angles`: head axes, +x the head's left, +y up):
 - yaw, pitch (degrees): where the camera sees the face from, in the head's own axes (neck and global rotation
   alike; yaw > 0: the camera sees the head's left side, pitch > 0: from above);
 - jaw (degrees): the jaw's opening rotation (jaw_pose x);
@@ -130,7 +130,7 @@ def _gaze(eyes_pose: Tensor) -> tuple[np.ndarray, np.ndarray]:
 
 def measure_frames(head, params: HeadParams, viewmat: Tensor) -> FrameMeasures:
     """The measures of every frame of `params` [T] seen by cameras `viewmat` [T, 4, 4] (world-to-camera)."""
-    from geoavatar.eval.view_angles import rest_skull, view_directions, yaw_pitch
+    from geoavatar.head.view_angles import rest_skull, view_directions, yaw_pitch
     from geoavatar.head.regions import skull_vertex_ids
 
     params = params.detach().map(lambda x: x.float().cpu())
@@ -210,7 +210,7 @@ def summarize_split(m: FrameMeasures, detected_eyes: np.ndarray | None = None) -
 def outside_training(train: FrameMeasures, test: FrameMeasures) -> dict[str, np.ndarray]:
     """{reason: [N_test] bool}: test frames seen from a view no training frame had ("view"), or beyond the
     training range of a measure by more than its margin (MARGINS; an unmeasured value never counts)."""
-    from geoavatar.eval.view_angles import within_trained_views
+    from geoavatar.head.view_angles import within_trained_views
 
     seen = within_trained_views(torch.as_tensor(test.directions), torch.as_tensor(train.directions),
                                 TRAINED_VIEW_TOLERANCE).numpy()
