@@ -7,11 +7,14 @@ The test video is looped to each length (played forwards, then backwards, and so
 crop smoothing and the face tracker to stumble on) at its own resolution (duda.mp4: 1920x1080, 25 fps, so
 5,400 frames is the paper's 3-minute video) and written once to OUT/looped_N.mp4. Then `geoavatar prepare`
 runs on it as a separate process (arguments after `--` are passed on) while this script samples, every
-0.2 s, the resident memory of that process and all its descendants (the worker processes) from /proc.
+0.2 s, the memory of that process and all its descendants (the worker processes) from /proc. Set
+GEOAVATAR_EXT_CACHE to a folder of this checkout's own: where worktrees share one build cache, a run may rebuild the
+native rasterizer (a compiler of 1.5 GB that the sampled memory then includes).
 
 Prints and writes OUT/scale.json and OUT/scale.md: per length the wall time, the CPU time of the process tree
-(user + system, from the kernel's accounting of waited-for children), the peak summed RSS of the tree
-(sampled) and the largest single process's peak RSS (exact, ru_maxrss), the load average before and after,
+(user + system, from the kernel's accounting of waited-for children), the peak memory of the tree (sampled:
+summed PSS, what the tree uses, shared library pages split among the processes; summed RSS, which counts them in
+every process) and the largest single process's peak RSS (exact, ru_maxrss), the load average before and after,
 and each stage's wall / CPU seconds from prepare's stage markers. `--geoavatar` runs another checkout's
 prepare (e.g. main's, for a before / after table on the same machine); its own --workers etc. are its own.
 Time on a quiet machine only: other jobs sharing the cores make every figure meaningless.
@@ -68,29 +71,38 @@ def _children(pid: int) -> list[int]:
     return found
 
 
-def _rss_bytes(pid: int) -> int:
+def _memory_bytes(pid: int) -> tuple[int, int]:
+    """(RSS, PSS) of a process in bytes: PSS shares each shared page (libtorch, MediaPipe's libraries: the same
+    pages in every worker) among the processes mapping it, so summed over a tree it is the memory the tree uses;
+    summed RSS counts those pages once per process. (0, 0) for a process gone."""
+    values = {"Rss:": 0, "Pss:": 0}
     try:
-        with open(f"/proc/{pid}/statm") as statm:
-            return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        with open(f"/proc/{pid}/smaps_rollup") as rollup:
+            for line in rollup:
+                key, _, rest = line.partition(" ")
+                if key in values:
+                    values[key] = int(rest.split()[0]) * 1024
     except (OSError, ValueError, IndexError):
-        return 0
+        pass
+    return values["Rss:"], values["Pss:"]
 
 
 class TreeMemory(threading.Thread):
-    """Samples the summed RSS of a process and its descendants until stopped; `.peak` in bytes."""
+    """Samples the summed RSS and PSS of a process and its descendants until stopped; `.peak` (rss, pss) in bytes."""
 
     def __init__(self, pid: int, every: float = 0.2):
         super().__init__(daemon=True)
-        self.pid, self.every, self.peak = pid, every, 0
+        self.pid, self.every, self.peak = pid, every, (0, 0)
         self._done = threading.Event()
 
     def run(self) -> None:
         while not self._done.is_set():
-            total = sum(_rss_bytes(p) for p in [self.pid, *_children(self.pid)])
-            self.peak = max(self.peak, total)
+            samples = [_memory_bytes(p) for p in [self.pid, *_children(self.pid)]]
+            rss, pss = sum(s[0] for s in samples), sum(s[1] for s in samples)
+            self.peak = (max(self.peak[0], rss), max(self.peak[1], pss))
             self._done.wait(self.every)
 
-    def stop(self) -> int:
+    def stop(self) -> tuple[int, int]:
         self._done.set()
         self.join()
         return self.peak
@@ -107,7 +119,7 @@ def run_prepare(geoavatar: str, video: Path, out: Path, extra: list[str]) -> dic
         memory = TreeMemory(process.pid)
         memory.start()
         code = process.wait()
-    peak_tree = memory.stop()
+    peak_rss, peak_pss = memory.stop()
     wall = time.perf_counter() - start
     after_cpu = resource.getrusage(resource.RUSAGE_CHILDREN)
     if code != 0:
@@ -120,19 +132,21 @@ def run_prepare(geoavatar: str, video: Path, out: Path, extra: list[str]) -> dic
             stages[stage] = {"wall_s": round(info.get("seconds", float("nan")), 1),
                              "cpu_s": round(info.get("cpu_seconds", float("nan")), 1)}
     cpu = (after_cpu.ru_utime - before_cpu.ru_utime) + (after_cpu.ru_stime - before_cpu.ru_stime)
-    return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "peak_rss_tree_gb": round(peak_tree / 1e9, 3),
+    return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "peak_pss_tree_gb": round(peak_pss / 1e9, 3),
+            "peak_rss_tree_gb": round(peak_rss / 1e9, 3),
             "peak_rss_largest_process_gb": round(after_cpu.ru_maxrss * 1024 / 1e9, 3),
             "load_1min_before_after": [round(load_before, 2), round(os.getloadavg()[0], 2)], "stages": stages}
 
 
 def table(results: dict) -> str:
-    lines = ["| frames | wall | CPU (tree) | peak RSS, tree (sampled) | largest process | load before -> after |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| frames | wall | CPU (tree) | peak PSS, tree | peak RSS, tree | largest process (RSS) "
+             "| load before, after |",
+             "|---|---|---|---|---|---|---|"]
     for frames, r in results.items():
         load = r["load_1min_before_after"]
         lines.append(f"| {frames} | {r['wall_s'] / 60:.1f} min | {r['cpu_s'] / 60:.1f} min "
-                     f"| {r['peak_rss_tree_gb']:.2f} GB | {r['peak_rss_largest_process_gb']:.2f} GB "
-                     f"| {load[0]} -> {load[1]} |")
+                     f"| {r['peak_pss_tree_gb']:.2f} GB | {r['peak_rss_tree_gb']:.2f} GB "
+                     f"| {r['peak_rss_largest_process_gb']:.2f} GB | {load[0]} -> {load[1]} |")
     lines += ["", "| frames | " + " | ".join(STAGES) + " |", "|---" * (len(STAGES) + 1) + "|"]
     for frames, r in results.items():
         cells = [f"{r['stages'][s]['wall_s']:.0f} / {r['stages'][s]['cpu_s']:.0f}" if s in r["stages"] else "-"

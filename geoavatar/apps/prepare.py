@@ -62,8 +62,8 @@ def prepare(
             --no-photometric writes the landmark fit as is (faster). Re-running with it on over a
             --no-photometric folder reuses every earlier stage and adds the photometric one.
         overlay: Write OUT/overlay.mp4.
-        workers: Worker processes (default: one per core this process may use, at most 8; each holds about
-            0.5 GB). The dataset does not depend on it.
+        workers: Worker processes (default: one per core this process may use, at most 8; each holds up to
+            0.9 GB). The dataset does not depend on it.
         progress: Show progress bars.
     """
     config = PrepareConfig(

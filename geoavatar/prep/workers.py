@@ -34,7 +34,7 @@ _HELLO = "pid"
 
 
 def default_workers() -> int:
-    """Worker processes for prepare: the cores this process may use, at most 8 (each holds ~0.5 GB)."""
+    """Worker processes for prepare: the cores this process may use, at most 8 (each holds up to ~0.9 GB)."""
     return max(1, min(8, available_cores()))
 
 
