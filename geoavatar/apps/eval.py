@@ -41,7 +41,7 @@ def eval_runs(
     driver: Optional[Path] = None,
     driver_video: Optional[Path] = None,
     relative: bool = False,
-    transfer: Optional[list[TransferMode]] = None,
+    transfer: tuple[TransferMode, ...] = (),
     driver_cache: Optional[Path] = None,
 ) -> int:
     """Evaluate trained runs on a split of their datasets, as the paper's Table 1 does, or score one run's cross
@@ -141,7 +141,7 @@ def eval_runs(
 
 
 def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, driver_cache: Path | None,
-               relative: bool, transfer: list[str] | None, max_frames: int | None, device: str, data: Path | None,
+               relative: bool, transfer: tuple[str, ...], max_frames: int | None, device: str, data: Path | None,
                checkpoint: str, backend: str, flame_dir: Path | None, progress: bool) -> int:
     """`geoavatar eval RUN --driver ...`: the cross re-enactment report, RUN/eval/cross@<driver>/."""
     from geoavatar.apps.expression_transfer import resolve_transfer
