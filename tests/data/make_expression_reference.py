@@ -19,7 +19,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "expression_reference.npz"
-SYNTH = [(0, 0), (1, 1), (2, 11), (0, 3)]  # (subject, frame) of 128 px generated subjects in /tmp/cross/s<subject>
+SYNTH = [(0, 0), (1, 1), (2, 11), (0, 3)]  # (subject, frame) of `geoavatar synth --frames 12 --size 128` subjects
 
 
 def crops() -> None:
@@ -30,6 +30,13 @@ def crops() -> None:
     from geoavatar.eval.expression import expression_model, face_crops
     from geoavatar.prep.landmarks import FaceDetector
 
+    import tempfile
+
+    from geoavatar.data.synth.generate import SynthConfig, generate_dataset
+
+    folder = Path(tempfile.mkdtemp(prefix="expression-reference-"))
+    for subject in sorted({subject for subject, _ in SYNTH}):
+        generate_dataset(folder / f"s{subject}", SynthConfig(subject=subject, frames=12, size=128), progress=False)
     images, names = [], []
     with FaceDetector() as detector:
         hopper = np.asarray(Image.open(cbook.get_sample_data("grace_hopper.jpg")).convert("RGB"))
@@ -38,7 +45,7 @@ def crops() -> None:
         images.append((hopper, hopper_box))
         names.append("grace_hopper")
         for subject, frame in SYNTH:
-            rgb = np.asarray(Image.open(f"/tmp/cross/s{subject}/images/{frame:05d}_00.png").convert("RGB"))
+            rgb = np.asarray(Image.open(folder / f"s{subject}/images/{frame:05d}_00.png").convert("RGB"))
             found = detector(rgb)
             images.append((rgb, np.array([*found.centre, found.size])))
             names.append(f"synth{subject}_frame{frame}")
