@@ -13,7 +13,8 @@ evaluate_cross (what `geoavatar eval RUN --driver D --transfer ...` runs; each p
 RUN/eval/cross@<driver>/). Self re-enactment: eval's test split with the face metrics. Writes OUT/table.md and
 OUT/table.json, and picks the default mode by the rule of #30: the best expression similarity among the modes that
 beat relative on it without losing more than 0.01 identity similarity (averaged over the pairs); with --stills DIR,
-PNGs of driver | relative | that mode (or the best other mode when relative stays) at the three frames of each pair where the two renders differ most.
+PNGs of driver | relative | that mode (or the best other mode when relative stays) at the three frames of each pair
+where the two renders differ most.
 """
 
 from __future__ import annotations
@@ -84,7 +85,8 @@ def cell(number: float | None) -> str:
 
 def table(pairs: dict, selfs: dict, means: dict) -> str:
     names = list(pairs)
-    head = "| Transfer | " + " | ".join(f"{n} {c}" for n in names for _, c in COLUMNS) + " | mean ID | mean Expr | mean LM |"
+    head = ("| Transfer | " + " | ".join(f"{n} {c}" for n in names for _, c in COLUMNS)
+            + " | mean ID | mean Expr | mean LM |")
     lines = [head, "|---|" + "---:|" * (3 * len(names) + 3)]
     for mode in TRANSFER_MODES:
         cells = [cell(value(pairs[n]["summary"][mode], key)) for n in names for key, _ in COLUMNS]
@@ -154,8 +156,8 @@ def main() -> int:
                 print(f"{name}: " + json.dumps({m: [cell(value(s, k)) for k, _ in COLUMNS]
                                                 for m, s in result.summaries.items()}), flush=True)
     chosen, means = pick_default(pairs)
-    markdown = (table(pairs, selfs, means) + f"\nDefault by #30's rule (best expression among the modes beating relative "
-                f"on it within {ID_LOSS} identity): **{chosen}**\n")
+    markdown = (table(pairs, selfs, means) + "\nDefault by #30's rule (best expression among the modes beating "
+                f"relative on it within {ID_LOSS} identity): **{chosen}**\n")
     record = {"pairs": pairs, "self": selfs, "means": means, "default": chosen, "max_frames": args.max_frames}
     if args.stills is not None:  # relative against the default, or against the best other mode when relative stays
         shown = chosen if chosen != "relative" else max((m for m in TRANSFER_MODES if m != "relative"),

@@ -180,8 +180,10 @@ def _clamped(key: str, value: Tensor, avatar: ExpressionStatistics) -> Tensor:
                          _pad(avatar.low[key], value.shape[-1]))
 
 
-def transfer_expressions(driver: dict[str, Tensor], learned: TransferStatistics, mode: TransferMode) -> dict[str, Tensor]:
-    """EXPRESSION_KEYS [T, ...] of the avatar driven by `driver` in mode 'statistics' or 'subspace' (module docstring)."""
+def transfer_expressions(driver: dict[str, Tensor], learned: TransferStatistics,
+                         mode: TransferMode) -> dict[str, Tensor]:
+    """EXPRESSION_KEYS [T, ...] of the avatar driven by `driver` in mode 'statistics' or 'subspace' (module
+    docstring)."""
     if mode not in ("statistics", "subspace"):
         raise ValueError(f"transfer_expressions: mode {mode!r} is not statistics or subspace")
     dtype = driver["expr"].dtype
@@ -193,6 +195,7 @@ def transfer_expressions(driver: dict[str, Tensor], learned: TransferStatistics,
     return {key: value.to(dtype) for key, value in out.items()}
 
 
-__all__ = ["avatar_expressions", "DEFAULT_TRANSFER", "EXPRESSION_KEYS", "ExpressionStatistics", "ExpressionSubspace", "PRIOR_FRAMES",
-           "SUBSPACE_VARIANCE", "TRANSFER_MODES", "TransferMode", "TransferStatistics", "expression_statistics",
-           "expression_subspace", "resolve_transfer", "transfer_expressions", "transfer_mode", "transfer_statistics"]
+__all__ = ["DEFAULT_TRANSFER", "EXPRESSION_KEYS", "ExpressionStatistics", "ExpressionSubspace", "PRIOR_FRAMES",
+           "SUBSPACE_VARIANCE", "TRANSFER_MODES", "TransferMode", "TransferStatistics", "avatar_expressions",
+           "expression_statistics", "expression_subspace", "resolve_transfer", "transfer_expressions", "transfer_mode",
+           "transfer_statistics"]

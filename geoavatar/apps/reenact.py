@@ -137,7 +137,8 @@ def driven_params(
     docstring and in apps/expression_transfer.py)."""
     mode = transfer_mode(mode)
     if mode in ("statistics", "subspace") and learned is None:
-        raise ValueError(f"driven_params: transfer {mode!r} needs the statistics (expression_transfer.transfer_statistics)")
+        raise ValueError(f"driven_params: transfer {mode!r} needs the statistics "
+                         "(expression_transfer.transfer_statistics)")
     out: dict[str, Tensor] = {}
     driver_expr, ref_expr = _match_width(driver["expr"], driver_ref["expr"])
     if mode == "absolute":

@@ -107,7 +107,8 @@ def mode_table(summaries: dict[str, dict]) -> str:
     for mode, s in summaries.items():
         faces = s["faces"]
         lines.append(f"| {mode} | {_cell(s['id_similarity'])} | {_cell(s['expression_similarity'])} | "
-                     f"{_number(s['landmark_agreement']['agreement'])} | {faces['render_found']} of {faces['frames']} |")
+                     f"{_number(s['landmark_agreement']['agreement'])} | "
+                     f"{faces['render_found']} of {faces['frames']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -132,8 +133,8 @@ def cross_markdown(result: CrossResult) -> str:
               f"`{result.driver_root}`; camera {s['camera']}; neutral frames: driver {s['driver_neutral']}, avatar "
               f"{s['avatar_neutral']}; identity reference: {s['faces']['reference_faces']} of "
               f"{s['faces']['reference_frames']} training frames with a face"
-            + "\n- ID similarity: dlib face-recognition descriptors, cosine to the mean of the avatar's training frames "
-              "(not ArcFace); expression similarity: cosine of FER2013 mini-Xception probabilities, render vs driver; "
+            + "\n- ID similarity: dlib face-recognition descriptors, cosine to the mean of the avatar's training "
+              "frames (not ArcFace); expression similarity: cosine of FER2013 mini-Xception probabilities, render vs driver; "
               "landmark agreement: mean Pearson r of the signals above over the frames with both faces\n")
 
 

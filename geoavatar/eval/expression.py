@@ -69,7 +69,8 @@ class ResidualBlock(nn.Module):
         super().__init__()
         self.sep1, self.bn1 = SeparableConv(cin, cout), nn.BatchNorm2d(cout, eps=BN_EPS)
         self.sep2, self.bn2 = SeparableConv(cout, cout), nn.BatchNorm2d(cout, eps=BN_EPS)
-        self.shortcut, self.bn_shortcut = nn.Conv2d(cin, cout, 1, stride=2, bias=False), nn.BatchNorm2d(cout, eps=BN_EPS)
+        self.shortcut = nn.Conv2d(cin, cout, 1, stride=2, bias=False)
+        self.bn_shortcut = nn.BatchNorm2d(cout, eps=BN_EPS)
 
     def forward(self, x: Tensor) -> Tensor:
         residual = self.bn_shortcut(self.shortcut(x))
