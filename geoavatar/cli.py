@@ -46,10 +46,10 @@ _DESCRIPTIONS = {
     "ablate": "Train + evaluate datasets x ablation presets on Ray; the paper's ablation table and mouth crops.",
     "render": "Self re-enactment video of a run: ground truth | render | error map (mp4).",
     "reenact": "Cross re-enactment: drive a trained avatar with another dataset's or video's motion (mp4).",
-    "drive": "Live driving from a webcam or a video: landmarks, online fit, the avatar rendered (mp4 / viewer).",
+    "drive": "Live driving from a webcam or a video: landmarks, online fit, the avatar rendered (mp4) or streamed to the browser player.",
     "orbit": "Novel views: a yaw/pitch sweep around the head (mp4).",
-    "export": "Export Gaussians as a standard 3DGS PLY (one frame, or a sequence as PLYs / npz).",
-    "view": "Web viewer (viser) with expression, jaw and head-pose sliders and sequence playback.",
+    "export": "Export as a standard 3DGS PLY (one frame, or a sequence as PLYs / npz), or a browser player of a clip (--format web).",
+    "view": "The browser player of a run, with expression and jaw sliders posed in Python and streamed to it.",
     "bench": "Frames per second of the full animation path and of rasterization alone.",
 }
 
@@ -95,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from geoavatar.errors import GeoAvatarError
 
+    _notes_on_one_line()
+
     func = _resolve(entry)
     try:
         parse_argv = getattr(func, "parse_argv", None)  # a command with its own parser (train: defaults follow --preset)
@@ -107,6 +109,27 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{prog}: {_one_line(str(err))}", file=sys.stderr)
         return 2
     return int(result) if isinstance(result, int) else 0
+
+
+def _notes_on_one_line() -> None:
+    """GeoAvatar's own warnings (notes for the user) print as `geoavatar: note: <message>`, without the code line
+    Python adds; every other warning as Python prints it."""
+    import warnings
+
+    from geoavatar.errors import GeoAvatarWarning
+
+    python_show = warnings.showwarning
+    if getattr(python_show, "geoavatar_notes", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, GeoAvatarWarning):
+            print(f"geoavatar: note: {_one_line(str(message))}", file=file or sys.stderr)
+        else:
+            python_show(message, category, filename, lineno, file, line)
+
+    show.geoavatar_notes = True
+    warnings.showwarning = show
 
 
 def _one_line(message: str) -> str:

@@ -113,6 +113,15 @@ def record_camera(subject: Subject, timestep: int, resolution: int | None) -> Ca
     return camera
 
 
+def split_timesteps(run: LoadedRun, split: str) -> list[int]:
+    """The timesteps of a split of the run (all, train, val, test); OptionError naming --split otherwise."""
+    if split == "all":
+        return list(run.info.timesteps["all"])
+    if split not in run.info.timesteps:
+        raise OptionError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
+    return list(run.info.timesteps[split])
+
+
 class RunFrames:
     """The per-timestep head parameters of a run (refined for training frames) and the T rule."""
 
@@ -273,5 +282,5 @@ __all__ = [
     "default_output", "error_map", "evenly_spaced", "fit_height", "head_centre", "open_run", "open_run_dataset",
     "pose_gaussians", "posed_head_vertices", "progress", "rasterize_gaussians", "record_camera", "render_params",
     "RENDER_THREADS", "run_background", "run_device",
-    "side_by_side", "synchronize", "to_uint8", "torch_threads",
+    "side_by_side", "split_timesteps", "synchronize", "to_uint8", "torch_threads",
 ]

@@ -26,8 +26,9 @@ The file's clock starts after the identity stage (a camera's frames are dropped 
 Latency is measured from the moment a frame is available to the moment its output is done. A status
 line shows the FPS, drops and the per-stage times. The written mp4 (`--out`, driver | avatar) runs at
 the source's frame rate; a dropped frame repeats the previous output, so the video keeps real time.
-`--view` serves the browser viewer (apps/view.py) in live mode: the posed Gaussians are sent to the
-browser, which renders them itself (without --out the render stage is skipped).
+`--view` serves the browser player (apps/view.py, geoavatar/web) in live mode: each frame's posed head mesh is
+streamed over a websocket and the browser places, shades and draws the splats on its GPU (without --out the render
+stage is skipped); the summary adds the stream's latency from frame read to message sent.
 
 The fit runs on the CPU (a few hundred landmarks: a GPU's launch overhead would dominate); posing and
 rendering run on --device (auto: CUDA when there).
@@ -45,8 +46,8 @@ from typing import Callable, Iterator, Literal, Optional
 import numpy as np
 import torch
 
-from geoavatar.apps.common import (RunFrames, RunPath, fit_height, open_run, record_camera, run_background, side_by_side,
-                                   to_uint8)
+from geoavatar.apps.common import (RunFrames, RunPath, fit_height, open_run, posed_head_vertices, record_camera,
+                                   run_background, side_by_side, to_uint8)
 from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, avatar_expressions,
                                                 expression_statistics, resolve_transfer)
 from geoavatar.apps.reenact import TRANSFERRED_KEYS, driven_params, reference_frame
@@ -470,10 +471,12 @@ def drive_avatar(
         learned = TransferStatistics(*avatar_learned, tracker.statistics)
         params = HeadParams.from_npz(driven_params(identity, avatar_ref, driver_now, driver_ref, transfer,
                                                    learned=learned))
-        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer)
+        # the browser places the Gaussians itself: without a render only the head is posed
+        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer) if render else None
         if viewer is not None:
-            viewer.show_live(posed.gaussians, f"live: frame {index}, {stats.fps:.1f} fps, "
-                                                f"dropped {mailbox.dropped + fitted.dropped}")
+            vertices = posed.vertices if posed is not None else posed_head_vertices(run, params, None)
+            viewer.show_live(vertices, f"live: frame {index}, {stats.fps:.1f} fps, "
+                                       f"dropped {mailbox.dropped + fitted.dropped}", available)
         t1 = time.perf_counter()
         timings["pose"] = t1 - t0
         if render:
@@ -615,7 +618,7 @@ def drive(
             driver's first-second statistics mapped to the avatar's training-set statistics; subspace also stays
             inside the expressions the avatar was trained on), as `geoavatar reenact --transfer`. Default: relative.
         out: Write driver | avatar to this mp4 (at the source's frame rate; a dropped frame repeats the last output).
-        view: Show the avatar live in the browser viewer (viser) on --host/--port.
+        view: Show the avatar live in the browser player on --host/--port (posed meshes streamed to it).
         size: Side of the rendered avatar in pixels (the avatar's dataset camera, scaled).
         init_seconds: Length of the identity stage at the start of the driver.
         solver: Online fit per frame: gauss_newton (damped Gauss-Newton; closer to the offline tracking at
@@ -659,7 +662,7 @@ def drive(
         if viewer is not None:
             viewer.stop()
     print(f"drive: {stats.summary()}; identity stage {stats.init_frames} frames in {stats.init_seconds:.1f} s"
-          + (f"; wrote {out}" if out is not None else ""))
+          + (f"; wrote {out}" if out is not None else "") + (f"; {viewer.summary()}" if viewer is not None else ""))
     return 0
 
 

@@ -175,6 +175,28 @@ def open_driver(driver: Path, run: LoadedRun) -> Subject:
     return subject
 
 
+def driven_clip(run: LoadedRun, frames: RunFrames, driver_root: Path, mode: TransferMode | bool = "absolute",
+                driver_neutral: str = "first", avatar_neutral: str = "first",
+                driver_translation: bool = False) -> tuple[Subject, dict[str, Tensor]]:
+    """The driver (`--driver`) and the avatar's parameters [T, ...] for each of its timesteps in transfer `mode` (a
+    bool is the old `relative` flag); reenact's video, `eval --driver` and `export --format web` pose these."""
+    subject = open_driver(driver_root, run)
+    return subject, subject_params(run, frames, subject, mode, driver_neutral, avatar_neutral, driver_translation)
+
+
+def subject_params(run: LoadedRun, frames: RunFrames, subject: Subject, mode: TransferMode | bool = "absolute",
+                   driver_neutral: str = "first", avatar_neutral: str = "first",
+                   driver_translation: bool = False) -> dict[str, Tensor]:
+    """driven_params for every timestep of an opened driver, with the neutral frames of the module docstring and,
+    for statistics / subspace transfer, the two sequences' statistics."""
+    driver_values = {k: v.to(frames.device) for k, v in subject.params.items()}
+    driver_ref = reference_frame(driver_values, list(subject.timesteps), driver_neutral, what="--driver-neutral")
+    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, avatar_neutral,
+                                 mean_over=run.info.timesteps.get("train"), what="--avatar-neutral")
+    learned = transfer_statistics(frames, driver_values) if transfer_mode(mode) in ("statistics", "subspace") else None
+    return driven_params(frames.identity(), avatar_ref, driver_values, driver_ref, mode, driver_translation, learned)
+
+
 DRIVERS_DIR = "drivers"  # RUN/drivers/<video stem>-<hash>/: tracked driver videos, reused by later calls
 DRIVER_SIZE = 256  # side of the driver's face crop: enough for the face mesh, cheap to track
 
@@ -230,23 +252,17 @@ class DrivenAvatar:
         if options.camera not in ("avatar", "driver"):
             raise OptionError(f"--camera must be avatar or driver, got {options.camera!r}")
         self.run, self.options = run, options
-        frames = RunFrames(run)
+        self.frames = frames = RunFrames(run)
         self.device = frames.device
         self.subject = open_driver(driver_root, run)
-        self.values = {k: v.to(self.device) for k, v in self.subject.params.items()}
-        timesteps = list(self.subject.timesteps)
-        self.row_of = {t: i for i, t in enumerate(timesteps)}
-        self.driver_ref = reference_frame(self.values, timesteps, options.driver_neutral, what="--driver-neutral")
-        self.avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, options.avatar_neutral,
-                                          mean_over=run.info.timesteps.get("train"), what="--avatar-neutral")
-        self.identity = frames.identity()
-        self.learned = transfer_statistics(frames, self.values)
+        self.row_of = {t: i for i, t in enumerate(self.subject.timesteps)}
+        self._params: dict[str, dict[str, Tensor]] = {}
+        self.params(options.transfer)  # the neutral frames checked before any work
         self.dataset = HeadAvatarDataset(self.subject, options.driver_split, DataConfig(cache="none"), check_head=False)
         if len(self.dataset) == 0:
             raise OptionError(f"--driver-split {options.driver_split}: the driver has no frames in this split")
         self.fixed_camera = self._avatar_camera(frames) if options.camera == "avatar" else None
         self.background = run_background(run).to(self.device)
-        self._params: dict[str, dict[str, Tensor]] = {}
 
     def _avatar_camera(self, frames: RunFrames):
         """The camera of the avatar's neutral frame (its first frame for 'first' and 'mean') at the run's resolution."""
@@ -262,8 +278,9 @@ class DrivenAvatar:
     def params(self, mode: TransferMode) -> dict[str, Tensor]:
         """The avatar's per-frame parameters [T, ...] driven in transfer `mode` (computed once per mode)."""
         if mode not in self._params:
-            self._params[mode] = driven_params(self.identity, self.avatar_ref, self.values, self.driver_ref, mode,
-                                               driver_translation=self.options.camera == "driver", learned=self.learned)
+            options = self.options
+            self._params[mode] = subject_params(self.run, self.frames, self.subject, mode, options.driver_neutral,
+                                                options.avatar_neutral, options.camera == "driver")
         return self._params[mode]
 
     def camera(self, item: dict):
@@ -427,5 +444,6 @@ def track_driver(run: LoadedRun, driver: Path | None, driver_video: Path | None,
     return dataset, fps, Path(driver_video).stem
 
 
-__all__ = ["DRIVERS_DIR", "DrivenAvatar", "DrivingOptions", "check_driver_options", "driven_params", "driver_cache_dir",
-           "driver_picture", "prepare_driver", "reenact", "reenact_video", "reference_frame", "track_driver"]
+__all__ = ["DRIVERS_DIR", "DrivenAvatar", "DrivingOptions", "check_driver_options", "driven_clip", "driven_params",
+           "driver_cache_dir", "driver_picture", "prepare_driver", "reenact", "reenact_video", "reference_frame",
+           "subject_params", "track_driver"]
