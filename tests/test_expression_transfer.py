@@ -10,7 +10,7 @@ import torch
 from geoavatar.apps import reenact as reenact_app
 from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, PRIOR_FRAMES, TRANSFER_MODES, TransferStatistics,
                                                 expression_statistics, expression_subspace, resolve_transfer,
-                                                transfer_expressions)
+                                                statistics_transfer, subspace_projection)
 from geoavatar.errors import OptionError
 
 FRAMES, MODES = 200, 10
@@ -43,12 +43,12 @@ def avatar() -> dict:
 
 def test_statistics_maps_the_driver_range_onto_the_avatars(avatar):
     # the avatar's own sequence drives it unchanged
-    same = transfer_expressions(avatar, learned_from(avatar, avatar), "statistics")
+    same = statistics_transfer(avatar, learned_from(avatar, avatar))
     assert torch.allclose(same["expr"], avatar["expr"], atol=1e-5)
     assert torch.allclose(same["jaw_pose"], avatar["jaw_pose"], atol=1e-6)
     # a driver moving twice as much about another mean is mapped back onto the avatar's mean and spread
     driver = sequence(-1.0 + 2.0 * (avatar["expr"] - avatar["expr"].mean(0)), 0.1 + 2.0 * avatar["jaw_pose"][:, 0])
-    out = transfer_expressions(driver, learned_from(avatar, driver), "statistics")
+    out = statistics_transfer(driver, learned_from(avatar, driver))
     assert torch.allclose(out["expr"].mean(0), avatar["expr"].mean(0), atol=1e-5)
     spread, wanted = out["expr"].std(0, unbiased=False), avatar["expr"].std(0, unbiased=False)
     shrunk = wanted * 2.0 / ((FRAMES * 4.0 + PRIOR_FRAMES) / (FRAMES + PRIOR_FRAMES)) ** 0.5  # the prior's pull
@@ -58,7 +58,7 @@ def test_statistics_maps_the_driver_range_onto_the_avatars(avatar):
 
 def test_a_coefficient_the_avatar_never_moved_stays_at_its_mean(avatar):
     driver = sequence(torch.randn(50, MODES + 5))  # a driver with more modes than the avatar
-    out = transfer_expressions(driver, learned_from(avatar, driver), "statistics")
+    out = statistics_transfer(driver, learned_from(avatar, driver))
     assert out["expr"].shape == (50, MODES + 5) and torch.equal(out["expr"][:, MODES:], torch.zeros(50, 5))
     assert torch.equal(out["eyes_pose"], torch.zeros(50, 6))  # the avatar's eyes never turned
 
@@ -68,7 +68,7 @@ def test_subspace_stays_inside_the_avatars_training_expressions(avatar):
                       torch.linspace(-0.5, 0.8, 80))
     learned = learned_from(avatar, driver)
     assert learned.subspace.basis.shape == (MODES, 2)  # the training expressions span two directions
-    out = transfer_expressions(driver, learned, "subspace")
+    out = subspace_projection(driver, learned)
     offset = (out["expr"] - avatar["expr"].mean(0)).double()  # [T, 10]
     basis = learned.subspace.basis
     assert torch.allclose(offset - offset @ basis @ basis.T, torch.zeros_like(offset), atol=1e-5)  # in the span
@@ -76,8 +76,11 @@ def test_subspace_stays_inside_the_avatars_training_expressions(avatar):
     assert (coordinates >= learned.subspace.low - 1e-5).all() and (coordinates <= learned.subspace.high + 1e-5).all()
     jaw = out["jaw_pose"][:, 0]
     assert jaw.min() >= avatar["jaw_pose"][:, 0].min() - 1e-6 and jaw.max() <= avatar["jaw_pose"][:, 0].max() + 1e-6
-    statistics = transfer_expressions(driver, learned, "statistics")
-    assert not torch.allclose(statistics["expr"], out["expr"])  # a driver outside the subspace is moved into it
+    assert not torch.allclose(driver["expr"].double(), out["expr"].double())  # an expression outside is moved in
+    inside = subspace_projection(out, learned)  # what is inside stays, the avatar's own expressions too
+    assert all(torch.allclose(inside[k], out[k], atol=1e-5) for k in out)
+    own = subspace_projection(avatar, learned)
+    assert torch.allclose(own["expr"], avatar["expr"], atol=1e-5) and torch.equal(own["jaw_pose"], avatar["jaw_pose"])
 
 
 def test_driven_params_in_each_mode(avatar):
@@ -92,7 +95,9 @@ def test_driven_params_in_each_mode(avatar):
     assert torch.equal(out["absolute"]["expr"], driver["expr"])
     for mode in ("statistics", "subspace"):  # the head turns as in relative transfer; the expression is mapped
         assert torch.allclose(out[mode]["rotation"], out["relative"]["rotation"])
-        assert torch.allclose(out[mode]["expr"], transfer_expressions(driver, learned, mode)["expr"])
+    assert torch.allclose(out["statistics"]["expr"], statistics_transfer(driver, learned)["expr"])
+    assert torch.allclose(out["subspace"]["expr"], subspace_projection(out["relative"], learned)["expr"])
+    assert torch.allclose(out["subspace"]["jaw_pose"], subspace_projection(out["relative"], learned)["jaw_pose"])
     with pytest.raises(ValueError, match="needs the statistics"):
         reenact_app.driven_params(identity, avatar_ref, driver, driver_ref, "subspace")
 

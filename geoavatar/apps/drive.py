@@ -17,8 +17,8 @@ the crop's side and centres come from the face detector as in `prepare` (prep/vi
 smooth_crop_boxes), and the batched tracker (prep/tracking.track) fits the driver's identity, smooth
 static offset and focal length over them; these stay frozen and the online fit continues from the last
 of those frames. The driver's neutral (for relative transfer and for the head's translation) is the mean of
-the first second, and so are the driver's statistics (--transfer statistics / subspace; their spread is shrunk
-toward the avatar's, expression_transfer.PRIOR_FRAMES).
+the first second, and so are the driver's statistics (--transfer statistics; their spread is shrunk toward the
+avatar's, expression_transfer.PRIOR_FRAMES).
 
 Real time: `--video` plays the file at its own frame rate, as a live source would deliver it: when the
 pipeline is busy, a newer frame replaces the waiting one and the older is dropped (counted), never queued.
@@ -614,8 +614,8 @@ def drive(
         video: A video file played as a live source at its own frame rate.
         relative: The same as --transfer relative.
         transfer: How the driver's expression, jaw and eyes become the avatar's: absolute, relative (offsets from
-            the driver's neutral, its first second, onto the avatar's first frame), statistics or subspace (the
-            driver's first-second statistics mapped to the avatar's training-set statistics; subspace also stays
+            the driver's neutral, its first second, onto the avatar's first frame), statistics (the driver's
+            first-second statistics mapped to the avatar's training-set statistics) or subspace (relative, kept
             inside the expressions the avatar was trained on), as `geoavatar reenact --transfer`. Default: relative.
         out: Write driver | avatar to this mp4 (at the source's frame rate; a dropped frame repeats the last output).
         view: Show the avatar live in the browser player on --host/--port (posed meshes streamed to it).

@@ -1,33 +1,36 @@
 """Expression transfer that stays inside what the avatar learned: the driver's expression mapped by the statistics of
-both sequences, and projected onto the expressions the avatar was trained on.
+both sequences, or projected onto the expressions the avatar was trained on.
 
-    learned = transfer_statistics(RunFrames(run), driver_values)             # once per driver
-    out = transfer_expressions(driver_values, learned, "subspace")             # expr [T, E], jaw_pose, eyes_pose
+    learned = transfer_statistics(RunFrames(run), driver_values)        # once per driver
+    out.update(statistics_transfer(driver_values, learned))             # 'statistics': expr [T, E], jaw, eyes
+    out.update(subspace_projection(relative_values, learned))           # 'subspace': the relative result, projected
 
 apps/reenact.py's driven_params is the one function that turns a driver's parameters into the avatar's; it calls
-this for the modes "statistics" and "subspace" (TRANSFER_MODES). The expression keys are expr, jaw_pose and
-eyes_pose (EXPRESSION_KEYS, each coefficient on its own; jaw and eyes as axis-angle numbers, fine for the small
-angles of a face); the head's rotation, the neck and the translation follow the driver's change from its neutral
-frame in both modes, as --relative does.
+these for the modes "statistics" and "subspace" (TRANSFER_MODES). The expression keys are expr, jaw_pose and
+eyes_pose (EXPRESSION_KEYS; jaw and eyes as axis-angle numbers, fine for the small angles of a face); the head's
+rotation, the neck and the translation follow the driver's change from its neutral frame in both modes, as
+--relative does.
 
 statistics   Each coefficient standardised by the driver's own mean and spread over its sequence and mapped to
-             the avatar's training-set mean and spread (the advice of 3D Gaussian Blendshapes' author, their
-             issue #12):  x = mean_avatar + std_avatar * (x_driver - mean_driver) / std_driver.
+             the avatar's training-set mean and spread:
+                 x = mean_avatar + std_avatar * (x_driver - mean_driver) / std_driver.
              A driver who opens the mouth twice as wide as the avatar ever did opens it as wide as the avatar
              did; a coefficient the avatar never moved stays at its training mean. The driver's spread is shrunk
              toward the avatar's with PRIOR_FRAMES frames' weight,
                  std_driver^2 <- (n std_driver^2 + PRIOR_FRAMES std_avatar^2) / (n + PRIOR_FRAMES),
              so that a short sequence (drive's first second) or a coefficient the driver barely moves is not blown
              up to the avatar's whole range.
-subspace     The statistics result, then expr projected onto the principal subspace of the avatar's training
-             expressions (centred on their mean, the leading directions holding SUBSPACE_VARIANCE of the variance)
-             with each principal coordinate clamped to the range the training frames cover; jaw and eyes clamped
-             per component to their training range. The avatar is never asked for an expression its training
-             frames did not span.
+subspace     Relative transfer, then expr projected onto the principal subspace of the avatar's training expressions
+             (centred on their mean, the leading directions holding SUBSPACE_VARIANCE of the variance) with each
+             principal coordinate clamped to the range the training frames cover, and jaw and eyes clamped per
+             component to their training range: the advice of 3D Gaussian Blendshapes' author (their issue #12) for
+             expressions beyond the training set. The avatar is never asked for an expression its training frames
+             did not span. (Projecting the statistics result instead lost expression similarity: docs/
+             cross_reenactment.md.)
 
 Jaw and eyes per mode: absolute, the driver's rotations; relative, the driver's change from its neutral composed
 onto the avatar's neutral (rotation matrices); statistics, the driver's axis-angle numbers standardised and mapped
-to the avatar's training statistics per component; subspace, as statistics, then clamped to the avatar's training
+to the avatar's training statistics per component; subspace, as relative, then clamped to the avatar's training
 range (a mouth never opens wider, eyes never turn further, than in some training frame).
 """
 
@@ -180,22 +183,22 @@ def _clamped(key: str, value: Tensor, avatar: ExpressionStatistics) -> Tensor:
                          _pad(avatar.low[key], value.shape[-1]))
 
 
-def transfer_expressions(driver: dict[str, Tensor], learned: TransferStatistics,
-                         mode: TransferMode) -> dict[str, Tensor]:
-    """EXPRESSION_KEYS [T, ...] of the avatar driven by `driver` in mode 'statistics' or 'subspace' (module
-    docstring)."""
-    if mode not in ("statistics", "subspace"):
-        raise ValueError(f"transfer_expressions: mode {mode!r} is not statistics or subspace")
-    dtype = driver["expr"].dtype
-    out = {key: _mapped(key, driver[key], learned) for key in EXPRESSION_KEYS}
-    if mode == "subspace":
-        out["expr"] = _projected(out["expr"], learned)
-        for key in ("jaw_pose", "eyes_pose"):
-            out[key] = _clamped(key, out[key], learned.avatar)
+def statistics_transfer(driver: dict[str, Tensor], learned: TransferStatistics) -> dict[str, Tensor]:
+    """EXPRESSION_KEYS [T, ...] of the driver's values [T, ...] mapped to the avatar's statistics ('statistics')."""
+    return {key: _mapped(key, driver[key], learned).to(driver[key].dtype) for key in EXPRESSION_KEYS}
+
+
+def subspace_projection(values: dict[str, Tensor], learned: TransferStatistics) -> dict[str, Tensor]:
+    """EXPRESSION_KEYS [T, ...] of the avatar's values [T, ...] (the relative result) kept inside its training
+    expressions: expr projected onto their subspace and clamped, jaw and eyes clamped ('subspace')."""
+    dtype = values["expr"].dtype
+    out = {"expr": _projected(values["expr"].double(), learned)}
+    out.update({key: _clamped(key, values[key].double(), learned.avatar) for key in ("jaw_pose", "eyes_pose")})
     return {key: value.to(dtype) for key, value in out.items()}
 
 
 __all__ = ["DEFAULT_TRANSFER", "EXPRESSION_KEYS", "ExpressionStatistics", "ExpressionSubspace", "PRIOR_FRAMES",
            "SUBSPACE_VARIANCE", "TRANSFER_MODES", "TransferMode", "TransferStatistics", "avatar_expressions",
-           "expression_statistics", "expression_subspace", "resolve_transfer", "transfer_expressions", "transfer_mode",
+           "expression_statistics", "expression_subspace", "resolve_transfer", "statistics_transfer", "subspace_projection",
+           "transfer_mode",
            "transfer_statistics"]

@@ -27,10 +27,11 @@ Parameters of every driver frame (FLAME npz layout; what is taken from whom), by
                                   expr = expr_avatar_neutral + (expr_driver(t) - expr_driver_neutral)
                                   R    = R_driver(t) R_driver_neutral^T R_avatar_neutral   (each joint,
                                          and the global rotation: rotation matrices, not axis-angles)
-                                statistics / subspace (apps/expression_transfer.py): expr, jaw and eyes
-                                  standardised by the driver's statistics and mapped to the avatar's training-set
-                                  statistics (subspace: then projected onto the expressions the avatar was trained
-                                  on, clamped to their range); neck and rotation as relative
+                                statistics (apps/expression_transfer.py): expr, jaw and eyes standardised by the
+                                  driver's statistics and mapped to the avatar's training-set statistics; neck and
+                                  rotation as relative
+                                subspace: relative, then expr projected onto the expressions the avatar was trained
+                                  on and clamped to their range, jaw and eyes clamped to their training range
     translation                 the avatar's neutral translation + the driver's displacement from its
                                 neutral frame (tracked translations depend on each video's camera, so
                                 only the motion carries over); with --camera driver the driver's own
@@ -67,7 +68,8 @@ import torch
 from torch import Tensor
 
 from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, resolve_transfer,
-                                                transfer_expressions, transfer_mode, transfer_statistics)
+                                                statistics_transfer, subspace_projection, transfer_mode,
+                                                transfer_statistics)
 from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, check_threads,
                                    default_output, evenly_spaced, fit_height, open_run, progress, record_camera, render_params,
                                    run_background, side_by_side, to_uint8, torch_threads)
@@ -150,8 +152,10 @@ def driven_params(
         out["expr"] = avatar_expr + delta  # [T, E]
         for key in ROTATION_KEYS:
             out[key] = _compose_relative(driver[key], driver_ref[key], avatar_ref[key])
-    if mode in ("statistics", "subspace"):
-        out.update(transfer_expressions(driver, learned, mode))  # expr, jaw, eyes from the two sequences' statistics
+    if mode == "statistics":
+        out.update(statistics_transfer(driver, learned))  # expr, jaw, eyes from the two sequences' statistics
+    elif mode == "subspace":
+        out.update(subspace_projection(out, learned))  # the relative result kept inside the training expressions
     if driver_translation:
         out["translation"] = driver["translation"].clone()
     else:
@@ -373,7 +377,7 @@ def reenact(
         transfer: How the driver's expression, jaw and eyes become the avatar's: absolute (the driver's values),
             relative (the driver's change from its neutral frame onto the avatar's neutral frame), statistics
             (each coefficient standardised by the driver's statistics, mapped to the avatar's training-set
-            statistics) or subspace (statistics, then projected onto the expressions the avatar was trained on and
+            statistics) or subspace (relative, then projected onto the expressions the avatar was trained on and
             clamped to their range). Head rotation and neck follow the driver's change from its neutral frame in
             every mode but absolute. Default: relative (docs/cross_reenactment.md).
         driver_neutral: The driver's neutral frame for relative transfer and for the translation: first, mean
@@ -430,13 +434,19 @@ def check_driver_options(driver: Path | None, driver_video: Path | None, driver_
         raise OptionError(f"--driver-size must be at least 32 pixels, got {driver_size}")
 
 
+def dataset_name(root: Path) -> str:
+    """A dataset's name: its folder's, or its parent's for prepare's OUT/dataset layout (`.../wojtek/dataset`)."""
+    root = Path(root).resolve()
+    return root.parent.name if root.name == "dataset" and root.parent.name else root.name
+
+
 def track_driver(run: LoadedRun, driver: Path | None, driver_video: Path | None, driver_cache: Path | None = None,
                  driver_size: int | None = None, photometric: bool = False, flame_dir: Path | None = None,
                  progress: bool = True) -> tuple[Path, float | None, str]:
     """(the driver's dataset folder, its video's frame rate or None, its name): --driver as given, or --driver-video
     tracked by prepare's pipeline into its cache (reused when nothing changed)."""
     if driver_video is None:
-        return Path(driver), None, Path(driver).name
+        return Path(driver), None, dataset_name(Path(driver))
     cache = driver_cache or driver_cache_dir(run.info.run_dir, driver_video, photometric)
     dataset, fps = prepare_driver(Path(driver_video), cache, run.info.head_model, driver_size or DRIVER_SIZE,
                                   photometric, flame_dir, progress)
@@ -444,6 +454,6 @@ def track_driver(run: LoadedRun, driver: Path | None, driver_video: Path | None,
     return dataset, fps, Path(driver_video).stem
 
 
-__all__ = ["DRIVERS_DIR", "DrivenAvatar", "DrivingOptions", "check_driver_options", "driven_clip", "driven_params",
-           "driver_cache_dir", "driver_picture", "prepare_driver", "reenact", "reenact_video", "reference_frame",
-           "subject_params", "track_driver"]
+__all__ = ["DRIVERS_DIR", "DrivenAvatar", "DrivingOptions", "check_driver_options", "dataset_name", "driven_clip",
+           "driven_params", "driver_cache_dir", "driver_picture", "prepare_driver", "reenact", "reenact_video",
+           "reference_frame", "subject_params", "track_driver"]
