@@ -199,6 +199,6 @@ def subspace_projection(values: dict[str, Tensor], learned: TransferStatistics) 
 
 __all__ = ["DEFAULT_TRANSFER", "EXPRESSION_KEYS", "ExpressionStatistics", "ExpressionSubspace", "PRIOR_FRAMES",
            "SUBSPACE_VARIANCE", "TRANSFER_MODES", "TransferMode", "TransferStatistics", "avatar_expressions",
-           "expression_statistics", "expression_subspace", "resolve_transfer", "statistics_transfer", "subspace_projection",
-           "transfer_mode",
+           "expression_statistics", "expression_subspace", "resolve_transfer", "statistics_transfer",
+           "subspace_projection", "transfer_mode",
            "transfer_statistics"]

@@ -363,8 +363,8 @@ def reenact(
 
     The avatar keeps its identity (shape and static offsets); every frame of the driver gives the
     expression, the jaw/neck/eye rotations and the head rotation, transferred as --transfer says; the head's
-    translation is the avatar's plus the driver's displacement. The driver is a tracked dataset (--driver) or a video (--driver-video),
-    tracked first as `geoavatar prepare` does and cached (RUN/drivers/ by default) for the next call.
+    translation is the avatar's plus the driver's displacement. The driver is a tracked dataset (--driver) or a video
+    (--driver-video), tracked first as `geoavatar prepare` does and cached (RUN/drivers/ by default) for the next call.
     Writes an mp4 of driver | avatar.
 
     Args:
