@@ -9,8 +9,8 @@ self re-enactment (the avatar's own test frames) beside them. Quality numbers on
 
 Each avatar is driven by every --driver except its own (and by a generated subject, `geoavatar synth --subject N`,
 written once to OUT/synth<N>), in every transfer mode, through apps/reenact.py's DrivenAvatar and eval/cross.py's
-evaluate_cross (what `geoavatar eval RUN --driver D --transfer ...` runs; each pair's report is also written to
-RUN/eval/cross@<driver>/). Self re-enactment: eval's test split with the face metrics. Writes OUT/table.md and
+evaluate_cross (what `geoavatar eval RUN --driver D --transfer ...` runs; each pair's report, as eval writes it to
+RUN/eval/cross@<driver>/, goes to OUT/reports/<avatar>_by_<driver>/ here, so that the runs are left as they were). Self re-enactment: eval's test split with the face metrics. Writes OUT/table.md and
 OUT/table.json, and picks the default mode by the rule of #30: the best expression similarity among the modes that
 beat relative on it without losing more than 0.01 identity similarity (averaged over the pairs); with --stills DIR,
 PNGs of driver | relative | that mode (or the best other mode when relative stays) at the three frames of each pair
@@ -32,7 +32,7 @@ from geoavatar.apps.common import fit_height, side_by_side, to_uint8
 from geoavatar.apps.expression_transfer import TRANSFER_MODES
 from geoavatar.apps.reenact import DrivenAvatar, DrivingOptions, driver_picture
 from geoavatar.data import evenly_spaced
-from geoavatar.eval.cross import cross_dir, evaluate_cross, write_cross_report
+from geoavatar.eval.cross import evaluate_cross, write_cross_report
 from geoavatar.eval.evaluate import EvalConfig, evaluate_run, face_scorer
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png, atomic_write_text
 from geoavatar.train.checkpoint import load_run
@@ -149,7 +149,7 @@ def main() -> int:
                 driven = DrivenAvatar(run, root, DrivingOptions())
                 result = evaluate_cross(run, driven, TRANSFER_MODES, driver, args.max_frames, scorer=scorer,
                                         progress=False)
-                write_cross_report(result, cross_dir(run.info.run_dir, driver))
+                write_cross_report(result, args.out / "reports" / f"{avatar}_by_{driver}")
                 name = f"{avatar}←{driver}"
                 pairs[name] = {"avatar": avatar, "driver": driver, "summary": result.summaries}
                 driven_of[name] = (run, driven)
