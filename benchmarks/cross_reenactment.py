@@ -79,6 +79,32 @@ def pick_default(pairs: dict) -> tuple[str, dict]:
     return chosen, means
 
 
+def paired(result, mode: str, key: str, base: str = "relative") -> list[float] | None:
+    """[mean, standard error, frames] of `key` in `mode` minus `base`, over the frames both scored (None: < 2)."""
+    pairs = [(getattr(a, key), getattr(b, key)) for (_, a), (_, b) in zip(result.modes[mode], result.modes[base])]
+    deltas = np.array([a - b for a, b in pairs if a is not None and b is not None])
+    if len(deltas) < 2:
+        return None
+    return [float(deltas.mean()), float(deltas.std(ddof=1) / np.sqrt(len(deltas))), int(len(deltas))]
+
+
+def difference_table(pairs: dict) -> str:
+    """Each mode minus relative, frame by frame (mean ± standard error over the frames both scored)."""
+    names = list(pairs)
+    lines = ["| Transfer | " + " | ".join(f"{n} ΔID | {n} ΔExpr" for n in names) + " |",
+             "|---|" + "---:|" * (2 * len(names))]
+    for mode in TRANSFER_MODES:
+        if mode == "relative":
+            continue
+        cells = []
+        for n in names:
+            for key in ("id_similarity", "expression_similarity"):
+                d = pairs[n]["paired"][mode][key]
+                cells.append("–" if d is None else f"{d[0]:+.3f} ± {d[1]:.3f}")
+        lines.append(f"| {mode} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def cell(number: float | None) -> str:
     return "–" if number is None else f"{number:.3f}"
 
@@ -151,12 +177,18 @@ def main() -> int:
                                         progress=False)
                 write_cross_report(result, args.out / "reports" / f"{avatar}_by_{driver}")
                 name = f"{avatar}←{driver}"
-                pairs[name] = {"avatar": avatar, "driver": driver, "summary": result.summaries}
+                pairs[name] = {"avatar": avatar, "driver": driver, "summary": result.summaries,
+                               "paired": {mode: {key: paired(result, mode, key)
+                                                 for key in ("id_similarity", "expression_similarity")}
+                                          for mode in TRANSFER_MODES if mode != "relative"}}
                 driven_of[name] = (run, driven)
                 print(f"{name}: " + json.dumps({m: [cell(value(s, k)) for k, _ in COLUMNS]
                                                 for m, s in result.summaries.items()}), flush=True)
     chosen, means = pick_default(pairs)
-    markdown = (table(pairs, selfs, means) + "\nDefault by #30's rule (best expression among the modes beating "
+    markdown = (table(pairs, selfs, means)
+                + "\nEach mode minus relative, frame by frame (mean ± standard error over the frames both renders "
+                  "showed a face in; frames of a clip are correlated, so the errors are optimistic):\n\n"
+                + difference_table(pairs) + "\nDefault by #30's rule (best expression among the modes beating "
                 f"relative on it within {ID_LOSS} identity): **{chosen}**\n")
     record = {"pairs": pairs, "self": selfs, "means": means, "default": chosen, "max_frames": args.max_frames}
     if args.stills is not None:  # relative against the default, or against the best other mode when relative stays
