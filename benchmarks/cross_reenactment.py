@@ -28,7 +28,8 @@ import numpy as np
 import torch
 from PIL import Image
 
-from geoavatar.apps.common import fit_height, side_by_side, to_uint8
+from geoavatar.apps.common import side_by_side
+from geoavatar.imaging import fit_height, to_uint8
 from geoavatar.apps.expression_transfer import TRANSFER_MODES
 from geoavatar.apps.reenact import DrivenAvatar, DrivingOptions, driver_picture
 from geoavatar.data import evenly_spaced

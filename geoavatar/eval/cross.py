@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Sequence
 
 from geoavatar.eval.face_scores import FaceScores, face_summary, scores_dict
 from geoavatar.eval.landmark_agreement import SIGNALS
+from geoavatar.imaging import to_uint8
 from geoavatar.io.atomic import atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:
@@ -55,7 +56,6 @@ def evaluate_cross(run: "LoadedRun", driven: "DrivenAvatar", modes: Sequence[str
     """Render the driver's frames in each transfer mode and score them (module docstring). `scorer`: a FaceScorer
     holding the avatar's identity reference (default: eval's, from the run's training frames)."""
     from geoavatar.apps.common import progress as progress_bar
-    from geoavatar.apps.common import to_uint8
     from geoavatar.apps.reenact import driver_picture
     from geoavatar.data import evenly_spaced
     from geoavatar.eval.evaluate import face_scorer, face_settings, run_label

@@ -60,6 +60,7 @@ from geoavatar.eval.floaters import (DEFAULT_DILATE, FloaterConfig, dilate_mask,
                                      side_view_shares)
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
 from geoavatar.eval.view_angles import rest_skull, view_directions, within_trained_views, yaw_pitch
+from geoavatar.imaging import to_uint8
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import dilation_pixels, rasterize_mesh
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
@@ -419,8 +420,6 @@ def evaluate_run(
 def face_scorer(run: LoadedRun, data: str | Path | None = None, flame_dir: str | Path | None = None) -> FaceScorer:
     """A FaceScorer whose identity reference is REFERENCE_FRAMES training frames of the run, spread evenly, as
     composited for training (a run trained on every frame uses them all; with no training frame, none)."""
-    from geoavatar.apps.common import to_uint8
-
     train = open_run_dataset(run, "train", data, flame_dir)
     picked = evenly_spaced(len(train), REFERENCE_FRAMES)
     images = (to_uint8(composite_target(item["image"], item["mask"], item["background"]))
@@ -440,8 +439,6 @@ def face_settings(scorer: FaceScorer) -> dict:
 
 def score_face(scorer: FaceScorer, pred: Tensor, target: Tensor, record: FrameMetrics) -> FaceScores:
     """Face scores of a render against its ground truth, copied onto the frame's record."""
-    from geoavatar.apps.common import to_uint8
-
     scores = scorer.score(to_uint8(pred), scorer.read(to_uint8(target)))
     record.face_found, record.id_similarity = scores.face_found, scores.id_similarity
     record.expression_similarity = scores.expression_similarity
