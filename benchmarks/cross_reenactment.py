@@ -8,13 +8,14 @@ self re-enactment (the avatar's own test frames) beside them. Quality numbers on
         --synth-subject 1 --max-frames 100 --stills docs/images
 
 Each avatar is driven by every --driver except its own (and by a generated subject, `geoavatar synth --subject N`,
-written once to OUT/synth<N>), in every transfer mode, through apps/reenact.py's DrivenAvatar and eval/cross.py's
+written once to OUT/synth<N>), in every transfer mode, through apps/reenact.py's DrivenAvatar and apps/eval.py's
 evaluate_cross (what `geoavatar eval RUN --driver D --transfer ...` runs; each pair's report, as eval writes it to
-RUN/eval/cross@<driver>/, goes to OUT/reports/<avatar>_by_<driver>/ here, so that the runs are left as they were). Self re-enactment: eval's test split with the face metrics. Writes OUT/table.md and
-OUT/table.json, and picks the default mode by the rule of #30: the best expression similarity among the modes that
-beat relative on it without losing more than 0.01 identity similarity (averaged over the pairs); with --stills DIR,
-PNGs of driver | relative | that mode (or the best other mode when relative stays) at the three frames of each pair
-where the two renders differ most.
+RUN/eval/cross@<driver>/, goes to OUT/reports/<avatar>_by_<driver>/ here, so that the runs are left as they were).
+Self re-enactment: eval's test split with the face metrics. Writes OUT/table.md and OUT/table.json (each mode
+minus relative frame by frame beside the means), and picks the default mode by the rule of #30: the best
+expression similarity among the modes that beat relative on it without losing more than 0.01 identity similarity
+(averaged over the pairs); with --stills DIR, PNGs of driver | relative | that mode (or the best other mode when
+relative stays) at the three frames of each pair where the two renders differ most.
 """
 
 from __future__ import annotations
@@ -29,12 +30,13 @@ import torch
 from PIL import Image
 
 from geoavatar.apps.common import side_by_side
-from geoavatar.imaging import fit_height, to_uint8
+from geoavatar.apps.eval import evaluate_cross
 from geoavatar.apps.expression_transfer import TRANSFER_MODES
 from geoavatar.apps.reenact import DrivenAvatar, DrivingOptions, driver_picture
 from geoavatar.data import evenly_spaced
-from geoavatar.eval.cross import evaluate_cross, write_cross_report
+from geoavatar.eval.cross import write_cross_report
 from geoavatar.eval.evaluate import EvalConfig, evaluate_run, face_scorer
+from geoavatar.imaging import fit_height, to_uint8
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png, atomic_write_text
 from geoavatar.train.checkpoint import load_run
 

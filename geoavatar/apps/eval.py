@@ -4,8 +4,9 @@
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Optional, Sequence
 
 import tyro
 
@@ -146,7 +147,7 @@ def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, dr
     """`geoavatar eval RUN --driver ...`: the cross re-enactment report, RUN/eval/cross@<driver>/."""
     from geoavatar.apps.expression_transfer import resolve_transfer
     from geoavatar.apps.reenact import DrivenAvatar, DrivingOptions, check_driver_options, track_driver
-    from geoavatar.eval.cross import cross_dir, evaluate_cross, mode_table, write_cross_report
+    from geoavatar.eval.cross import cross_dir, mode_table, write_cross_report
     from geoavatar.runtime import resolve_device
     from geoavatar.train.checkpoint import load_run
 
@@ -172,6 +173,35 @@ def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, dr
     return 0
 
 
+def evaluate_cross(run, driven, modes: Sequence[str], driver: str, max_frames: int | None = None,
+                   scorer=None, data: Path | None = None, flame_dir: Path | None = None, progress: bool = True):
+    """CrossResult of a DrivenAvatar: `max_frames` driver frames (spread evenly; all by default) rendered in each
+    transfer mode of `modes` and scored against the driver's frames (eval/cross.py). `scorer`: a FaceScorer holding
+    the avatar's identity reference (default: eval's, from the run's training frames; closed after)."""
+    from geoavatar.data import evenly_spaced
+    from geoavatar.eval.cross import CrossResult, score_cross
+    from geoavatar.eval.evaluate import face_scorer, face_settings, run_label
+
+    started = time.perf_counter()
+    own_scorer = scorer is None
+    scorer = face_scorer(run, data, flame_dir) if own_scorer else scorer
+    try:
+        scored = score_cross(driven.pictures(modes, max_frames), modes, scorer, progress, f"eval cross@{driver}")
+    finally:
+        if own_scorer:
+            scorer.close()
+    options = driven.options
+    evaluated = len(evenly_spaced(len(driven.dataset), max_frames))
+    settings = {
+        "frames_in_driver": len(driven.dataset), "frames_evaluated": evaluated, "max_frames": max_frames, "driver_split": options.driver_split, "driver_neutral": options.driver_neutral,
+        "avatar_neutral": options.avatar_neutral, "camera": options.camera, "backend": options.backend,
+        "resolution": run.info.resolution, "faces": face_settings(scorer),
+        "source": "the driver's frame composited on its background (what reenact shows beside the render)",
+    }
+    return CrossResult(run.info.run_dir, run_label(run)[0], driver, Path(driven.subject.root), scored, settings,
+                       time.perf_counter() - started)
+
+
 def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> Path:
     """RUN/eval/SPLIT, or RUN/eval/SPLIT@NAME for a copy NAME of the dataset given while the recorded one exists."""
     from geoavatar.eval.report import eval_dir
@@ -182,4 +212,4 @@ def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> 
     return folder.with_name(f"{split}@{Path(data).resolve().name}")
 
 
-__all__ = ["eval_cross", "eval_runs", "report_dir"]
+__all__ = ["eval_cross", "eval_runs", "evaluate_cross", "report_dir"]

@@ -62,7 +62,7 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Iterator, Literal, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -77,6 +77,7 @@ from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
 from geoavatar.data.dataset import item_camera
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError, OptionError
+from geoavatar.eval.cross import DrivenPicture
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from geoavatar.io.video import Mp4Writer
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
@@ -302,6 +303,15 @@ class DrivenAvatar:
         params = self.params(mode or self.options.transfer)
         return render_params(self.run, frame_of(params, self.row_of[item["timestep"]]), self.camera(item), None,
                              self.background, self.options.backend)
+
+
+    def pictures(self, modes: Sequence[str], max_frames: int | None = None) -> Iterator[DrivenPicture]:
+        """(driver timestep, driver picture uint8, {mode: render uint8}) of `max_frames` driver frames spread evenly
+        (all by default), each rendered in every transfer mode of `modes`: what `eval --driver` scores."""
+        for index in evenly_spaced(len(self.dataset), max_frames):
+            item = self.dataset[index]
+            yield (int(item["timestep"]), to_uint8(driver_picture(item)),
+                   {mode: to_uint8(self.render(item, mode)) for mode in modes})
 
 
 def driver_picture(item: dict) -> Tensor:

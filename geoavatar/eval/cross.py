@@ -1,10 +1,12 @@
 """Cross re-enactment scored without ground truth (`geoavatar eval RUN --driver DATA | --driver-video FILE`).
 
-    driven = DrivenAvatar(run, driver_root, DrivingOptions(...))          # apps/reenact.py's driving path
-    result = evaluate_cross(run, driven, ["relative", "subspace"])        # CrossResult: per mode, per frame
+    scored = score_cross(driven.pictures(modes), modes, scorer)           # mode -> (timestep, FaceScores) per frame
+    result = CrossResult(run_dir, label, driver, root, scored, ...)       # summaries per mode (face_summary)
     write_cross_report(result, cross_dir(run_dir, driver_name))           # RUN/eval/cross@<driver>/metrics.{json,md}
 
-Every driver frame (evenly spaced with max_frames) is rendered once per transfer mode, exactly as `geoavatar
+apps/eval.py's evaluate_cross drives the avatar (apps/reenact.py's DrivenAvatar) and scores it with these.
+
+Every driver frame (evenly spaced with --max-frames) is rendered once per transfer mode, exactly as `geoavatar
 reenact` renders it, and scored by eval/face_scores.py against the driver's frame: dlib identity similarity to the
 avatar's own training frames, FER2013 expression similarity to the driver frame (the paper appendix's two scores)
 and the landmark agreement of mouth, eyes and brows over the clip. The driver's own face is scored against the
@@ -14,20 +16,18 @@ in which no face is detected are counted per mode (`faces.render_missing`) and g
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 from geoavatar.eval.face_scores import FaceScores, face_summary, scores_dict
 from geoavatar.eval.landmark_agreement import SIGNALS
-from geoavatar.imaging import to_uint8
 from geoavatar.io.atomic import atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:
-    from geoavatar.apps.reenact import DrivenAvatar
     from geoavatar.eval.face_scores import FaceScorer
-    from geoavatar.train.checkpoint import LoadedRun
+
+DrivenPicture = tuple  # (driver timestep, driver frame uint8 [H, W, 3], {transfer mode: render uint8 [H', W', 3]})
 
 REPORT_FORMAT = "geoavatar-eval-cross"
 REPORT_VERSION = 1
@@ -40,9 +40,12 @@ class CrossResult:
     driver: str  # the driver's name (dataset folder or video stem)
     driver_root: Path
     modes: dict[str, list[tuple[int, FaceScores]]]  # transfer mode -> (driver timestep, scores) per frame
-    summaries: dict[str, dict] = field(default_factory=dict)  # transfer mode -> face_summary
     settings: dict = field(default_factory=dict)
     seconds: float = 0.0
+    summaries: dict[str, dict] = field(init=False)  # transfer mode -> face_summary of its frames
+
+    def __post_init__(self):
+        self.summaries = {mode: face_summary([scores for _, scores in frames]) for mode, frames in self.modes.items()}
 
 
 def cross_dir(run_dir: str | Path, driver: str) -> Path:
@@ -50,43 +53,18 @@ def cross_dir(run_dir: str | Path, driver: str) -> Path:
     return Path(run_dir) / "eval" / f"cross@{driver}"
 
 
-def evaluate_cross(run: "LoadedRun", driven: "DrivenAvatar", modes: Sequence[str], driver: str,
-                   max_frames: int | None = None, scorer: "FaceScorer | None" = None, data: Path | None = None,
-                   flame_dir: Path | None = None, progress: bool = True) -> CrossResult:
-    """Render the driver's frames in each transfer mode and score them (module docstring). `scorer`: a FaceScorer
-    holding the avatar's identity reference (default: eval's, from the run's training frames)."""
-    from geoavatar.apps.common import progress as progress_bar
-    from geoavatar.apps.reenact import driver_picture
-    from geoavatar.data import evenly_spaced
-    from geoavatar.eval.evaluate import face_scorer, face_settings, run_label
+def score_cross(pictures: Iterable[DrivenPicture], modes: Sequence[str], scorer: "FaceScorer",
+                progress: bool = True, label: str = "eval cross") -> dict[str, list[tuple[int, FaceScores]]]:
+    """Transfer mode -> (driver timestep, scores) of each render against its driver frame; pictures:
+    (timestep, driver frame uint8 [H, W, 3], {mode: render uint8 [H', W', 3]}), the driver frame read once."""
+    from tqdm.auto import tqdm
 
-    started = time.perf_counter()
-    own_scorer = scorer is None
-    scorer = face_scorer(run, data, flame_dir) if scorer is None else scorer
-    indices = evenly_spaced(len(driven.dataset), max_frames)
-    result = CrossResult(run.info.run_dir, run_label(run)[0], driver, Path(driven.subject.root),
-                         {mode: [] for mode in modes})
-    try:
-        for index in progress_bar(indices, enabled=progress, desc=f"eval cross@{driver}"):
-            item = driven.dataset[index]
-            source = scorer.read(to_uint8(driver_picture(item)))  # the driver's frame, read once for every mode
-            for mode in modes:
-                render = to_uint8(driven.render(item, mode))
-                result.modes[mode].append((int(item["timestep"]), scorer.score(render, source)))
-    finally:
-        if own_scorer:
-            scorer.close()
-    result.summaries = {mode: face_summary([scores for _, scores in frames]) for mode, frames in result.modes.items()}
-    options = driven.options
-    result.settings = {
-        "frames_in_driver": len(driven.dataset), "frames_evaluated": len(indices), "max_frames": max_frames,
-        "driver_split": options.driver_split, "driver_neutral": options.driver_neutral,
-        "avatar_neutral": options.avatar_neutral, "camera": options.camera, "backend": options.backend,
-        "resolution": run.info.resolution, "faces": face_settings(scorer),
-        "source": "the driver's frame composited on its background (what reenact shows beside the render)",
-    }
-    result.seconds = time.perf_counter() - started
-    return result
+    scored: dict[str, list[tuple[int, FaceScores]]] = {mode: [] for mode in modes}
+    for timestep, driver, renders in tqdm(pictures, disable=not progress, desc=label, unit="frame"):
+        source = scorer.read(driver)
+        for mode in modes:
+            scored[mode].append((timestep, scorer.score(renders[mode], source)))
+    return scored
 
 
 def _cell(stats: dict, digits: int = 3) -> str:
@@ -134,8 +112,8 @@ def cross_markdown(result: CrossResult) -> str:
               f"{s['avatar_neutral']}; identity reference: {s['faces']['reference_faces']} of "
               f"{s['faces']['reference_frames']} training frames with a face"
             + "\n- ID similarity: dlib face-recognition descriptors, cosine to the mean of the avatar's training "
-              "frames (not ArcFace); expression similarity: cosine of FER2013 mini-Xception probabilities, render vs driver; "
-              "landmark agreement: mean Pearson r of the signals above over the frames with both faces\n")
+              "frames (not ArcFace); expression similarity: cosine of FER2013 mini-Xception probabilities, render "
+              "vs driver; landmark agreement: mean Pearson r of the signals above over the frames with both faces\n")
 
 
 def cross_json(result: CrossResult) -> dict:
@@ -153,5 +131,5 @@ def write_cross_report(result: CrossResult, folder: str | Path | None = None) ->
             "markdown": atomic_write_text(folder / "metrics.md", cross_markdown(result))}
 
 
-__all__ = ["CrossResult", "cross_dir", "cross_json", "cross_markdown", "evaluate_cross", "mode_table", "signal_table",
-           "write_cross_report"]
+__all__ = ["CrossResult", "DrivenPicture", "cross_dir", "cross_json", "cross_markdown", "mode_table", "score_cross",
+           "signal_table", "write_cross_report"]
