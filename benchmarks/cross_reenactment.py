@@ -131,7 +131,7 @@ def table(pairs: dict, selfs: dict, means: dict) -> str:
 
 @torch.no_grad()
 def stills(run, driven: DrivenAvatar, modes: tuple[str, str], path: Path, frames: int, rows: int = 3,
-           height: int = 160) -> list[int]:
+           height: int = 128) -> list[int]:
     """driver | modes[0] | modes[1] at the `rows` driver frames (of `frames` spread evenly) where they differ most."""
     scored = []
     for index in evenly_spaced(len(driven.dataset), frames):
@@ -144,8 +144,8 @@ def stills(run, driven: DrivenAvatar, modes: tuple[str, str], path: Path, frames
         item = driven.dataset[index]
         panels = [driver_picture(item), *(driven.render(item, mode) for mode in modes)]
         picture.append(side_by_side(*(fit_height(to_uint8(p), height) for p in panels)))
-    image = Image.fromarray(np.concatenate(picture, 0)).quantize(colors=256, method=Image.Quantize.MEDIANCUT)
-    atomic_write_png(path, image, optimize=True)  # 256 colours: small enough for docs/images
+    image = Image.fromarray(np.concatenate(picture, 0)).quantize(colors=128, method=Image.Quantize.MEDIANCUT)
+    atomic_write_png(path, image, optimize=True)  # 128 colours: small enough for docs/images
     return [int(driven.dataset[i]["timestep"]) for i in chosen]
 
 
