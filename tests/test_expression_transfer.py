@@ -110,4 +110,7 @@ def test_transfer_options():
     with pytest.raises(OptionError, match="--transfer must be one of"):
         resolve_transfer("copy", False)
     # the commands' help names the default the code uses
-    assert f"Default: {DEFAULT_TRANSFER}" in " ".join(reenact_app.reenact.__doc__.split())
+    from geoavatar.apps import drive as drive_app
+
+    for command in (reenact_app.reenact, drive_app.drive):
+        assert f"Default: {DEFAULT_TRANSFER}" in " ".join(command.__doc__.split()), command.__name__
