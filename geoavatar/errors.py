@@ -7,8 +7,8 @@ its own: it names the file or option and says what is wrong (and, where it helps
 Layer errors derive from it: RunError (train/checkpoint.py), DatasetError (data/errors.py),
 PrepareError (prep/errors.py), TrainingDiverged (train/trainer.py), ForbiddenPickleGlobal and
 UnreadablePickle (io/safe_pickle.py), FlameFileNotFoundError and FlameFileError (head/flame.py),
-LPIPSWeightsError (eval/lpips.py). Each keeps its older built-in base (ValueError, RuntimeError, ...)
-so that code catching those still works.
+MetricWeightsError (eval/weights.py; LPIPSWeightsError, eval/lpips.py, is one). Each keeps its older
+built-in base (ValueError, RuntimeError, ...) so that code catching those still works.
 """
 
 from __future__ import annotations

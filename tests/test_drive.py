@@ -119,8 +119,9 @@ def test_a_fast_source_drops_frames_and_counts_them(run, clip, tmp_path):
 
 
 @needs_video
-def test_relative_driving_renders(run, clip, tmp_path):
-    stats = drive_avatar(run, open_video(clip), tmp_path / "rel.mp4", relative=True, size=32, init_seconds=0.2,
+@pytest.mark.parametrize("transfer", ["relative", "subspace"])
+def test_relative_and_subspace_driving_render(run, clip, tmp_path, transfer):
+    stats = drive_avatar(run, open_video(clip), tmp_path / "rel.mp4", transfer, size=32, init_seconds=0.2,
                          lossless=True, max_frames=8, status=False, init_steps=INIT_STEPS)
     assert stats.init_frames == 5 and stats.processed == 8
 

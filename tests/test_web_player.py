@@ -137,13 +137,13 @@ def test_a_driver_clip_is_reenacts_motion_posed_once(run, tmp_path):
     from geoavatar.apps.reenact import driven_clip, frame_of
 
     driver = make_subject(tmp_path / "driver", subject=2, frames=5, size=32, seed=3)
-    folder = export_web(run, tmp_path / "web", driver=driver, relative=True, fps=12.5, show_progress=False)
+    folder = export_web(run, tmp_path / "web", driver=driver, transfer="subspace", fps=12.5, show_progress=False)
     manifest = json.loads((folder / pack.MANIFEST).read_text())
     assert manifest["clip"]["frames"] == 5 and manifest["clip"]["fps"] == 12.5
-    assert manifest["clip"]["source"] == "driver driver (relative)"
+    assert manifest["clip"]["source"] == "driver driver (subspace transfer)"
     codes = np.frombuffer((folder / pack.CLIP_FILE).read_bytes(), dtype="<u2").reshape(5, -1, 3)
     decoded = manifest["clip"]["offset"] + codes[4] * np.asarray(manifest["clip"]["step"])
-    _, params = driven_clip(run, RunFrames(run), driver, relative=True)
+    _, params = driven_clip(run, RunFrames(run), driver, "subspace")
     expected = posed_head_vertices(run, frame_of(params, 4), None).detach().numpy()
     assert np.abs(decoded - expected).max() < 1e-5  # reenact's parameters, posed as every command poses
 

@@ -6,7 +6,7 @@ avatar.posed_head with the mouth deformer), and the clip stores each frame's pos
 GPU (web/src). The clip is
 
     --split S (default test)          the run's frames of that split, as `geoavatar render` poses them
-    --driver DATA / --driver-video F  the driver's motion on the avatar, reenact's rules (--relative as there);
+    --driver DATA / --driver-video F  the driver's motion on the avatar, reenact's rules (--transfer as there);
                                       a video is tracked first as reenact does (RUN/drivers/, reused)
 
 The view the page opens with is the dataset camera's (the camera of the clip's first frame, at the run's
@@ -24,7 +24,8 @@ from torch import Tensor
 
 from geoavatar.apps.common import (RunFrames, head_centre, posed_head_vertices, progress, record_camera, run_background,
                                    split_timesteps)
-from geoavatar.apps.reenact import DRIVER_SIZE, driven_clip, driver_cache_dir, frame_of, prepare_driver
+from geoavatar.apps.expression_transfer import DEFAULT_TRANSFER, TransferMode, transfer_mode
+from geoavatar.apps.reenact import driven_clip, frame_of, track_driver
 from geoavatar.errors import OptionError
 from geoavatar.eval.evaluate import trained_view_directions
 from geoavatar.head.view_angles import view_directions, yaw_pitch
@@ -102,23 +103,23 @@ def web_assets(run: LoadedRun, vertices: Tensor, first_params: HeadParams, times
 
 
 def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | None = None,
-               driver_video: Path | None = None, relative: bool = False, fps: float | None = None,
+               driver_video: Path | None = None, transfer: TransferMode | bool = DEFAULT_TRANSFER,
+               fps: float | None = None,
                data: Path | None = None, flame_dir: Path | None = None, show_progress: bool = True) -> Path:
     """Write the player folder `out` (complete or not at all); returns it."""
     if fps is not None and fps <= 0:
         raise OptionError(f"--fps must be positive, got {fps}")
     frames = RunFrames(run)
     if driver_video is not None:
-        cache = driver_cache_dir(run.info.run_dir, driver_video)
-        driver, video_fps = prepare_driver(Path(driver_video), cache, run.info.head_model, DRIVER_SIZE,
-                                           flame_dir=flame_dir, progress=show_progress)
+        driver, video_fps, _ = track_driver(run, None, driver_video, flame_dir=flame_dir, progress=show_progress)
         fps = fps or video_fps
     if driver is not None:
-        subject, params = driven_clip(run, frames, Path(driver), relative)
+        mode = transfer_mode(transfer)
+        subject, params = driven_clip(run, frames, Path(driver), mode)
         timesteps = list(subject.timesteps)
         vertices = driven_vertices(run, params, show_progress)
         first = frame_of(params, 0)
-        source = f"driver {Path(driver_video or driver).name}{' (relative)' if relative else ''}"
+        source = f"driver {Path(driver_video or driver).name} ({mode} transfer)"
         camera_timesteps = [frames.timesteps[0]]  # reenact's camera: the avatar's (first) neutral frame
     else:
         timesteps = clip_timesteps(run, split)
