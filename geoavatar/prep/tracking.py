@@ -504,10 +504,13 @@ class OnlineFit:
             self.viewmat64 = self.viewmat.double()
             self.shape64 = self.shape.double()
             self.static_offset64 = None if self.static_offset is None else self.static_offset.double()
-            # The priors and temporal terms are quadratic in x (the jaw's range hinge aside, whose pull the exact
-            # gradient still carries): their Hessian [P, P] is one constant, taken here so that the first live
-            # frame does not wait for it (and for torch.func's set-up).
-            self.regulariser_hessian = hessian(self._regularisers)(self._flat().detach().double())
+            # The priors and temporal terms are quadratic in x but for the jaw's range hinge (`_jaw_range`): the
+            # quadratic's Hessian [P, P] is one constant, taken here (with the jaw inside its range, so without the
+            # hinge's curvature) so that the first live frame does not wait for it (and for torch.func's set-up).
+            self.jaw_index = sum(self.sizes[:ONLINE_KEYS.index("jaw_pose")])  # x[jaw_index]: the jaw's opening
+            inside = self._flat().detach().double()
+            inside[self.jaw_index] = 0.5 * config.jaw_max
+            self.regulariser_hessian = hessian(self._regularisers)(inside)
         if solver == "lbfgs":
             # a handful of iterations reach what Adam needs hundreds for, from a warm start
             self.optimizer = torch.optim.LBFGS(list(self.current.values()), lr=lr, max_iter=iterations,
@@ -534,6 +537,13 @@ class OnlineFit:
         terms.update(_frame_priors(p, self.config))
         terms["smooth"] = _motion_smoothness(window, self.config)
         return sum(terms.values())
+
+    def _jaw_range(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The jaw's range hinge of `_frame_priors` at x [P]: its value, slope and curvature in the jaw's opening."""
+        jaw, weight = x[self.jaw_index], self.config.w_jaw_range
+        below, above = torch.relu(-jaw), torch.relu(jaw - self.config.jaw_max)
+        curvature = 2.0 * weight * ((below > 0) | (above > 0)).to(x.dtype)
+        return weight * (below ** 2 + above ** 2), 2.0 * weight * (above - below), curvature
 
     def _energy(self, x: Tensor, K: Tensor, target: Tensor, size: Tensor) -> Tensor:
         data = _data_term(self.model, self._frame(x), self.viewmat, K, target, size, self.weights, torch.ones(1),
@@ -563,17 +573,29 @@ class OnlineFit:
         def data_energy(r: Tensor) -> Tensor:  # _data_term of one frame from its residuals r [L, 2]
             return (_pseudo_huber(r.norm(dim=-1), delta) * weights).sum()
 
-        def regularisers(v: Tensor) -> tuple[Tensor, Tensor]:  # value and gradient [P]; no head-model pass
-            with torch.enable_grad():
-                v = v.detach().requires_grad_(True)
-                value = self._regularisers(v)
-                (grad,) = torch.autograd.grad(value, v)
-            return value.detach(), grad
+        # The priors and temporal terms: quadratic in x but for the jaw's range hinge, so from one autograd pass at the
+        # start their value and gradient anywhere are the quadratic's (its constant Hessian) plus the hinge's.
+        start = x
+        with torch.enable_grad():
+            v = x.detach().requires_grad_(True)
+            value = self._regularisers(v)
+            (gradient,) = torch.autograd.grad(value, v)
+        hinge, hinge_slope, _ = self._jaw_range(x)
+        quadratic, quadratic_grad = value.detach() - hinge, gradient.clone()
+        quadratic_grad[self.jaw_index] -= hinge_slope
+
+        def regularisers(v: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # value, gradient [P], the hinge's curvature
+            d = v - start
+            moved = self.regulariser_hessian @ d  # [P]
+            hinge, slope, curvature = self._jaw_range(v)
+            grad = quadratic_grad + moved
+            grad[self.jaw_index] += slope
+            return quadratic + quadratic_grad @ d + 0.5 * (d @ moved) + hinge, grad, curvature
 
         both = self._residuals_batch(torch.cat([x[None], x[None] + steps]), K, target, size)  # [P + 1, L, 2]
         r = both[0]  # [L, 2]
         J = (both[1:] - r).permute(1, 2, 0) / FD_STEP  # [L, 2, P]
-        reg_value, grad_reg = regularisers(x)
+        reg_value, grad_reg, reg_curvature = regularisers(x)
         energy = data_energy(r) + reg_value
         eye = torch.eye(x.shape[0], dtype=x.dtype)
         for iteration in range(self.iterations):
@@ -582,14 +604,16 @@ class OnlineFit:
             irls = weights / torch.sqrt(1.0 + (r.norm(dim=-1) / delta) ** 2)  # [L]: rho'(r) / r times the landmark weight
             grad = torch.einsum("l,lcp,lc->p", irls, J, r) + grad_reg  # [P] the energy's gradient
             H = torch.einsum("l,lcp,lcq->pq", irls, J, J) + self.regulariser_hessian  # [P, P]
+            H[self.jaw_index, self.jaw_index] += reg_curvature
             for _attempt in range(4):  # Levenberg-Marquardt: raise the damping until the energy drops
                 step = torch.linalg.solve(H + self.damping * (torch.diagonal(H).clamp_min(1e-9) * eye), -grad)
                 candidate = x + step
                 r_candidate = self._residuals_batch(candidate[None], K, target, size)[0]
-                reg_candidate, grad_candidate = regularisers(candidate)
+                reg_candidate, grad_candidate, curvature_candidate = regularisers(candidate)
                 candidate_energy = data_energy(r_candidate) + reg_candidate
                 if candidate_energy < energy:
-                    x, r, energy, grad_reg = candidate, r_candidate, candidate_energy, grad_candidate
+                    x, r, energy = candidate, r_candidate, candidate_energy
+                    grad_reg, reg_curvature = grad_candidate, curvature_candidate
                     self.damping = max(self.damping / 3.0, 1e-7)
                     break
                 self.damping = min(self.damping * 4.0, 1e4)
