@@ -59,6 +59,15 @@ def test_newest_frame_drops_what_the_worker_did_not_take():
     assert box.get() == 3 and box.get() is None  # closed and empty: the end
 
 
+def test_a_deeper_mailbox_keeps_the_newest_items_in_order():
+    box = NewestFrame(depth=2)
+    for i in range(4):
+        box.put(i)
+    assert box.dropped == 2 and box.get() == 2 and box.get() == 3  # the oldest waiting first
+    box.close()
+    assert box.get() is None
+
+
 def test_newest_frame_hands_on_the_reader_error():
     box = NewestFrame()
     box.close(RuntimeError("camera unplugged"))
