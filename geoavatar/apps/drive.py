@@ -48,8 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (RunFrames, RunPath, posed_head_vertices, record_camera, run_background,
-                                   side_by_side)
+from geoavatar.apps.common import RunPath, posed_head_vertices, record_camera, run_background, side_by_side
 from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, avatar_expressions,
                                                 expression_statistics, resolve_transfer)
 from geoavatar.apps.reenact import TRANSFERRED_KEYS, driven_params, reference_frame
@@ -62,6 +61,7 @@ from geoavatar.io.video import Mp4Writer
 from geoavatar.prep.errors import PrepareError
 from geoavatar.render.camera import Camera
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run
+from geoavatar.train.run_frames import RunFrames
 
 STAGES = ("landmarks", "fit", "pose", "render")
 

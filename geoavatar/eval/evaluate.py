@@ -50,7 +50,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geoavatar.avatar import TimestepMode, frame_timestep, render_avatar
+from geoavatar.avatar import TimestepMode, render_avatar
 from geoavatar.data import HeadAvatarDataset, evenly_spaced
 from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.errors import OptionError
@@ -64,7 +64,7 @@ from geoavatar.imaging import to_uint8
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import dilation_pixels, rasterize_mesh
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
-from geoavatar.train.frame_params import FrameParams
+from geoavatar.train.run_frames import RunFrames
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
 from geoavatar.render import composite_target
@@ -183,9 +183,6 @@ class RenderedFrame(NamedTuple):
     T: int | None  # the deformer's time input (None: T = 0)
 
 
-# --- opening the data of a run -------------------------------------------------------------------
-
-
 # --- rendering the frames of a run ---------------------------------------------------------------
 
 
@@ -197,18 +194,15 @@ def render_run_frames(
     timestep_mode: TimestepMode = "auto",
     backend: str = "auto",
 ) -> Iterator[RenderedFrame]:
-    """Render frames of `dataset` with the run's avatar (see the module docstring for the rules).
+    """Render frames of `dataset` with the run's avatar: each frame's parameters and T by RunFrames (the rule in the
+    module docstring), a frame outside training with the dataset's own tracked parameters.
 
-    Yields RenderedFrame(index, item, pred, target, vertices) on the device of the run's modules.
+    Yields RenderedFrame(index, item, pred, target, vertices, alpha, params, T) on the device of the run's modules.
     """
-    device = next(run.avatar.parameters()).device
-    train_timesteps = set(run.info.timesteps.get("train", []))
-    refined = FrameParams(run.info.frame_params, refine=False).to(device)
+    frames = RunFrames(run)
     for index in (range(len(dataset)) if indices is None else indices):
-        item = item_to(dataset[index], device)
-        seen = item["timestep"] in train_timesteps
-        params = refined(item["row"]) if seen else HeadParams.from_npz(item["params"])
-        timestep = frame_timestep(item["timestep"], train_timesteps, timestep_mode)
+        item = item_to(dataset[index], frames.device)
+        params, timestep = frames.params(item["timestep"], HeadParams.from_npz(item["params"]), timestep_mode)
         frame = render_avatar(run.avatar, run.head, params, item_camera(item), timestep, run.deformer,
                               item["background"], backend)
         pred = frame.result.rgb.clamp(0.0, 1.0)
@@ -456,21 +450,18 @@ def summarize_by_trained_view(frames: Sequence[FrameMetrics]) -> dict[str, dict]
 def trained_view_directions(run: LoadedRun, dataset: HeadAvatarDataset) -> tuple[Tensor, Tensor]:
     """(rest skull [S, 3], [N, 3] the directions the training frames saw the face from, head axes) with the
     run's refined parameters and the training frames' cameras (no image is read)."""
-    device = next(run.avatar.parameters()).device
-    params = FrameParams(run.info.frame_params, refine=False)
-    rest = rest_skull(run.head, params(0).to(device)).cpu()  # [S, 3]
+    values = RunFrames(run).values  # [T, ...] on the run's device
+    rest = rest_skull(run.head, values.frame(0)).cpu()  # [S, 3]
     records = dataset.subject.frames_of(dataset.split.timesteps("train"))
     if not records:
         return rest, torch.zeros(0, 3, dtype=torch.float64)
-    skull = skull_vertex_ids(run.head).to(device)
+    skull = skull_vertex_ids(run.head).to(values.device)
     viewmats = torch.as_tensor(np.stack([r.viewmat for r in records]))  # [N, 4, 4]
     directions = []
     for start in range(0, len(records), 256):  # a long video's posed meshes at once would take gigabytes
-        rows = torch.as_tensor([r.row for r in records[start:start + 256]])
-        chunk = HeadParams(shape=params.shape, static_offset=params.static_offset,
-                           **{k: v.detach()[rows] for k, v in params.values.items()})
+        rows = torch.as_tensor([r.row for r in records[start:start + 256]], device=values.device)
         with torch.no_grad():
-            posed = run.head.forward_params(chunk.to(device)).vertices[:, skull]  # [B, S, 3]
+            posed = run.head.forward_params(values.rows(rows)).vertices[:, skull]  # [B, S, 3]
         directions.append(view_directions(rest, posed.cpu(), viewmats[start:start + 256]))
     return rest, torch.cat(directions)
 
