@@ -245,6 +245,10 @@ class TrainConfig:
     # training with tiny learning rates (its default, not_finetune_flame_params=False); GeoAvatar
     # follows GaussianAvatars' settings, so it is on in every preset. Test frames are never refined.
     refine_tracking: bool = True
+    # How the refinement steps a frame's parameters: "adam" = torch's Adam over the whole [T, n] tensors, as
+    # GaussianAvatars (a frame drawn once every ~T steps moves on stale momentum in between); "per-frame" = Adam
+    # per row, one step per visit (train/frame_params.RowAdam), the rates then meaning a step per visit.
+    refine_optimizer: Literal["adam", "per-frame"] = "adam"
     # The colour behind the avatar in training, the target composited on the same colour (trainer.step_background):
     # "dataset" = the dataset's one background, as GaussianAvatars; "random" = a uniform random colour per
     # step, so that no Gaussian can lower the loss by showing the background colour (e.g. to carve the

@@ -12,6 +12,10 @@ Parameters (a ParameterDict `params`, every entry [N, ...], names as in the stan
     f_normal   [N, 9]  only with normal_shading: colour += F n, F = f_normal as [3, 3] (RGB x xyz) and n the
                        world direction of the Gaussian's face normal (diffuse shading by lights fixed to the
                        world, i.e. to a fixed dataset camera while the head turns)
+    f_expr     [N, 3K] only with expression blendshapes (avatar/expression.py): colour += E c, E = f_expr as
+                       [3, K] and c [K] the frame's expression code (wrinkles, folds, shadows of an expression)
+    means_expr [N, 3K] only with expression blendshapes: local mean += M c, M = means_expr as [3, K], in the
+                       face-scale units of `means` (what the head model's expression modes do not reach)
 Buffers: binding [N] (face index, int64), faces [F, 3].
 """
 
@@ -26,7 +30,8 @@ from geoavatar.avatar.binding import GlobalGaussians, face_frames, local_to_glob
 
 SH_C0 = 0.28209479177387814  # Y_0^0
 GAUSSIAN_PARAM_NAMES = ("means", "quats", "scales", "f_dc", "opacities")
-OPTIONAL_PARAM_NAMES = ("f_normal",)  # present only when the avatar has them (normal_shading)
+# present only when the avatar has them: f_normal with normal_shading, f_expr / means_expr with expression blendshapes
+OPTIONAL_PARAM_NAMES = ("f_normal", "f_expr", "means_expr")
 
 
 def param_names(params) -> tuple[str, ...]:
@@ -62,7 +67,8 @@ def initial_gaussian_params(num_faces: int, init_opacity: float = 0.1, device=No
 class GaussianAvatar(nn.Module):
     """Gaussians rigged to the faces of a head model."""
 
-    def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1, normal_shading: bool = False):
+    def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1, normal_shading: bool = False,
+                 expression_dims: int = 0):
         super().__init__()
         faces = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces, dtype=torch.long)
         if faces.dim() != 2 or faces.shape[1] != 3:
@@ -71,6 +77,9 @@ class GaussianAvatar(nn.Module):
         init = initial_gaussian_params(faces.shape[0], init_opacity)
         if normal_shading:  # no shading at the start: the SH-0 colour alone
             init["f_normal"] = torch.zeros(faces.shape[0], 9)
+        if expression_dims > 0:  # zero blendshapes at the start: every expression looks like the neutral avatar
+            init["f_expr"] = torch.zeros(faces.shape[0], 3 * expression_dims)
+            init["means_expr"] = torch.zeros(faces.shape[0], 3 * expression_dims)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in init.items()})
         self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
 
@@ -86,18 +95,26 @@ class GaussianAvatar(nn.Module):
         """[F] number of Gaussians bound to each face."""
         return torch.bincount(self.binding, minlength=self.num_faces)
 
-    def forward(self, vertices: Tensor) -> GlobalGaussians:
-        """vertices [V, 3] or [B, V, 3] posed head vertices -> Gaussians in the same space ([N,...] or [B,N,...])."""
+    def forward(self, vertices: Tensor, code: Tensor | None = None) -> GlobalGaussians:
+        """vertices [V, 3] or [B, V, 3] posed head vertices -> Gaussians in the same space ([N,...] or [B,N,...]).
+
+        code [K]: the frame's expression code (avatar/expression.py), used by the expression blendshapes when the
+        avatar has them (None: the neutral code, no blendshape); one frame at a time (vertices [V, 3])."""
         frames = face_frames(vertices, self.faces)
         p = self.params
-        means, quats, scales = local_to_global(p["means"], p["quats"], p["scales"], self.binding, frames)
+        local_means, colour_offset = p["means"], None
+        if code is not None and "f_expr" in p:
+            local_means = p["means"] + self.blendshape(p["means_expr"], code)  # [N, 3]
+            colour_offset = self.blendshape(p["f_expr"], code)  # [N, 3]
+        means, quats, scales = local_to_global(local_means, p["quats"], p["scales"], self.binding, frames)
         if "f_normal" in p:
             # The face normal in world axes (detached: shading must not pull the geometry or the tracking).
             normal = frames.rotation[..., self.binding, :, 1].detach()  # [(B,) N, 3]
             shading = (p["f_normal"].view(-1, 3, 3) * normal[..., None, :]).sum(-1)  # [(B,) N, 3]
-            colors = (SH_C0 * p["f_dc"] + 0.5 + shading).clamp_min(0.0)
+            colors = SH_C0 * p["f_dc"] + 0.5 + shading
         else:
-            colors = sh_dc_to_rgb(p["f_dc"])
+            colors = SH_C0 * p["f_dc"] + 0.5
+        colors = (colors if colour_offset is None else colors + colour_offset).clamp_min(0.0)
         return GlobalGaussians(
             means=means,
             quats=quats,
@@ -110,6 +127,19 @@ class GaussianAvatar(nn.Module):
     @property
     def normal_shading(self) -> bool:
         return "f_normal" in self.params
+
+    @property
+    def expression_dims(self) -> int:
+        """K, the length of the expression code the blendshapes take (0: the avatar has none)."""
+        return int(self.params["f_expr"].shape[1]) // 3 if "f_expr" in self.params else 0
+
+    @staticmethod
+    def blendshape(basis: Tensor, code: Tensor) -> Tensor:
+        """basis [N, 3K], code [K] -> [N, 3]: sum_k code_k basis[:, :, k]."""
+        if code.dim() != 1 or basis.shape[1] != 3 * code.shape[0]:
+            raise ValueError(f"GaussianAvatar: the expression code must be [{basis.shape[1] // 3}] (one frame), got "
+                             f"{tuple(code.shape)}")
+        return basis.view(-1, 3, code.shape[0]) @ code.to(basis.dtype)
 
     def polar(self, two_sided: bool = False) -> tuple[Tensor, Tensor]:
         """r [N], phi [N] of the local means (see binding.polar_coordinates)."""
@@ -151,6 +181,8 @@ def gaussian_param_groups(params: dict[str, Tensor] | nn.ParameterDict, lr, scen
         "f_dc": lr.features,
         "opacities": lr.opacity,
         "f_normal": lr.features,
+        "f_expr": lr.features,
+        "means_expr": lr.position * scene_extent,  # decays with "means" (the trainer sets both)
     }
     return [{"params": [params[name]], "lr": rates[name], "name": name} for name in param_names(params)]
 

@@ -64,7 +64,7 @@ from geoavatar.io.atomic import atomic_write_json, atomic_write_png
 from geoavatar.render import composite_target
 from geoavatar.runtime import resolve_device
 from geoavatar.train import checkpoint as ckpt
-from geoavatar.train.frame_params import FrameParams
+from geoavatar.train.frame_params import FrameParams, RowAdam
 from geoavatar.train.losses import avatar_loss
 from geoavatar.train.mesh_prior import mesh_prior_losses
 from geoavatar.train.warped_view import turned_view_term
@@ -236,7 +236,11 @@ def build_optimizers(
     lr = config.lr
     # fused: one kernel per tensor (CPU and CUDA), a third of the per-op version's time at 100k Gaussians
     gaussians = torch.optim.Adam(gaussian_param_groups(avatar.params, lr, extent), lr=0.0, eps=lr.adam_eps, fused=True)
-    tracking = (torch.optim.Adam(frames.param_groups(lr), lr=0.0, eps=lr.adam_eps, fused=True) if frames.refine else None)
+    tracking = None
+    if frames.refine and config.refine_optimizer == "per-frame":
+        tracking = RowAdam(frames.param_groups(lr), lr=0.0)
+    elif frames.refine:
+        tracking = torch.optim.Adam(frames.param_groups(lr), lr=0.0, eps=lr.adam_eps, fused=True)
     mouth = (torch.optim.Adam(deformer.parameters(), lr=lr.mouth_deform, eps=MLP_ADAM_EPS, fused=True)
              if deformer is not None else None)
     return {"gaussians": gaussians, "tracking": tracking, "deformer": mouth}
