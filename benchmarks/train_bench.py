@@ -35,7 +35,9 @@ def child(data: str, preset_name: str, resolution: int, steps: int, warmup: int,
 
     from geoavatar.config import preset
     from geoavatar.data.splits import ShortVideoWarning
-    from geoavatar.train.trainer import RunOptions, new_state, open_training_data, train_step
+    from geoavatar.train.options import RunOptions
+    from geoavatar.train.state import new_state, open_training_data
+    from geoavatar.train.trainer import train_step
 
     warnings.simplefilter("ignore", ShortVideoWarning)
     config = preset(preset_name, steps=schedule)

@@ -75,7 +75,12 @@ def child(args) -> dict:
         torch.set_num_threads(args.threads)
     from geoavatar.config import preset
     from geoavatar.data.splits import ShortVideoWarning
-    from geoavatar.train.trainer import RunOptions, new_state, open_training_data, train_step
+    try:  # the trainer split into modules (#29); older trees hold all of it in trainer.py
+        from geoavatar.train.options import RunOptions
+        from geoavatar.train.state import new_state, open_training_data
+    except ImportError:
+        from geoavatar.train.trainer import RunOptions, new_state, open_training_data
+    from geoavatar.train.trainer import train_step
 
     warnings.simplefilter("ignore", ShortVideoWarning)
     config = preset(args.preset, steps=args.schedule)
@@ -108,7 +113,7 @@ def child(args) -> dict:
     if args.mode == "raster":  # the rasterizer alone (fwd + bwd) on the posed Gaussians of frame 0
         from geoavatar.avatar import pose_avatar
         from geoavatar.render import rasterize
-        from geoavatar.train.trainer import item_camera
+        from geoavatar.data.dataset import item_camera
 
         item = data.train_set[0]
         camera = item_camera(item)

@@ -95,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from geoavatar.errors import GeoAvatarError
 
+    _notes_on_one_line()
+
     func = _resolve(entry)
     try:
         parse_argv = getattr(func, "parse_argv", None)  # a command with its own parser (train: defaults follow --preset)
@@ -107,6 +109,27 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{prog}: {_one_line(str(err))}", file=sys.stderr)
         return 2
     return int(result) if isinstance(result, int) else 0
+
+
+def _notes_on_one_line() -> None:
+    """GeoAvatar's own warnings (notes for the user) print as `geoavatar: note: <message>`, without the code line
+    Python adds; every other warning as Python prints it."""
+    import warnings
+
+    from geoavatar.errors import GeoAvatarWarning
+
+    python_show = warnings.showwarning
+    if getattr(python_show, "geoavatar_notes", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, GeoAvatarWarning):
+            print(f"geoavatar: note: {_one_line(str(message))}", file=file or sys.stderr)
+        else:
+            python_show(message, category, filename, lineno, file, line)
+
+    show.geoavatar_notes = True
+    warnings.showwarning = show
 
 
 def _one_line(message: str) -> str:

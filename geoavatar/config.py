@@ -101,11 +101,7 @@ class LossConfig:
     use_angle: bool = True  # L_angle on/off (preset E on; A-D, F, G off)
     lambda_angle: float = 1e-2  # same weight as L_reg: the paper sums both terms
     tau_angle: float = 0.78  # 45 degrees
-    angle_two_sided: bool = False  # False: angle to the +axis (keeps Gaussians above their face)
-    # the axis phi is measured from: "normal" = the face normal (the frame's y, a1); "z" = the frame's
-    # literal z-axis, which in GaussianAvatars' face frame is the in-plane a2 = a0 x a1 (paper Sec. 3
-    # says "positive z-axis" without naming the frame; issue #13 tests both)
-    angle_axis: Literal["normal", "z"] = "normal"
+    angle_two_sided: bool = False  # False: angle to the +normal (keeps Gaussians above their face)
     lambda_scale: float = 1.0  # GaussianAvatars: mean |ReLU(exp(s_local) - 0.6)|
     threshold_scale: float = 0.6
     visible_only: bool = True  # GaussianAvatars averages the regularisers over visible Gaussians
@@ -122,71 +118,27 @@ class WarpedViewConfig:
     the side, so the avatar is asked to show it there too. No ground truth beyond the frame itself; on real videos the
     mesh is the tracker's, so its error moves the warped colours.
 
-    Off by default (weight 0): on the generated subjects weight 0.05 lifted the held-out yaw +-30 views 0.3 dB on
-    average with lower LPIPS, for 1.4x the training time, and moved the front by -0.17..+0.08 dB (-0.32 at 6000
-    steps); larger weights cost it 1-2 dB; the real videos' fronts held (-0.02 dB) with no visible change
-    (BENCHMARKS.md, "Novel views (issue #18, sixth round)")."""
+    Off by default (weight 0): it is for side views, and the front (self re-enactment) never gains from it; larger
+    weights than 0.05 cost the front 1-2 dB (BENCHMARKS.md, "Novel views (issue #18, sixth round)")."""
 
-    weight: float = 0.0  # weight of the mean L1 over the valid pixels of the turned render
+    # Weight of the mean L1 over the valid pixels of the turned render (0: off). Gain at 0.05 on the generated
+    # subjects: held-out yaw +-30 views +0.3 dB on average (up to +0.5), LPIPS 1-8 % lower. Cost: 1.4x the training
+    # time, the front -0.17..+0.08 dB at 1500 steps and -0.32 at 6000; on the real videos no visible change.
+    weight: float = 0.0
     turned_yaw: float = 30.0  # largest |yaw| of the turned camera, degrees (uniform, seeded per step)
     turned_pitch: float = 15.0  # largest |pitch|, degrees
-    every: int = 1  # take the turned camera every this many steps (each costs two mesh z-buffers and a render)
+    # Take the turned camera every this many steps (each costs two mesh z-buffers and a render). Weight 0.2 every 4th
+    # step gave 0.05-every-step's side-view gain for 1.09x the training time, but cost the front 0.2-0.3 dB on two
+    # generated subjects of three.
+    every: int = 1
     # APS parts whose faces lie on skin the head model fits: not the scalp (hair lies centimetres above it), forehead
     # (fringes), ears and neck (hair, collars) or the mouth interior (hidden by the lips)
     parts: tuple[str, ...] = ("face", "nose", "eye_region", "lips")
     depth_tolerance: float = 0.005  # metres behind the training camera's z-buffer that still counts as seen there
     max_angle: float = 70.0  # degrees between a face's normal and the training camera's line of sight, at most
-    # The loss moves only the Gaussians' colours (and their shading), not where they are, how large or how opaque
-    # (hair the head model lacks may cover the skin at the turned camera, which the warp cannot know). Measured: the
-    # front drops as much as with every parameter free (BENCHMARKS.md, issue #18 sixth round), so off.
-    colours_only: bool = False
 
     def active(self, step: int) -> bool:
         return self.weight > 0 and step % self.every == 0
-
-
-@dataclass
-class MeshPriorConfig:
-    """Losses on where the avatar's rendered weight lies relative to the tracked, posed head mesh (issue #18). They need
-    no ground truth (the mesh is the trainer's own posed head), so they work on real videos too. All off by default:
-    on the generated subjects (BENCHMARKS.md, "Novel views (issue #18, fifth round)") lambda_behind 0.1 made the avatar
-    a thin surface on the skin and lowered every view (front -1.9 dB, yaw +-30 -0.8); the turned camera at 0.01 helps
-    side views on one subject of three and pitch -20 on all, but costs the front 0.2-0.35 dB on most runs.
-
-    Why: a view-independent colour composited from layers at different depths adds up from the training camera only;
-    on generated subjects a tenth of a bare-face pixel's colour came from Gaussians >= 2 cm behind the skin (the far
-    side of the head showing through), and culling them outright cost the front 1 dB. These terms ask the *first*
-    surface to carry the colour instead: the rendered weight of the Gaussians behind the mesh's depth is penalised, so
-    the optimizer can lower it by making the front surface more opaque as well as the hidden layers less."""
-
-    # Weight of the image mean of the rendered (alpha-compositing) weight of Gaussians whose centre lies more than
-    # `margin` behind the posed head mesh's z-buffer at the pixel it projects to, seen from the training camera.
-    lambda_behind: float = 0.0
-    # Metres behind the mesh surface before a Gaussian counts as behind: room for tracking error and for the
-    # Gaussians' own offsets from their faces (the rigid set's few millimetres).
-    margin: float = 0.005
-    # The same behind term at a camera turned about the head (turned_yaw / turned_pitch): a view the video never shows.
-    lambda_turned_behind: float = 0.0
-    # Image mean of the rendered alpha outside the posed mesh's silhouette at the turned camera, the silhouette
-    # dilated by `outside_dilate`: floaters and blobs grown off the head.
-    lambda_turned_outside: float = 0.0
-    # Dilation of that silhouette, as a fraction of the longer image side (10 px at 128 px): room for the hair,
-    # beard and ears the head model lacks.
-    outside_dilate: float = 0.08
-    # Largest |yaw| of the turned camera, degrees: the training camera turned about the head centre
-    # (head.regions.skull_centre) by a uniform random yaw and pitch, a pure function of (seed, step) (resumable).
-    turned_yaw: float = 60.0
-    # Largest |pitch| of the turned camera, degrees.
-    turned_pitch: float = 20.0
-    # Take the turned camera every this many steps (each costs a mesh z-buffer and a render with its backward).
-    turned_every: int = 1
-
-    @property
-    def at_training_camera(self) -> bool:
-        return self.lambda_behind > 0
-
-    def at_turned_camera(self, step: int) -> bool:
-        return (self.lambda_turned_behind > 0 or self.lambda_turned_outside > 0) and step % self.turned_every == 0
 
 
 @dataclass
@@ -249,14 +201,13 @@ class TrainConfig:
     # GaussianAvatars (a frame drawn once every ~T steps moves on stale momentum in between); "per-frame" = Adam
     # per row, one step per visit (train/frame_params.RowAdam), the rates then meaning a step per visit.
     refine_optimizer: Literal["adam", "per-frame"] = "adam"
-    # The colour behind the avatar in training, the target composited on the same colour (trainer.step_background):
+    # The colour behind the avatar in training, the target composited on the same colour (randomness.step_background):
     # "dataset" = the dataset's one background, as GaussianAvatars; "random" = a uniform random colour per
     # step, so that no Gaussian can lower the loss by showing the background colour (e.g. to carve the
     # silhouette) and off-mask pixels ask for transparency, not for that colour.
     background: BackgroundMode = "dataset"
     model: ModelConfig = field(default_factory=ModelConfig)  # the learned avatar
     loss: LossConfig = field(default_factory=LossConfig)  # L = L_rgb + L_reg (+ L_angle, scale loss)
-    mesh_prior: MeshPriorConfig = field(default_factory=MeshPriorConfig)  # rendered weight behind / off the posed mesh
     warped_view: WarpedViewConfig = field(default_factory=WarpedViewConfig)  # the frame warped to a turned camera
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # adaptive density control
     lr: LearningRates = field(default_factory=LearningRates)  # Adam learning rates
@@ -317,13 +268,6 @@ class TrainConfig:
                 problems.append(f"loss.{name} must be >= 0 (got {getattr(self.loss, name)})")
         if not 0.0 <= self.loss.lambda_dssim <= 1.0:
             problems.append(f"loss.lambda_dssim must lie in [0, 1] (got {self.loss.lambda_dssim})")
-        mp = self.mesh_prior
-        for name in ("lambda_behind", "margin", "lambda_turned_behind", "lambda_turned_outside", "outside_dilate",
-                     "turned_yaw", "turned_pitch"):
-            if getattr(mp, name) < 0:
-                problems.append(f"mesh_prior.{name} must be >= 0 (got {getattr(mp, name)})")
-        if mp.turned_every < 1:
-            problems.append(f"mesh_prior.turned_every must be >= 1 (got {mp.turned_every})")
         wv = self.warped_view
         for name in ("weight", "turned_yaw", "turned_pitch", "depth_tolerance"):
             if getattr(wv, name) < 0:
@@ -414,14 +358,15 @@ def preset(name: str = DEFAULT_PRESET, steps: int | None = None) -> TrainConfig:
 
 
 def config_values(config: Any, prefix: str = "") -> dict[str, Any]:
-    """Every leaf field of a (nested) config dataclass by dotted name: {"aps_step": 100000, "loss.tau_rigid": 0.1, ...}."""
+    """Every leaf field of a (nested) config dataclass, or of its asdict() / JSON form, by dotted name:
+    {"aps_step": 100000, "loss.tau_rigid": 0.1, ...}."""
+    items = config.items() if isinstance(config, dict) else ((f.name, getattr(config, f.name)) for f in fields(config))
     out = {}
-    for f in fields(config):
-        value = getattr(config, f.name)
-        if is_dataclass(value):
-            out.update(config_values(value, f"{prefix}{f.name}."))
+    for name, value in items:
+        if is_dataclass(value) or isinstance(value, dict):
+            out.update(config_values(value, f"{prefix}{name}."))
         else:
-            out[f"{prefix}{f.name}"] = value
+            out[f"{prefix}{name}"] = value
     return out
 
 

@@ -20,6 +20,11 @@ class GeoAvatarError(Exception):
     """A problem with the user's input, files, options or machine; the message is one line for them."""
 
 
+class GeoAvatarWarning(UserWarning):
+    """A note for the user that stops nothing (e.g. a stored run holds options removed since); the CLI prints it as
+    one line, `geoavatar: note: <message>`."""
+
+
 class OptionError(GeoAvatarError, ValueError):
     """A command-line option (or the argument that carries it) has a bad value; the message names it."""
 
@@ -54,4 +59,5 @@ def disk_full_error(path, err: OSError, what: str = "") -> DiskFullError:
     return DiskFullError(message + (f"; {what}" if what else ""), err.errno, str(path))
 
 
-__all__ = ["DISK_FULL_ERRNOS", "DiskFullError", "GeoAvatarError", "OptionError", "disk_full_error", "is_disk_full"]
+__all__ = ["DISK_FULL_ERRNOS", "DiskFullError", "GeoAvatarError", "GeoAvatarWarning", "OptionError", "disk_full_error",
+           "is_disk_full"]

@@ -10,7 +10,8 @@ from pathlib import Path
 from geoavatar.config import preset
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.data.synth.generate import SynthConfig, generate_dataset
-from geoavatar.train.trainer import RunOptions, train
+from geoavatar.train.options import RunOptions
+from geoavatar.train.trainer import train
 
 SIZE = 48
 
@@ -40,7 +41,8 @@ def make_untrained_run(data: Path, out: Path, **model) -> Path:
     no rendering. For tests of the apps' plumbing that need no learned appearance. `model`: ModelConfig fields
     to change from preset E's."""
     from geoavatar.train import checkpoint as ckpt
-    from geoavatar.train.trainer import new_state, open_training_data, state_payload
+    from geoavatar.train.checkpoint import state_payload
+    from geoavatar.train.state import new_state, open_training_data
 
     config = preset("E", steps=2)
     config = replace(config, model=replace(config.model, **model))

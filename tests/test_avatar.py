@@ -252,17 +252,19 @@ def test_schedule_resets_opacity_and_stops():
     n = avatar.num_gaussians
     visible = torch.ones(n, dtype=torch.bool)
     face_scale = face_frames(verts, faces).scale
-    binding, report = D.step_post_backward(avatar.params, opt, avatar.binding, state, cfg, 4, face_scale, 1.0,
-                                           torch.zeros(n, 2), visible, None, 64, 64)
+    strategy = D.DensifyStrategy(cfg, 1.0)
+    binding, report = strategy.step_post_backward(avatar.params, opt, state, 4, D.DensifyInfo(
+        avatar.binding, face_scale, torch.zeros(n, 2), visible, None, 64, 64))
     assert report is not None and report["total"] == n
     avatar.binding = binding
-    binding, report = D.step_post_backward(avatar.params, opt, avatar.binding, state, cfg, 6, face_scale, 1.0)
+    binding, report = strategy.step_post_backward(avatar.params, opt, state, 6,
+                                                  D.DensifyInfo(avatar.binding, face_scale))
     assert report is None
     assert torch.sigmoid(avatar.params["opacities"]).max().item() == pytest.approx(0.01, rel=1e-4)
     assert (opt.state[avatar.params["opacities"]]["exp_avg"] == 0).all()
     before = state["grad2d"].clone()
-    D.step_post_backward(avatar.params, opt, avatar.binding, state, cfg, 12, face_scale, 1.0,
-                         torch.ones(n, 2), visible, None, 64, 64)
+    strategy.step_post_backward(avatar.params, opt, state, 12, D.DensifyInfo(
+        avatar.binding, face_scale, torch.ones(n, 2), visible, None, 64, 64))
     assert torch.equal(state["grad2d"], before)  # past `stop`: nothing accumulates
 
 

@@ -24,7 +24,10 @@ from geoavatar.eval import evaluate as evaluate_module
 from geoavatar.eval.evaluate import crop_box, mouth_face_mask, mouth_mask, open_run_dataset, render_run_frames
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.checkpoint import RunError
-from geoavatar.train.trainer import RunOptions, new_state, open_training_data, state_payload, train
+from geoavatar.train.checkpoint import state_payload
+from geoavatar.train.options import RunOptions
+from geoavatar.train.state import new_state, open_training_data
+from geoavatar.train.trainer import train
 
 
 def _options(data: Path, out: Path, name: str) -> RunOptions:

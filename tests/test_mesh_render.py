@@ -7,11 +7,12 @@ import pytest
 import torch
 
 from geoavatar.render.camera import (
-    fov_from_intrinsics, intrinsics_from_fov, look_at, opengl_c2w_to_viewmat, project, viewmat_to_opengl_c2w,
-    world_to_camera,
+    camera_centre, fov_from_intrinsics, intrinsics_from_fov, look_at, opengl_c2w_to_viewmat, project,
+    viewmat_to_opengl_c2w, world_to_camera,
 )
 from geoavatar.render.mesh import (
-    Lighting, box_downsample, face_attribute, interpolate, rasterize_mesh, render_mesh, shade, vertex_normals,
+    Lighting, behind_surface, box_downsample, face_attribute, interpolate, rasterize_mesh, render_mesh, shade,
+    vertex_normals,
 )
 
 W, H = 64, 48
@@ -275,3 +276,25 @@ def test_intrinsics_from_fov_axis():
     with pytest.raises(ValueError, match="fov_deg"):
         intrinsics_from_fov(180.0, 10, 10)
     assert math.isclose(fov_from_intrinsics(K_y, 200, 100, axis="y"), 90.0)
+
+
+def test_camera_centre_is_the_eye_of_each_viewmat():
+    eyes = torch.tensor([[0.1, 0.2, 1.5], [-2.0, 0.5, 0.3], [0.0, -1.0, -3.0]], dtype=torch.float64)  # [3, 3]
+    viewmats = look_at(eyes, torch.zeros(3, dtype=torch.float64))  # [3, 4, 4]
+    torch.testing.assert_close(camera_centre(viewmats), eyes)
+    torch.testing.assert_close(camera_centre(viewmats[1]), eyes[1])  # one matrix: [3]
+
+
+def test_behind_surface_tests_each_point_against_the_depth_where_it_projects():
+    depth = torch.full((4, 4), float("inf"))
+    depth[:, :2] = 1.0  # the left half is covered at z = 1
+    K = torch.tensor([[2.0, 0.0, 2.0], [0.0, 2.0, 2.0], [0.0, 0.0, 1.0]])
+    points = torch.tensor([
+        [-0.5, 0.0, 1.0],    # on the surface
+        [-0.5, 0.0, 1.004],  # within the margin
+        [-0.5, 0.0, 1.05],   # behind it
+        [0.5, 0.0, 1.05],    # behind, but over an uncovered pixel
+        [-5.0, 0.0, 1.05],   # off the image
+        [-0.5, 0.0, -1.0],   # behind the camera
+    ])
+    assert behind_surface(points, depth, K, 0.005).tolist() == [False, False, True, False, False, False]

@@ -27,7 +27,7 @@ from geoavatar.eval.floaters import FloaterConfig, head_silhouette, outside_shar
 from geoavatar.head.regions import skull_centre
 from geoavatar.render import Camera, rasterize
 from geoavatar.render.camera import intrinsics_from_fov, look_at, orbit_viewmat, project, rigid_inverse
-from geoavatar.train.trainer import step_background
+from geoavatar.train.randomness import step_background
 from head_fakes import procedural_head
 
 SIZE = 48

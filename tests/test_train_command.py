@@ -23,7 +23,8 @@ from geoavatar.config import STEP_FIELDS, TrainConfig, config_values, preset
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.train import budget
 from geoavatar.train import checkpoint as ckpt
-from geoavatar.train.trainer import _flatten as _flat, train
+from geoavatar.config import config_values as _flat
+from geoavatar.train.trainer import train
 from test_trainer import STEPS, TOLERANCE, assert_same, learned_tensors, options, small_config, straight_run, subject  # noqa: F401
 
 QUIET = ["--no-progress", "--val-every", "1000", "--ckpt-every", "1000", "--seed", "3"]
@@ -79,6 +80,10 @@ def test_bad_combinations_are_one_line_errors(tmp_path, capsys):
         (["--data", tmp_path, "--out", tmp_path / "r", "--steps", "10", "--config.aps-step", "11"],
          "aps_step must lie in \\[0, steps=10\\] \\(got 11\\)"),
         (["--out", tmp_path / "r", "--extend", "3"], "--extend continues a run, but there is none here"),
+        (["--data", tmp_path, "--out", tmp_path / "r", "--config.mesh-prior.lambda-behind", "0.1"],
+         "--config.mesh-prior.lambda-behind was removed: measured and rejected"),
+        (["--data", tmp_path, "--out", tmp_path / "r", "--config.warped-view.no-colours-only"],
+         "--config.warped-view.no-colours-only was removed"),
     ]:
         code, _, err = geoavatar_train(capsys, *words, "--no-progress")
         assert code == 2 and err.count("\n") == 1 and re.search(pattern, err), (words, err)

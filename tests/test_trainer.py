@@ -20,12 +20,15 @@ import torch
 
 from geoavatar.config import preset
 from geoavatar.avatar import render_avatar
-from geoavatar.data import DatasetError
+from geoavatar.data import DatasetError, HeadAvatarDataset, open_subject
+from geoavatar.data.dataset import item_camera
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.render import composite_target
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train import trainer as trainer_module
-from geoavatar.train.trainer import RunOptions, TrainingDiverged, item_camera, new_state, open_training_data, train
+from geoavatar.train.options import RunOptions
+from geoavatar.train.state import new_state, open_training_data
+from geoavatar.train.trainer import TrainingDiverged, train
 
 STEPS = 4
 
@@ -109,7 +112,7 @@ def straight_run(subject, tmp_path_factory) -> Path:
 
 def mean_l1(subject: Path, head, avatar, deformer, frames) -> float:
     """Mean L1 over the validation frames (fixed training frames, unlike the per-step training loss)."""
-    data = trainer_module.HeadAvatarDataset(trainer_module.open_subject(subject), "val")
+    data = HeadAvatarDataset(open_subject(subject), "val")
     total = 0.0
     with torch.no_grad():
         for i in range(len(data)):
@@ -146,7 +149,7 @@ def test_short_run_lowers_loss_and_writes_loadable_run(subject, straight_run, tm
     log = (straight_run / "train.log").read_text()
     assert "APS at step 2" in log and "validation PSNR" in log
     # Test frames are never refined: their parameters equal the tracked ones.
-    subject_params = trainer_module.open_subject(subject).params
+    subject_params = open_subject(subject).params
     test_rows = [loaded.info.timesteps["all"].index(t) for t in loaded.info.timesteps["test"]]
     assert test_rows and torch.equal(frames.values["expr"][test_rows], subject_params["expr"][test_rows])
 
@@ -282,3 +285,39 @@ def test_init_colour_images_starts_from_the_training_frames_colours(subject, tmp
     assert float(colours[:, 0].mean()) > float(colours[:, 2].mean())  # skin and hair are redder than blue
     with pytest.raises(ValueError, match="init_colour"):
         replace(config, model=replace(config.model, init_colour="white")).validate()
+
+
+# The fields a run wrote before #29 removed them (mesh_prior as it was, with its turned-camera term on).
+OLD_MESH_PRIOR = {"lambda_behind": 0.0, "margin": 0.005, "lambda_turned_behind": 0.01, "lambda_turned_outside": 0.0,
+                  "outside_dilate": 0.08, "turned_yaw": 60.0, "turned_pitch": 20.0, "turned_every": 1}
+
+
+def test_a_run_saved_with_removed_options_loads_and_extends_with_a_one_line_note(straight_run, tmp_path, capsys):
+    import json
+    import shutil
+
+    from geoavatar import cli
+
+    old = tmp_path / "old"
+    shutil.copytree(straight_run, old)
+    last = ckpt.run_checkpoint_path(old, "last")
+    payload = ckpt.load_checkpoint(last)
+    stored = json.loads(payload["config"])
+    stored["mesh_prior"] = OLD_MESH_PRIOR
+    stored["loss"]["angle_axis"] = "normal"
+    stored["warped_view"]["colours_only"] = False
+    payload["config"] = json.dumps(stored)
+    ckpt.save_checkpoint(last, payload)
+
+    with pytest.warns(ckpt.RemovedOptionWarning, match=r"loss\.angle_axis, mesh_prior\.\*, warped_view\.colours_only; "
+                                                        r"this run set mesh_prior\.lambda_turned_behind=0\.01"):
+        loaded = ckpt.load_run(old)
+    assert loaded.config == ckpt.load_run(straight_run).config  # nothing else changes
+    assert cli.main(["train", "--out", str(old), "--extend", "1", "--no-progress"]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "removed" in line]
+    assert len(notes) == 1 and notes[0].startswith(f"geoavatar: note: {last} [config]: ignoring options removed")
+    saved = json.loads(ckpt.load_checkpoint(last)["config"])  # the extension is saved without them
+    assert "mesh_prior" not in saved and "angle_axis" not in saved["loss"] and ckpt.saved_step(last) == STEPS + 1
+    stored["mesh_prior"]["bogus"] = 1  # a key that never existed is still an error
+    with pytest.raises(ckpt.RunError, match=r"unknown key\(s\) mesh_prior"):
+        ckpt.config_from_json(json.dumps(stored), "old")

@@ -103,7 +103,8 @@ def test_trainer_logs_the_warped_view_term_and_the_config_checks_its_options(tmp
     from geoavatar.config import preset
     from geoavatar.data.splits import ShortVideoWarning
     from geoavatar.data.synth.generate import SynthConfig, generate_dataset
-    from geoavatar.train.trainer import RunOptions, train
+    from geoavatar.train.options import RunOptions
+    from geoavatar.train.trainer import train
 
     data = tmp_path / "tiny"
     with warnings.catch_warnings():

@@ -108,7 +108,7 @@ def demo(
     from geoavatar.apps.synth import synth
     from geoavatar.apps.train import TrainArgs, train
     from geoavatar.data.layout import is_layout
-    from geoavatar.train.trainer import RunOptions
+    from geoavatar.train.options import RunOptions
 
     if steps <= 0 or frames < 8 or size < 32 or resolution < 32 or driver_frames < 2:
         raise SystemExit("geoavatar demo: need --steps > 0, --frames >= 8, --size >= 32, --resolution >= 32, "

@@ -23,7 +23,8 @@ from geoavatar.config import (ABLATIONS, DEFAULT_PRESET, PAPER_STEPS, STEP_FIELD
                               preset as make_preset, with_values)
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.errors import GeoAvatarError, OptionError
-from geoavatar.train.trainer import RunOptions, train as run_training
+from geoavatar.train.options import RunOptions
+from geoavatar.train.trainer import train as run_training
 
 
 @dataclass
@@ -74,6 +75,7 @@ class TrainArgs:
 def parse_args(argv: Sequence[str], prog: str = "geoavatar train") -> TrainArgs:
     """TrainArgs from command-line words; the --config.* defaults are those of the --preset given."""
     argv = list(argv)
+    _refuse_removed_options(argv)
     name = _option_value(argv, "--preset")
     defaults = make_preset(name if name in ABLATIONS else DEFAULT_PRESET)
     default = TrainArgs(run=RunOptions(out=tyro.MISSING),
@@ -92,6 +94,21 @@ def _option_value(argv: list[str], option: str) -> str | None:
         elif word.startswith(option + "="):
             value = word.split("=", 1)[1]
     return value
+
+
+def _refuse_removed_options(argv: list[str]) -> None:
+    """OptionError naming a --config.* option that was removed (measured and rejected), instead of tyro's
+    'unrecognized option'."""
+    from geoavatar.train.checkpoint import FIELDS_REMOVED
+
+    for word in argv:
+        if not word.startswith("--config."):
+            continue
+        option = word.split("=", 1)[0]
+        name = option[len("--config."):].replace("-", "_")
+        head, _, last = name.rpartition(".")
+        if name in FIELDS_REMOVED or (last.startswith("no_") and f"{head}.{last[3:]}" in FIELDS_REMOVED):
+            raise OptionError(f"{option} was removed: measured and rejected (docs/REJECTED.md)")
 
 
 def config_options_given(argv: Sequence[str]) -> tuple[str, ...]:

@@ -45,6 +45,7 @@ from geoavatar.data import DatasetError, open_subject
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle, quaternion_to_matrix
 from geoavatar.head.params import HeadParams
+from geoavatar.render.camera import camera_centre
 from geoavatar.train.checkpoint import LoadedRun
 
 EXPR_RANGE = 3.0  # expression offsets in units of the basis (FLAME's coefficients are ~N(0, 1))
@@ -205,7 +206,7 @@ class Viewer:
         except DatasetError:
             return  # no dataset: viser's default camera
         viewmat = camera.viewmat.double()
-        eye = -(viewmat[:3, :3].T @ viewmat[:3, 3])  # camera centre in world
+        eye = camera_centre(viewmat)  # [3] world
         fov = 2.0 * math.atan(0.5 * camera.height / float(camera.K[1, 1]))
         initial = self.server.initial_camera
         initial.position = tuple(float(v) for v in eye)

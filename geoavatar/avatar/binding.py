@@ -33,8 +33,6 @@ from geoavatar.avatar import fused
 from geoavatar.avatar.fused import place_gaussians
 from geoavatar.geometry import matrix_to_quaternion
 
-NORMAL_AXIS = fused.NORMAL_AXIS  # local axis along the face normal (a1)
-Z_AXIS = 2  # the frame's literal z-axis: in-plane a2, perpendicular to the first edge
 _EPS = 1e-12
 
 
@@ -105,9 +103,9 @@ def local_to_global(
                            binding)
 
 
-def polar_coordinates(local_means: Tensor, two_sided: bool = False, axis: int = NORMAL_AXIS) -> tuple[Tensor, Tensor]:
-    """r = |mu| and phi = angle between mu and local `axis` (default the face normal, axis 1), gradient-safe at 0.
+def polar_coordinates(local_means: Tensor, two_sided: bool = False) -> tuple[Tensor, Tensor]:
+    """r = |mu| and phi = angle between mu and the face normal (local axis 1), gradient-safe at 0.
 
     local_means: [N, 3] -> r [N], phi [N] in [0, pi] ([0, pi/2] when two_sided).
     """
-    return fused.polar_coordinates(local_means, two_sided, axis)
+    return fused.polar_coordinates(local_means, two_sided)

@@ -24,7 +24,8 @@ match 3DGS's threshold 2e-4).
 from __future__ import annotations
 
 import math
-from typing import Callable, Iterable, MutableMapping, Optional, Union
+from dataclasses import dataclass
+from typing import Callable, Iterable, MutableMapping, NamedTuple, Optional, Union
 
 import torch
 from torch import Tensor, nn
@@ -309,36 +310,47 @@ def densify_and_prune(
                      "total": int(binding.shape[0])}
 
 
-@torch.no_grad()
-def step_post_backward(
-    params: Params,
-    optimizers: Optimizers,
-    binding: Tensor,
-    state: dict[str, Tensor],
-    cfg: DensifyConfig,
-    step: int,
-    face_scale: Tensor,  # [F]
-    extent: float,
-    means2d_grad: Tensor | None = None,  # [N, 2] pixels
-    visible: Tensor | None = None,  # [N] bool
-    radii: Tensor | None = None,
-    width: int = 0,
-    height: int = 0,
-    generator: torch.Generator | None = None,
-) -> tuple[Tensor, dict[str, int] | None]:
-    """GaussianAvatars' schedule for one step (after backward, before optimizer.step()).
+class DensifyInfo(NamedTuple):
+    """What one rendered step tells densification (gsplat's `info`)."""
 
-    Accumulates statistics while step < stop; densifies+prunes when start < step < stop and
-    step % every == 0; resets opacities when step % reset_opacity_every == 0 (while densifying).
-    Returns the (possibly new) binding and the densification counts when it densified, else None.
-    """
-    report = None
-    if step >= cfg.stop:
+    binding: Tensor  # [N] face of each Gaussian
+    face_scale: Tensor  # [F] face scales k of the rendered frame
+    means2d_grad: Tensor | None = None  # [N, 2] pixels; None: no statistics this step
+    visible: Tensor | None = None  # [N] bool
+    radii: Tensor | None = None  # [N] or [N, 2] pixels
+    width: int = 0
+    height: int = 0
+
+
+@dataclass
+class DensifyStrategy:
+    """GaussianAvatars' schedule as a gsplat-style strategy: what is fixed for a run (the schedule and thresholds,
+    the scene extent, the generator of split samples) is the strategy; `step_post_backward(params, optimizers,
+    state, step, info)` acts on one step."""
+
+    config: DensifyConfig
+    extent: float
+    generator: torch.Generator | None = None
+
+    @torch.no_grad()
+    def step_post_backward(
+        self, params: Params, optimizers: Optimizers, state: dict[str, Tensor], step: int, info: DensifyInfo,
+    ) -> tuple[Tensor, dict[str, int] | None]:
+        """One step's work (after backward; the trainer runs it after the optimizer step, see train/trainer.py).
+
+        Accumulates statistics while step < stop; densifies+prunes when start < step < stop and
+        step % every == 0; resets opacities when step % reset_opacity_every == 0 (while densifying).
+        Returns the (possibly new) binding and the densification counts when it densified, else None.
+        """
+        cfg, binding = self.config, info.binding
+        if step >= cfg.stop:
+            return binding, None
+        report = None
+        if info.means2d_grad is not None and info.visible is not None:
+            accumulate_stats(state, info.means2d_grad, info.visible, info.width, info.height, info.radii)
+        if step > cfg.start and step % cfg.every == 0:
+            binding, report = densify_and_prune(params, optimizers, binding, state, cfg, step, info.face_scale,
+                                                self.extent, self.generator)
+        if step % cfg.reset_opacity_every == 0:
+            reset_opacity(params, optimizers, cfg.reset_opacity_value)
         return binding, report
-    if means2d_grad is not None and visible is not None:
-        accumulate_stats(state, means2d_grad, visible, width, height, radii)
-    if step > cfg.start and step % cfg.every == 0:
-        binding, report = densify_and_prune(params, optimizers, binding, state, cfg, step, face_scale, extent, generator)
-    if step % cfg.reset_opacity_every == 0:
-        reset_opacity(params, optimizers, cfg.reset_opacity_value)
-    return binding, report

@@ -180,17 +180,17 @@ class _PolarCoordinates(torch.autograd.Function):
     """r = |mu|, phi = atan2(|mu_tangent|, mu_normal) (|mu_normal| when two-sided); phi = 0 at the origin."""
 
     @staticmethod
-    def forward(ctx, means: Tensor, two_sided: bool, axis: int):
+    def forward(ctx, means: Tensor, two_sided: bool):
         mu = _soa(means)  # [3, N]
         r = _norm(mu)  # [N]
         tiny = r <= _EPS
-        tangent_axes = [a for a in range(3) if a != axis]
-        normal = mu[axis]
+        tangent_axes = [a for a in range(3) if a != NORMAL_AXIS]
+        normal = mu[NORMAL_AXIS]
         tangent = _norm(mu[tangent_axes])  # [N]
         normal = torch.where(tiny, 1.0, normal.abs() if two_sided else normal)
         tangent = torch.where(tiny, 0.0, tangent)
         ctx.save_for_backward(mu, r, tangent, normal)
-        ctx.two_sided, ctx.axis = two_sided, axis
+        ctx.two_sided = two_sided
         return r, torch.atan2(tangent, normal)
 
     @staticmethod
@@ -204,12 +204,12 @@ class _PolarCoordinates(torch.autograd.Function):
         g_t = torch.where(tangent > 0, g * normal / torch.where(tangent > 0, tangent, 1.0), 0.0)  # d t = mu_t / t
         g_n = -g * tangent
         if ctx.two_sided:
-            g_n = g_n * torch.sign(mu[ctx.axis])
+            g_n = g_n * torch.sign(mu[NORMAL_AXIS])
         for axis in range(3):
-            if axis != ctx.axis:
+            if axis != NORMAL_AXIS:
                 grad[axis] += g_t * mu[axis]
-        grad[ctx.axis] += g_n
-        return grad.t(), None, None
+        grad[NORMAL_AXIS] += g_n
+        return grad.t(), None
 
 
 class _PolarCoordinatesCPU(torch.autograd.Function):
@@ -237,14 +237,12 @@ class _PolarCoordinatesCPU(torch.autograd.Function):
         return grad, None
 
 
-def polar_coordinates(local_means: Tensor, two_sided: bool = False, axis: int = NORMAL_AXIS,
+def polar_coordinates(local_means: Tensor, two_sided: bool = False,
                       native: bool | None = None) -> tuple[Tensor, Tensor]:
-    """r [N], phi [N] of local means [N, 3], phi measured from local `axis` (see binding.polar_coordinates);
-    `native`: the CPU loops (_PolarCoordinatesCPU, the normal axis only), None: where they run."""
+    """r [N], phi [N] of local means [N, 3], phi measured from the face normal (see binding.polar_coordinates);
+    `native`: the CPU loops (_PolarCoordinatesCPU), None: where they run."""
     if native is None:
-        native = axis == NORMAL_AXIS and _native_placement(local_means)
+        native = _native_placement(local_means)
     if native:
-        if axis != NORMAL_AXIS:
-            raise ValueError("the native polar coordinates measure phi from the face normal only")
         return _PolarCoordinatesCPU.apply(local_means, two_sided)
-    return _PolarCoordinates.apply(local_means, two_sided, axis)
+    return _PolarCoordinates.apply(local_means, two_sided)

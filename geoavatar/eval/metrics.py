@@ -4,7 +4,8 @@ Images are channel-last in [0, 1], [H, W, 3] (the renderer's layout); each funct
 pair (the per-frame numbers that the tables average), except `lpips`, which also takes a batch.
 
 - MSE  mean squared error over pixels and channels (data range 1; Table 1 prints it x 1e3).
-- PSNR -10 log10(MSE), data range 1; inf for identical images.
+- PSNR -10 log10(MSE), data range 1; inf for identical images (`geoavatar.train.losses.psnr_from_mse`, which the
+  trainer's log uses too).
 - SSIM the Gaussian-window SSIM (11 x 11, sigma 1.5, K1 0.01, K2 0.03, data range 1) of 3DGS's
   `ssim`, i.e. `geoavatar.train.losses.ssim`: the 3DGS / GaussianAvatars evaluation scores with the
   very function that trains, so we do too (one implementation, no drift). Its border handling is
@@ -17,12 +18,11 @@ pair (the per-frame numbers that the tables average), except `lpips`, which also
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
 from geoavatar.eval.lpips import lpips_model
+from geoavatar.train.losses import psnr_from_mse
 from geoavatar.train.losses import ssim as _ssim_3dgs
 
 
@@ -37,11 +37,6 @@ def mse(pred: Tensor, target: Tensor) -> float:
     """Mean squared error of one image pair [H, W, 3] (float64 accumulation)."""
     _check_pair(pred, target, "mse")
     return float((pred.double() - target.double()).square().mean())
-
-
-def psnr_from_mse(value: float) -> float:
-    """PSNR in dB for data range 1; inf when the images are identical."""
-    return float("inf") if value <= 0.0 else -10.0 * math.log10(value)
 
 
 def psnr(pred: Tensor, target: Tensor) -> float:

@@ -183,6 +183,12 @@ def rigid_inverse(matrix: Tensor) -> Tensor:
     return out
 
 
+def camera_centre(viewmat: Tensor) -> Tensor:
+    """[..., 3] world position of the camera of each world-to-camera `viewmat` [..., 4, 4]: C = -R^T t."""
+    rot, trans = viewmat[..., :3, :3], viewmat[..., :3, 3:]
+    return -(rot.transpose(-1, -2) @ trans).squeeze(-1)
+
+
 def orbit_viewmat(
     viewmat: Tensor,  # [4, 4] world-to-camera, OpenCV axes
     centre: Tensor,  # [3] the point the camera turns about (and then looks at)
@@ -208,7 +214,7 @@ def orbit_cameras(base: "Camera", centre: Tensor, angles: list[tuple[float, floa
     """Cameras turned about `centre` [3] by (yaw, pitch) degrees and aimed at it, at base's distance and focal
     lengths, `centre` in the middle of the image (orbit_viewmat: positive yaw toward the camera's right, positive
     pitch up; centred_intrinsics), on centre's device and dtype. `geoavatar orbit`, eval's side views and the
-    trainer's turned camera (train/mesh_prior.py) place their cameras with it."""
+    warped view's turned camera (train/warped_view.py) place their cameras with it."""
     viewmat = base.viewmat.to(centre)
     K = centred_intrinsics(base.K.to(centre), base.width, base.height)
     return [Camera(orbit_viewmat(viewmat, centre, yaw, pitch), K, base.width, base.height) for yaw, pitch in angles]
@@ -226,6 +232,6 @@ def _homogeneous(matrix: Tensor, name: str) -> Tensor:
 
 __all__ = [
     "Camera", "look_at", "intrinsics_from_fov", "centred_intrinsics", "fov_from_intrinsics", "world_to_camera", "project",
-    "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "scale_intrinsics",
+    "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "camera_centre", "scale_intrinsics",
     "orbit_viewmat", "orbit_cameras",
 ]

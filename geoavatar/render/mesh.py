@@ -277,6 +277,23 @@ def interpolate(
     return _scatter_to_image(values, mask, background, vertex_attrs.shape[-1])
 
 
+def behind_surface(
+    points_cam: Tensor,  # [N, 3] camera coordinates (OpenCV axes)
+    surface_depth: Tensor,  # [H, W] camera z of the visible surface, +inf where none (Fragments.depth)
+    K: Tensor,  # [3, 3]
+    margin: float,  # same unit as the depths
+) -> Tensor:
+    """[N] bool: the point lies more than `margin` behind the surface at the pixel it projects to. Points off the
+    image, behind the camera or over pixels the surface does not cover are never behind."""
+    height, width = surface_depth.shape
+    z = points_cam[:, 2]  # [N]
+    uv = (points_cam @ K.to(points_cam).T)[:, :2] / z.clamp_min(1e-6)[:, None]  # [N, 2] pixels
+    px, py = uv[:, 0].floor().long(), uv[:, 1].floor().long()  # [N]
+    inside = (z > 0) & (px >= 0) & (px < width) & (py >= 0) & (py < height)
+    surface = surface_depth[py.clamp(0, height - 1), px.clamp(0, width - 1)]  # [N]
+    return inside & (z > surface + margin)
+
+
 def face_attribute(
     fragments: Fragments,
     face_attrs: Tensor,  # [F, C] per-face attributes (flat colours, part labels, ...)
@@ -449,7 +466,7 @@ def render_mesh(
 
 
 __all__ = [
-    "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "dilate_mask", "dilation_pixels", "vertex_normals",
-    "face_normals",
+    "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "behind_surface", "dilate_mask", "dilation_pixels",
+    "vertex_normals", "face_normals",
     "Lighting", "shade", "MeshImage", "render_mesh", "box_downsample", "scale_intrinsics",
 ]

@@ -33,6 +33,7 @@ import torch
 
 from geoavatar.config import TrainConfig
 from geoavatar.errors import OptionError
+from geoavatar.train.options import CKPT_EVERY_FRACTION, VAL_EVERY_FRACTION, default_interval
 
 GROWTH = 6.0  # expected Gaussian count at the end of densification / the initial count (see above)
 GROWN = 4  # the warm-up times steps at this multiple of the initial count (two splits of every Gaussian)
@@ -94,8 +95,8 @@ def mean_step_seconds(config: TrainConfig, seconds_initial: float, seconds_grown
 def overhead_seconds(steps: int, val_every: int | None, ckpt_every: int | None, validation: float,
                      checkpoint: float) -> float:
     """Validation images and checkpoints of a run of `steps` steps (the trainer's defaults: every 5 %)."""
-    val = val_every or max(1, int(round(steps * 0.05)))
-    ckpt = ckpt_every or max(1, int(round(steps * 0.05)))
+    val = val_every or default_interval(steps, VAL_EVERY_FRACTION)
+    ckpt = ckpt_every or default_interval(steps, CKPT_EVERY_FRACTION)
     return (steps // val + 1) * validation + (steps // ckpt + 2) * checkpoint
 
 
@@ -139,15 +140,15 @@ def plan_budget(options, base: TrainConfig, minutes: float, keep: Iterable[str] 
     paper's schedule plus the user's overrides, before scaling; `keep`: its milestones not to scale) and
     choose the steps that fit `minutes`. OptionError when not even one step fits."""
     from geoavatar.avatar import densify as densify_ops
-    from geoavatar.train import trainer
+    from geoavatar.train import checkpoint, state as training_state, trainer
 
     keep = tuple(keep)
     started = clock()
-    data = trainer.open_training_data(options, base)
+    data = training_state.open_training_data(options, base)
     open_seconds = clock() - started
     # no densification and no APS during the warm-up: it times plain steps at two known counts
     warm = replace(base, aps_step=2**62, densify=replace(base.densify, stop=0))
-    state = trainer.new_state(data, warm, options.seed)
+    state = training_state.new_state(data, warm, options.seed)
     gaussians = state.avatar.num_gaussians
 
     def timed(first: int) -> float:
@@ -170,7 +171,7 @@ def plan_budget(options, base: TrainConfig, minutes: float, keep: Iterable[str] 
     trainer.validation_image(data, state)
     validation = clock() - before
     before = clock()
-    torch.save(trainer.state_payload(state, data, warm, options), io.BytesIO())
+    torch.save(checkpoint.state_payload(state, data, warm, options), io.BytesIO())
     checkpoint = clock() - before
     warmup = clock() - started
     del state, data

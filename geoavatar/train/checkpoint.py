@@ -1,4 +1,4 @@
-"""Checkpoints and the RUN folder of `geoavatar train`: atomic writes, safe loading, `load_run`.
+"""Checkpoints and the RUN folder of `geoavatar train`: the checkpoint schema, atomic writes, safe loading, `load_run`.
 
 RUN layout (what later commands — eval, render, reenact, export — read):
 
@@ -26,7 +26,11 @@ loads with `torch.load(weights_only=True)`: a checkpoint from someone else canno
     densify_stats                  {grad2d, count, max_radii} [N]
     aps, face_sets                 APSState.to_dict(); [F] regulariser set of every face
     extent                         scene extent (metres) used by the position lr and densification
-    rng                            torch / cuda / numpy / python / trainer generator states
+    rng                            torch / cuda / numpy / python / trainer generator states (train/randomness.py)
+
+`state_payload` writes these from a training run's state (train/state.py) and `restore_state` reads them back for an
+exact resume; `load_run` reads what eval and the apps need. A stored configuration reads fields it predates with the
+values it was trained with (FIELDS_ADDED_LATER) and drops options removed since (FIELDS_REMOVED), with a note.
 
 Every write goes through geoavatar.io.atomic (temporary file in the same folder, os.replace), so a
 killed process leaves either the old or the new file, never a torn one; a full disk raises
@@ -40,6 +44,7 @@ import io
 import json
 import os
 import typing
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -48,8 +53,13 @@ import torch
 
 from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
-from geoavatar.errors import DiskFullError, GeoAvatarError, disk_full_error
-from geoavatar.io.atomic import atomic_write_bytes
+from geoavatar.errors import DiskFullError, GeoAvatarError, GeoAvatarWarning, disk_full_error
+from geoavatar.io.atomic import atomic_write_bytes, atomic_write_json
+from geoavatar.train.randomness import restore_rng, rng_state
+
+if typing.TYPE_CHECKING:
+    from geoavatar.train.options import RunOptions
+    from geoavatar.train.state import TrainingData, TrainingState
 
 FORMAT = "geoavatar-checkpoint"
 VERSION = 1
@@ -87,12 +97,19 @@ def last_good_checkpoint(failed: str | os.PathLike) -> str:
     failed = Path(failed)
     for candidate in (failed, failed.with_name(LAST_CHECKPOINT)):  # final.pt failing: last.pt holds the same step
         if candidate.is_file():
-            try:
-                step = f" (step {int(load_checkpoint(candidate)['step'])})"
-            except (RunError, KeyError, TypeError, ValueError):
-                step = " (unreadable)"
-            return f"last good checkpoint: {candidate}{step}"
+            step = saved_step(candidate)
+            return f"last good checkpoint: {candidate} ({'unreadable' if step is None else f'step {step}'})"
     return "last good checkpoint: none written yet"
+
+
+def saved_step(path: str | os.PathLike) -> int | None:
+    """The number of finished steps the checkpoint at `path` holds; None when there is none or it is unreadable."""
+    if not Path(path).is_file():
+        return None
+    try:
+        return int(load_checkpoint(path)["step"])
+    except (RunError, KeyError, TypeError, ValueError):
+        return None
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
@@ -143,16 +160,135 @@ def dataclass_from_dict(cls: type, data: dict, where: str = "config") -> Any:
 FIELDS_ADDED_LATER: dict[str, dict[str, Any]] = {"model": {"normal_shading": False, "init_colour": "grey"}}
 
 
+# Options removed after runs had been written (measured and rejected: docs/REJECTED.md), by dotted name, with the value
+# at which the option changed nothing (None: any value, a setting of a removed term). A stored configuration holding
+# them loads without them, with a one-line note (RemovedOptionWarning); SECTIONS_REMOVED go when nothing is left.
+FIELDS_REMOVED: dict[str, Any] = {
+    "loss.angle_axis": "normal",
+    "warped_view.colours_only": False,
+    "mesh_prior.lambda_behind": 0.0, "mesh_prior.lambda_turned_behind": 0.0, "mesh_prior.lambda_turned_outside": 0.0,
+    "mesh_prior.margin": None, "mesh_prior.outside_dilate": None, "mesh_prior.turned_yaw": None,
+    "mesh_prior.turned_pitch": None, "mesh_prior.turned_every": None,
+}
+SECTIONS_REMOVED = ("mesh_prior",)
+
+
+class RemovedOptionWarning(GeoAvatarWarning):
+    """A stored configuration holds options that no longer exist; it loads without them."""
+
+
+def drop_removed_fields(data: dict, where: str) -> list[str]:
+    """Remove FIELDS_REMOVED from a stored configuration's dict (in place), with a note; the dotted names dropped."""
+    dropped, active = [], []
+    for name, inert in FIELDS_REMOVED.items():
+        section, _, key = name.partition(".")
+        block = data.get(section)
+        if isinstance(block, dict) and key in block:
+            value = block.pop(key)
+            dropped.append(name)
+            if inert is not None and value != inert:
+                active.append(f"{name}={value!r}")
+    for section in SECTIONS_REMOVED:
+        if data.get(section) == {}:
+            del data[section]
+    if dropped:
+        names = sorted({f"{name.partition('.')[0]}.*" if name.partition('.')[0] in SECTIONS_REMOVED else name
+                        for name in dropped})
+        used = (f"this run set {', '.join(active)}, which it now trains and renders without" if active
+                else "none of them was on in this run")
+        warnings.warn(f"{where}: ignoring options removed as measured and rejected (docs/REJECTED.md): "
+                      f"{', '.join(names)}; {used}", RemovedOptionWarning, stacklevel=3)
+    return dropped
+
+
 def config_from_json(text: str, where: str = "config") -> TrainConfig:
-    """A stored TrainConfig; fields it predates (FIELDS_ADDED_LATER) take the value it was trained with."""
+    """A stored TrainConfig; fields it predates (FIELDS_ADDED_LATER) take the value it was trained with, fields
+    removed since (FIELDS_REMOVED) are dropped with a note."""
     try:
         data = json.loads(text)
+        if isinstance(data, dict):
+            drop_removed_fields(data, where)
         for section, added in FIELDS_ADDED_LATER.items():
             if isinstance(data, dict) and isinstance(data.get(section), dict):
                 data[section] = {**added, **data[section]}
         return dataclass_from_dict(TrainConfig, data, where).validate()
     except (json.JSONDecodeError, TypeError, ValueError) as err:
         raise RunError(f"{where}: not a valid training configuration ({err})") from err
+
+
+# --- a training run's state ------------------------------------------------------------------
+
+
+def state_payload(state: "TrainingState", data: "TrainingData", config: TrainConfig, options: "RunOptions") -> dict:
+    """The checkpoint of a training run (the keys of the module docstring, but for format, version and record)."""
+    return {
+        "step": int(state.step),
+        "config": json.dumps(config_to_dict(config)),
+        "run": json.dumps(options.to_json()),
+        "dataset": data.dataset_record(),
+        "avatar": state.avatar.state_dict(),
+        "deformer": state.deformer.state_dict() if state.deformer is not None else None,
+        "num_frames": int(data.num_frames),
+        "frame_params": state.frames.as_dict(),
+        "refine_tracking": bool(state.frames.refine),
+        "optimizers": {name: (opt.state_dict() if opt is not None else None) for name, opt in state.optimizers.items()},
+        "densify_stats": {k: v.detach().clone() for k, v in state.stats.items()},
+        "aps": state.aps.to_dict(),
+        "face_sets": state.face_sets.detach().cpu().clone(),
+        "extent": float(data.extent),
+        "rng": rng_state(state.generator),
+    }
+
+
+def restore_state(payload: dict, data: "TrainingData", config: TrainConfig, where: str) -> "TrainingState":
+    """The TrainingState saved in `payload` (a loaded checkpoint), on data.device; RunError naming `where` when the
+    checkpoint does not fit the configuration or the dataset. Sets data.extent to the saved one."""
+    from geoavatar.avatar import APSState, GaussianAvatar, MouthDeformer
+    from geoavatar.train.frame_params import FrameParams
+    from geoavatar.train.state import TrainingState, build_optimizers
+
+    device = data.device
+    try:
+        avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity, config.model.normal_shading)
+        avatar.load_state_dict(payload["avatar"])
+        avatar = avatar.to(device)
+        deformer = None
+        if config.model.mouth_deform.enabled:
+            if payload.get("deformer") is None:
+                raise RunError(f"{where}: the config enables the mouth deformer but the checkpoint has none")
+            deformer = MouthDeformer.for_head(data.head, int(payload["num_frames"]), config.model.mouth_deform)
+            deformer.load_state_dict(payload["deformer"])
+            deformer = deformer.to(device)
+        frames = FrameParams(payload["frame_params"], refine=bool(payload["refine_tracking"])).to(device)
+        if frames.num_rows != data.subject.num_timesteps:
+            raise RunError(f"{where}: the checkpoint has parameters of {frames.num_rows} frames, the dataset "
+                           f"{data.subject.root} has {data.subject.num_timesteps}")
+        optimizers = build_optimizers(avatar, deformer, frames, config, float(payload["extent"]))
+        for name, opt in optimizers.items():
+            saved = payload["optimizers"].get(name)
+            if (opt is None) != (saved is None):
+                raise RunError(f"{where}: optimizer '{name}' does not match the configuration")
+            if opt is not None:
+                opt.load_state_dict(saved)
+        stats = {k: v.to(device) for k, v in payload["densify_stats"].items()}
+        aps = APSState.from_dict(payload["aps"])
+        generator = torch.Generator(device=device)
+        restore_rng(payload["rng"], generator)
+    except KeyError as err:
+        raise RunError(f"{where}: checkpoint lacks the entry {err}") from err
+    data.extent = float(payload["extent"])
+    return TrainingState(
+        avatar=avatar, deformer=deformer, frames=frames, optimizers=optimizers, stats=stats, aps=aps,
+        face_sets=payload["face_sets"].to(device), generator=generator, step=int(payload["step"]),
+    )
+
+
+def write_aps_report(run_dir: Path, aps: Any, config: TrainConfig) -> None:
+    """RUN/aps.json: the APS decision (APSState `aps`), or why there is none."""
+    body = {"face_sets": config.model.face_sets, "aps_step": config.aps_step, **aps.to_dict(),
+            "report": aps.report() if config.model.face_sets == "aps"
+            else f"APS not used: face_sets = '{config.model.face_sets}'"}
+    atomic_write_json(run_dir / APS_FILE, body)
 
 
 # --- loading a finished (or interrupted) run --------------------------------------------------
@@ -296,7 +432,8 @@ def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None 
 
 __all__ = [
     "APS_FILE", "CHECKPOINT_DIR", "CONFIG_FILE", "FINAL_CHECKPOINT", "LAST_CHECKPOINT", "LOG_FILE", "VAL_DIR",
-    "LoadedRun", "RunError", "RunInfo", "last_good_checkpoint", "open_run_dataset",
-    "FIELDS_ADDED_LATER", "config_from_json", "config_to_dict", "dataclass_from_dict", "load_checkpoint", "load_head_for", "load_run",
-    "run_checkpoint_path", "save_checkpoint",
+    "FIELDS_ADDED_LATER", "FIELDS_REMOVED", "LoadedRun", "RemovedOptionWarning", "RunError", "RunInfo",
+    "config_from_json", "config_to_dict", "dataclass_from_dict", "drop_removed_fields", "last_good_checkpoint",
+    "load_checkpoint", "load_head_for", "load_run", "open_run_dataset", "restore_state", "run_checkpoint_path",
+    "save_checkpoint", "saved_step", "state_payload", "write_aps_report",
 ]

@@ -13,6 +13,7 @@ Images are channel-last, [H, W, C] or [B, H, W, C], values in [0, 1] (the render
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import torch
@@ -20,7 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from geoavatar.avatar.aps import BASELINE, FLEXIBLE, MOUTH, RIGID
-from geoavatar.avatar.binding import NORMAL_AXIS, Z_AXIS, polar_coordinates
+from geoavatar.avatar.binding import polar_coordinates
 from geoavatar.config import LossConfig
 
 
@@ -66,6 +67,11 @@ def ssim(image: Tensor, target: Tensor, window_size: int = 11, sigma: float = 1.
     c1, c2 = 0.01**2, 0.03**2
     ssim_map = ((2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2))
     return ssim_map.mean()
+
+
+def psnr_from_mse(value: float) -> float:
+    """PSNR in dB for data range 1; inf when the images are identical (the trainer's log and eval's tables)."""
+    return float("inf") if value <= 0.0 else -10.0 * math.log10(value)
 
 
 def rgb_loss(image: Tensor, target: Tensor, lambda_dssim: float = 0.2) -> tuple[Tensor, Tensor, Tensor]:
@@ -121,8 +127,7 @@ def regularization_losses(
 ) -> dict[str, Tensor]:
     """Weighted regularisers {"reg", "angle", "scale"} (already multiplied by their lambdas)."""
     mask = visible if cfg.visible_only else None
-    axis = NORMAL_AXIS if cfg.angle_axis == "normal" else Z_AXIS
-    r, phi = polar_coordinates(local_means, two_sided=cfg.angle_two_sided, axis=axis)
+    r, phi = polar_coordinates(local_means, two_sided=cfg.angle_two_sided)
     tau = set_thresholds(cfg, local_means.device)[face_sets.to(local_means.device)[binding]]  # [N]
     out = {"reg": cfg.lambda_reg * position_loss(r, tau, mask)}
     if cfg.use_angle:

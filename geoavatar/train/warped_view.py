@@ -30,9 +30,10 @@ from torch import Tensor
 from geoavatar.avatar.binding import GlobalGaussians
 from geoavatar.avatar.render import rasterize_gaussians
 from geoavatar.config import WarpedViewConfig
-from geoavatar.render.camera import Camera, rigid_inverse, world_to_camera
-from geoavatar.render.mesh import interpolate, rasterize_mesh
-from geoavatar.train.mesh_prior import behind_surface, turned_angles, turned_camera
+from geoavatar.head.regions import skull_centre
+from geoavatar.render.camera import Camera, camera_centre, orbit_cameras, world_to_camera
+from geoavatar.render.mesh import behind_surface, interpolate, rasterize_mesh
+from geoavatar.train.randomness import turned_angles
 
 
 class WarpedView(NamedTuple):
@@ -68,9 +69,8 @@ def warp_to_camera(
     inside = ((in_source[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < source.width)
               & (uv[:, 1] >= 0) & (uv[:, 1] < source.height))
     visible = inside & ~behind_surface(in_source, seen_s.depth, src_K, depth_tolerance)  # [h*w] not hidden there
-    camera_centre = rigid_inverse(src_view)[:3, 3]  # [3] world
     normal = normals.detach().to(vertices)[face_id].reshape(-1, 3)  # [h*w, 3]
-    to_camera = F.normalize(camera_centre - points.reshape(-1, 3), dim=-1)
+    to_camera = F.normalize(camera_centre(src_view) - points.reshape(-1, 3), dim=-1)
     facing = (normal * to_camera).sum(-1) >= math.cos(math.radians(max_angle))
     grid = torch.stack([uv[:, 0] / source.width, uv[:, 1] / source.height], -1) * 2.0 - 1.0  # align_corners=False
     sampled = F.grid_sample(torch.cat([image, mask[..., None]], -1).permute(2, 0, 1)[None].to(vertices),
@@ -100,15 +100,14 @@ def turned_view_term(
     step: int,
     backend: str = "auto",
 ) -> Tensor:
-    """config.weight x warped_view_loss at `step`'s turned camera (turned_angles of mesh_prior, its own ranges)."""
+    """config.weight x warped_view_loss at `step`'s turned camera: the training camera turned about the posed head's
+    centre by a seeded random yaw / pitch and aimed at it with the principal point mid-image, as `geoavatar orbit`
+    and eval's side views turn it."""
     yaw, pitch = turned_angles(config.turned_yaw, config.turned_pitch, seed, step)
-    view = turned_camera(camera, vertices, head, yaw, pitch)
+    view = orbit_cameras(camera, skull_centre(vertices.detach(), head), [(yaw, pitch)])[0]
     normals = gaussians.frames.rotation[..., :, 1]  # [F, 3]
     warped = warp_to_camera(item["image"], item["mask"][..., 0], vertices, head.faces, normals, usable_faces, camera,
                             view, config.depth_tolerance, config.max_angle)
-    if config.colours_only:
-        gaussians = gaussians._replace(means=gaussians.means.detach(), quats=gaussians.quats.detach(),
-                                       scales=gaussians.scales.detach(), opacities=gaussians.opacities.detach())
     render = rasterize_gaussians(gaussians, view, background, backend, check_values=False).rgb
     return config.weight * warped_view_loss(render, warped)
 
