@@ -83,6 +83,10 @@ class ModelConfig:
     # training frames, head-on views weighted most, unseen faces from the nearest seen one
     # (avatar/colour_init.py); or "grey" (GaussianAvatars, the paper; `--config.model.init-colour grey`).
     init_colour: InitColour = "images"
+    # Expression blendshapes of the Gaussians (ours, issue #27; avatar/expression.py): each Gaussian's colour and local
+    # mean move linearly with the frame's expression code (the head model's leading expression coefficients, jaw and
+    # eyes), so wrinkles, folds and shapes the expression modes do not reach follow the expression.
+    expression_blendshapes: bool = False
     mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
     face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
     mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation

@@ -83,6 +83,14 @@ class GaussianAvatar(nn.Module):
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in init.items()})
         self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
 
+    @classmethod
+    def for_model(cls, head, model) -> "GaussianAvatar":
+        """The avatar a `config.ModelConfig` describes, bound to `head`'s faces (one Gaussian per face)."""
+        from geoavatar.avatar.expression import expression_code_dims
+
+        dims = expression_code_dims(head.num_expr) if model.expression_blendshapes else 0
+        return cls(head.faces.cpu(), model.init_opacity, model.normal_shading, dims)
+
     @property
     def num_faces(self) -> int:
         return int(self.faces.shape[0])
