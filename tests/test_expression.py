@@ -59,7 +59,8 @@ def test_blendshapes_move_colour_and_mean_linearly_with_the_code_and_follow_dens
     avatar.binding = D.clone_gaussians(avatar.params, opt, avatar.binding, pick)
     assert avatar.params["means_expr"].shape == (avatar.num_gaussians, 3 * k)
     assert torch.equal(avatar.params["f_expr"][:, 0].round().long(), avatar.binding)
-    avatar(verts, code).colors.sum().backward()
+    out = avatar(verts, code)
+    (out.colors.sum() + out.means.sum()).backward()
     assert avatar.params["f_expr"].grad.abs().sum() > 0 and avatar.params["means_expr"].grad.abs().sum() > 0
     fresh = GaussianAvatar(faces, expression_dims=k)
     fresh.load_state_dict(avatar.state_dict())
