@@ -9,19 +9,14 @@ runs offline:
 - person: MediaPipe selfie segmentation (general model, soft probabilities, sharp at the
   silhouette), the matting-like term; it removes the background;
 - head_region: a soft region built from the 478 landmarks, the parsing-like term; it removes the
-  clothes and shoulders. With u = the face's up direction (chin 152 -> forehead 10) and H = the
-  forehead-chin distance, it is everything above a line across the face's up axis CHIN_MARGIN x H
-  below the chin (the head, all of the hair however long or wide, the ears), joined by a neck band
-  below it: a quadrilateral from the jaw-angle points (ids 172 / 397, pulled 15 % towards the
-  mid-line) down to 0.3 H below the chin. The union is blurred (sigma = 2 % of H) so its edge is
-  soft; above the chin line the person mask alone decides the silhouette.
-
-  Why no outline around the head (issue #27): an earlier rule stretched the face oval (1.5 x sideways,
-  1.9 x up) and cut everything outside it. Long hair crosses such an outline, and a cut through hair
-  along a 2D shape drawn on each frame is nothing a 3D avatar can reproduce: on an expressive video
-  with shoulder-length hair (d3.mp4) 68 % of the training frames' squared error lay in a band of 1 %
-  of the image side around the mask's edge, against 2 % on the face (BENCHMARKS.md). The silhouette
-  of hair against the background is a real 3D edge the avatar can learn.
+  clothes and shoulders. With u = the face's up direction (chin 152 -> forehead 10), H = the
+  forehead-chin distance and c = the mean of the face-oval points, every face-oval point p is moved
+  to c + l * lateral(p - c) + s * up(p - c): above c, l = 1.5 (ears, hair of a turned head) and
+  s = 1.9 (hair and the skull; stretched so that the top reaches at least 1.9 x 0.65 face widths,
+  because a bowed head foreshortens the forehead), below c, l = 1.3 and s = 1.05 (the jaw line). A neck band joins it: a quadrilateral from the jaw-angle points
+  (ids 172 / 397, pulled 15 % towards the mid-line) down to 0.3 H below the chin. The union is
+  filled and blurred (sigma = 2 % of H) so its edge is soft; where it is generous (hair, sides) the
+  person mask decides the silhouette.
 
 Anything below the neck band (collar, shirt, shoulders) and the background get 0. The rule cannot
 tell a turtleneck from a neck; that is the documented limit. An optional better matting backend can
@@ -36,8 +31,11 @@ import numpy as np
 from geoavatar.head import landmarks_mediapipe as mpids
 from geoavatar.prep.landmarks import _mediapipe, _quiet_native_logs
 
-CHIN_MARGIN = 0.05  # the head region's lower edge lies this far below the chin, in face heights
-FAR = 10.0  # the head region's other edges lie this many face heights away (outside any frame)
+HAIR_SCALE = 1.9
+HAIR_MIN_REACH = 0.65  # the oval's top above c, before HAIR_SCALE, is at least this many face widths
+JAW_SCALE = 1.05
+LATERAL_SCALE = 1.3
+LATERAL_SCALE_UPPER = 1.5  # above c: room for the ears and the hair of a turned head
 NECK_LENGTH = 0.3  # below the chin, in face heights
 NECK_INSET = 0.15  # jaw-angle points pulled towards the mid-line
 EDGE_SIGMA = 0.02  # blur of the region edge, in face heights
@@ -69,16 +67,24 @@ class PersonSegmenter:
 
 
 def head_region_polygons(points: np.ndarray) -> list[np.ndarray]:
-    """The head region (everything above the chin line) and the neck quadrilateral [N, 2] (pixels) from
-    landmarks [478, >=2]."""
+    """The head polygon and the neck quadrilateral [N, 2] (pixels) from landmarks [478, >=2]."""
     p = points[:, :2].astype(np.float64)
     up = p[10] - p[152]
     height = float(np.linalg.norm(up))
     up = up / max(height, 1e-9)
-    across = np.array([up[1], -up[0]])
-    base = p[152] - CHIN_MARGIN * height * up  # a point of the chin line
-    far = FAR * height
-    head = np.stack([base - far * across, base + far * across, base + far * (across + up), base + far * (up - across)])
+    oval = p[list(mpids.FACE_OVAL)]  # [36, 2]
+    centre = oval.mean(0)
+    d = oval - centre
+    along = d @ up  # [36]
+    lateral = d - along[:, None] * up
+    # A head bowed forward foreshortens the forehead while more of the skull shows: the hair's reach
+    # is measured against the face width too (which pitch does not shrink), never below HAIR_MIN_REACH.
+    face_width = float(np.linalg.norm(p[234] - p[454]))
+    top = max(float(along.max()), 1e-9)
+    hair = HAIR_SCALE * max(1.0, HAIR_MIN_REACH * face_width / top)
+    upper = along > 0
+    head = (centre + np.where(upper, LATERAL_SCALE_UPPER, LATERAL_SCALE)[:, None] * lateral
+            + np.where(upper, hair, JAW_SCALE)[:, None] * along[:, None] * up)
     left, right = p[397], p[172]
     mid = 0.5 * (left + right)
     left = left + NECK_INSET * (mid - left)
