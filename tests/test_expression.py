@@ -86,3 +86,35 @@ def test_row_adam_moves_only_the_rows_a_gradient_reaches_one_step_per_visit():
     assert torch.allclose(rows.detach()[4], 0.1 * torch.sign(target), atol=1e-6)
     state = opt.state[rows]
     assert state["row_steps"].tolist() == [0, 0, 3, 0, 1]
+
+
+def test_blendshapes_only_where_the_face_mask_allows():
+    verts, faces = grid_mesh()
+    k = 3
+    carried = torch.zeros(len(faces))
+    carried[: len(faces) // 2] = 1.0
+    avatar = GaussianAvatar(faces, expression_dims=k, expression_faces=carried)
+    with torch.no_grad():
+        avatar.params["f_expr"].fill_(0.05)
+        avatar.params["means_expr"].fill_(0.1)
+    code = torch.ones(k)
+    moved = avatar(verts, code)
+    still = avatar(verts, torch.zeros(k))
+    on = carried.bool()
+    assert (moved.colors[on] - still.colors[on]).abs().min() > 0.1  # 3 x 0.05 per channel
+    assert torch.equal(moved.colors[~on], still.colors[~on]) and torch.equal(moved.means[~on], still.means[~on])
+    (moved.colors.sum() + moved.means.sum()).backward()
+    assert avatar.params["f_expr"].grad[~on].abs().sum() == 0 and avatar.params["f_expr"].grad[on].abs().sum() > 0
+
+
+def test_face_mode_carries_the_face_skin_and_the_mouth_not_the_hair():
+    from geoavatar.avatar.expression import expression_face_mask
+    from geoavatar.head import load_head_model
+    from geoavatar.head.regions import face_parts
+
+    head = load_head_model("openhead", mouth="geoavatar")
+    mask = expression_face_mask(head).bool().numpy()
+    parts = face_parts(head.data)
+    assert mask[parts.faces_of("lips")].all() and mask[parts.faces_of("forehead")].all()
+    assert mask[parts.mouth_faces].all()
+    assert not mask[parts.faces_of("scalp")].any() and not mask[parts.faces_of("neck")].any()

@@ -13,6 +13,7 @@ its parameters, as it gets its mesh; the frame index T never enters (the paper's
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -27,6 +28,20 @@ def expression_code_dims(num_expr_modes: int) -> int:
     return min(int(num_expr_modes), MAX_EXPRESSION_MODES) + POSE_CODE_DIM
 
 
+BLENDSHAPE_PARTS = ("face", "nose", "eye_region", "lips", "forehead")  # the face's skin (head.regions part names)
+
+
+def expression_face_mask(head) -> Tensor:
+    """[F] float: 1 for the faces whose Gaussians carry blendshapes with model.expression_blendshapes = "face" (the
+    face's skin parts and the mouth structure), 0 for the hair, scalp, ears, neck and eyeballs: what moves with an
+    expression is the face; the hair that swings in some frames would be learned as a function of the code."""
+    from geoavatar.head.regions import MOUTH_PART, face_parts
+
+    parts = face_parts(head.data)
+    wanted = [parts.part_names.index(name) for name in BLENDSHAPE_PARTS] + [MOUTH_PART]
+    return torch.from_numpy(np.isin(parts.part_of_face, wanted).astype(np.float32))
+
+
 def expression_code(params: HeadParams, dims: int) -> Tensor:
     """[K] code of one frame (per-frame keys [1, ...]): expr's leading K - 9 entries (zero-padded), jaw, eyes."""
     modes = dims - POSE_CODE_DIM
@@ -38,4 +53,5 @@ def expression_code(params: HeadParams, dims: int) -> Tensor:
     return torch.cat([expr, params.jaw_pose.reshape(-1).to(expr), params.eyes_pose.reshape(-1).to(expr)])
 
 
-__all__ = ["MAX_EXPRESSION_MODES", "POSE_CODE_DIM", "expression_code", "expression_code_dims"]
+__all__ = ["BLENDSHAPE_PARTS", "MAX_EXPRESSION_MODES", "POSE_CODE_DIM", "expression_code", "expression_code_dims",
+           "expression_face_mask"]

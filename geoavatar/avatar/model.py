@@ -68,7 +68,7 @@ class GaussianAvatar(nn.Module):
     """Gaussians rigged to the faces of a head model."""
 
     def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1, normal_shading: bool = False,
-                 expression_dims: int = 0):
+                 expression_dims: int = 0, expression_faces: Tensor | np.ndarray | None = None):
         super().__init__()
         faces = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces, dtype=torch.long)
         if faces.dim() != 2 or faces.shape[1] != 3:
@@ -82,14 +82,18 @@ class GaussianAvatar(nn.Module):
             init["means_expr"] = torch.zeros(faces.shape[0], 3 * expression_dims)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in init.items()})
         self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
+        # [F] 1 where a face's Gaussians carry expression blendshapes (None: every face)
+        self.register_buffer("expression_faces", None if expression_faces is None
+                             else torch.as_tensor(expression_faces, dtype=torch.float32).reshape(-1))
 
     @classmethod
     def for_model(cls, head, model) -> "GaussianAvatar":
         """The avatar a `config.ModelConfig` describes, bound to `head`'s faces (one Gaussian per face)."""
-        from geoavatar.avatar.expression import expression_code_dims
+        from geoavatar.avatar.expression import expression_code_dims, expression_face_mask
 
-        dims = expression_code_dims(head.num_expr) if model.expression_blendshapes else 0
-        return cls(head.faces.cpu(), model.init_opacity, model.normal_shading, dims)
+        dims = expression_code_dims(head.num_expr) if model.expression_blendshapes != "off" else 0
+        faces = expression_face_mask(head) if model.expression_blendshapes == "face" else None
+        return cls(head.faces.cpu(), model.init_opacity, model.normal_shading, dims, faces)
 
     @property
     def num_faces(self) -> int:
@@ -112,8 +116,11 @@ class GaussianAvatar(nn.Module):
         p = self.params
         local_means, colour_offset = p["means"], None
         if code is not None and "f_expr" in p:
-            local_means = p["means"] + self.blendshape(p["means_expr"], code)  # [N, 3]
-            colour_offset = self.blendshape(p["f_expr"], code)  # [N, 3]
+            carried = None if self.expression_faces is None else self.expression_faces[self.binding][:, None]  # [N, 1]
+            move, colour_offset = self.blendshape(p["means_expr"], code), self.blendshape(p["f_expr"], code)  # [N, 3]
+            if carried is not None:
+                move, colour_offset = move * carried, colour_offset * carried
+            local_means = p["means"] + move
         means, quats, scales = local_to_global(local_means, p["quats"], p["scales"], self.binding, frames)
         if "f_normal" in p:
             # The face normal in world axes (detached: shading must not pull the geometry or the tracking).
