@@ -6,24 +6,31 @@ import torch
 from geoavatar.avatar import GaussianAvatar, gaussian_param_groups
 from geoavatar.avatar import densify as D
 from geoavatar.avatar.binding import face_frames, local_to_global
-from geoavatar.avatar.expression import POSE_CODE_DIM, expression_code, expression_code_dims
+from geoavatar.avatar.expression import (HEAD_CODE_DIM, POSE_CODE_DIM, code_masks, expression_code,
+                                          expression_code_dims, expression_groups)
 from geoavatar.config import LearningRates
 from geoavatar.head.params import HeadParams
 from geoavatar.train.frame_params import RowAdam
 from tests.test_avatar import grid_mesh
 
 
-def test_expression_code_takes_the_leading_modes_the_jaw_and_the_eyes():
-    assert expression_code_dims(23) == 23 + POSE_CODE_DIM and expression_code_dims(100) == 50 + POSE_CODE_DIM
-    params = HeadParams(shape=torch.zeros(5), expr=torch.arange(100.0)[None], rotation=torch.zeros(1, 3),
-                        neck_pose=torch.zeros(1, 3), jaw_pose=torch.tensor([[0.2, 0.0, 0.01]]),
+def test_expression_code_takes_the_leading_modes_the_jaw_the_eyes_and_the_head():
+    extra = POSE_CODE_DIM + HEAD_CODE_DIM
+    assert expression_code_dims(23) == 23 + extra and expression_code_dims(100) == 50 + extra
+    params = HeadParams(shape=torch.zeros(5), expr=torch.arange(100.0)[None], rotation=torch.tensor([[0.3, 0.0, 0.0]]),
+                        neck_pose=torch.tensor([[0.0, 0.1, 0.0]]), jaw_pose=torch.tensor([[0.2, 0.0, 0.01]]),
                         eyes_pose=torch.full((1, 6), -0.1), translation=torch.zeros(1, 3))
     code = expression_code(params, expression_code_dims(23))
-    assert code.shape == (32,)
+    assert code.shape == (38,)
     assert torch.equal(code[:23], torch.arange(23.0)) and torch.equal(code[23:26], torch.tensor([0.2, 0.0, 0.01]))
-    assert torch.allclose(code[26:], torch.full((6,), -0.1))
+    assert torch.allclose(code[26:32], torch.full((6,), -0.1))
+    assert torch.equal(code[32:], torch.tensor([0.3, 0.0, 0.0, 0.0, 0.1, 0.0]))
     short = expression_code(params.replace(expr=torch.ones(1, 10)), expression_code_dims(23))
     assert torch.equal(short[:23], torch.cat([torch.ones(10), torch.zeros(13)]))  # a model with fewer modes: zeros
+    masks = code_masks("split", 38)  # the face follows the expression, the rest the head's turn
+    assert masks[0, :32].eq(1).all() and masks[0, 32:].eq(0).all() and masks[1, :32].eq(0).all()
+    assert masks[1, 32:].eq(1).all()
+    assert code_masks("face", 38)[1].eq(0).all() and torch.equal(code_masks("all", 38)[1], masks[0])
 
 
 def test_blendshapes_move_colour_and_mean_linearly_with_the_code_and_follow_densify():
@@ -88,33 +95,36 @@ def test_row_adam_moves_only_the_rows_a_gradient_reaches_one_step_per_visit():
     assert state["row_steps"].tolist() == [0, 0, 3, 0, 1]
 
 
-def test_blendshapes_only_where_the_face_mask_allows():
+def test_blendshapes_drive_each_group_by_its_own_code_entries():
     verts, faces = grid_mesh()
-    k = 3
-    carried = torch.zeros(len(faces))
-    carried[: len(faces) // 2] = 1.0
-    avatar = GaussianAvatar(faces, expression_dims=k, expression_faces=carried)
+    k = 4
+    groups = torch.zeros(len(faces), dtype=torch.long)
+    groups[len(faces) // 2:] = 1
+    masks = torch.tensor([[1.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.0]])
+    avatar = GaussianAvatar(faces, expression_dims=k, expression_groups=groups, code_masks=masks)
     with torch.no_grad():
         avatar.params["f_expr"].fill_(0.05)
         avatar.params["means_expr"].fill_(0.1)
-    code = torch.ones(k)
-    moved = avatar(verts, code)
     still = avatar(verts, torch.zeros(k))
-    on = carried.bool()
-    assert (moved.colors[on] - still.colors[on]).abs().min() > 0.1  # 3 x 0.05 per channel
-    assert torch.equal(moved.colors[~on], still.colors[~on]) and torch.equal(moved.means[~on], still.means[~on])
-    (moved.colors.sum() + moved.means.sum()).backward()
-    assert avatar.params["f_expr"].grad[~on].abs().sum() == 0 and avatar.params["f_expr"].grad[on].abs().sum() > 0
+    first = avatar(verts, torch.tensor([1.0, 1.0, 0.0, 0.0]))  # only group 0's entries
+    face = groups == 0
+    assert (first.colors[face] - still.colors[face]).abs().min() > 0.05
+    assert torch.equal(first.colors[~face], still.colors[~face]) and torch.equal(first.means[~face], still.means[~face])
+    second = avatar(verts, torch.tensor([0.0, 0.0, 1.0, 1.0]))  # only group 1's entries
+    assert torch.equal(second.colors[face], still.colors[face])
+    assert (second.colors[~face] - still.colors[~face]).abs().min() > 0.05
+    (first.colors.sum() + first.means.sum()).backward()
+    grad = avatar.params["f_expr"].grad.view(-1, 3, k)
+    assert grad[~face].abs().sum() == 0 and grad[face][..., 2:].abs().sum() == 0 and grad[face][..., :2].abs().sum() > 0
 
 
-def test_face_mode_carries_the_face_skin_and_the_mouth_not_the_hair():
-    from geoavatar.avatar.expression import expression_face_mask
+def test_the_face_group_is_the_face_skin_and_the_mouth_not_the_hair():
     from geoavatar.head import load_head_model
     from geoavatar.head.regions import face_parts
 
     head = load_head_model("openhead", mouth="geoavatar")
-    mask = expression_face_mask(head).bool().numpy()
+    group = expression_groups(head).numpy()
     parts = face_parts(head.data)
-    assert mask[parts.faces_of("lips")].all() and mask[parts.faces_of("forehead")].all()
-    assert mask[parts.mouth_faces].all()
-    assert not mask[parts.faces_of("scalp")].any() and not mask[parts.faces_of("neck")].any()
+    assert (group[parts.faces_of("lips")] == 0).all() and (group[parts.faces_of("forehead")] == 0).all()
+    assert (group[parts.mouth_faces] == 0).all()
+    assert (group[parts.faces_of("scalp")] == 1).all() and (group[parts.faces_of("neck")] == 1).all()

@@ -13,45 +13,62 @@ its parameters, as it gets its mesh; the frame index T never enters (the paper's
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from geoavatar.head.params import HeadParams
 
-POSE_CODE_DIM = 9  # jaw 3 + eyes 6 (axis-angle)
+POSE_CODE_DIM = 9  # jaw 3 + eyes 6 (axis-angle): what moves with an expression besides the modes
+HEAD_CODE_DIM = 6  # head rotation 3 + neck 3 (axis-angle): how the head hangs in the world (hair under gravity)
 MAX_EXPRESSION_MODES = 50  # FLAME has 100; its leading 50 carry nearly all of a face's motion
+BLENDSHAPE_PARTS = ("face", "nose", "eye_region", "lips", "forehead")  # the face's skin (head.regions part names)
+BlendshapeMode = Literal["off", "face", "all", "split"]
 
 
 def expression_code_dims(num_expr_modes: int) -> int:
-    """K for a head model with `num_expr_modes` expression modes: the leading min(modes, 50), jaw and eyes."""
-    return min(int(num_expr_modes), MAX_EXPRESSION_MODES) + POSE_CODE_DIM
+    """K for a head model with `num_expr_modes` expression modes: the leading min(modes, 50), jaw, eyes, head, neck."""
+    return min(int(num_expr_modes), MAX_EXPRESSION_MODES) + POSE_CODE_DIM + HEAD_CODE_DIM
 
 
-BLENDSHAPE_PARTS = ("face", "nose", "eye_region", "lips", "forehead")  # the face's skin (head.regions part names)
+def code_masks(mode: BlendshapeMode, dims: int) -> Tensor:
+    """[2, K] which entries of the code drive the Gaussians of the face's skin (row 0) and all the others (row 1).
+
+    face:  the face's skin follows the expression (modes, jaw, eyes); the hair, scalp, ears and neck follow nothing;
+    all:   every Gaussian follows the expression;
+    split: the face's skin follows the expression, the rest the head's rotation and neck (long hair hangs and swings
+           with how the head is turned, not with what the face does)."""
+    expression = torch.zeros(dims)
+    expression[: dims - HEAD_CODE_DIM] = 1.0
+    head = 1.0 - expression
+    rest = {"face": torch.zeros(dims), "all": expression, "split": head}[mode]
+    return torch.stack([expression, rest])
 
 
-def expression_face_mask(head) -> Tensor:
-    """[F] float: 1 for the faces whose Gaussians carry blendshapes with model.expression_blendshapes = "face" (the
-    face's skin parts and the mouth structure), 0 for the hair, scalp, ears, neck and eyeballs: what moves with an
-    expression is the face; the hair that swings in some frames would be learned as a function of the code."""
+def expression_groups(head) -> Tensor:
+    """[F] long: 0 for the faces of the face's skin parts and the mouth structure, 1 for the rest (hair, scalp,
+    ears, neck, eyeballs)."""
     from geoavatar.head.regions import MOUTH_PART, face_parts
 
     parts = face_parts(head.data)
     wanted = [parts.part_names.index(name) for name in BLENDSHAPE_PARTS] + [MOUTH_PART]
-    return torch.from_numpy(np.isin(parts.part_of_face, wanted).astype(np.float32))
+    return torch.from_numpy((~np.isin(parts.part_of_face, wanted)).astype(np.int64))
 
 
 def expression_code(params: HeadParams, dims: int) -> Tensor:
-    """[K] code of one frame (per-frame keys [1, ...]): expr's leading K - 9 entries (zero-padded), jaw, eyes."""
-    modes = dims - POSE_CODE_DIM
+    """[K] code of one frame (per-frame keys [1, ...]): expr's leading K - 15 entries (zero-padded), jaw, eyes,
+    head rotation, neck."""
+    modes = dims - POSE_CODE_DIM - HEAD_CODE_DIM
     if modes < 0:
-        raise ValueError(f"expression_code: dims must be >= {POSE_CODE_DIM}, got {dims}")
-    expr = params.expr.reshape(-1)[:modes]  # [<= K - 9]
+        raise ValueError(f"expression_code: dims must be >= {POSE_CODE_DIM + HEAD_CODE_DIM}, got {dims}")
+    expr = params.expr.reshape(-1)[:modes]  # [<= K - 15]
     if expr.shape[0] < modes:
         expr = torch.cat([expr, expr.new_zeros(modes - expr.shape[0])])
-    return torch.cat([expr, params.jaw_pose.reshape(-1).to(expr), params.eyes_pose.reshape(-1).to(expr)])
+    rest = [params.jaw_pose, params.eyes_pose, params.rotation, params.neck_pose]
+    return torch.cat([expr, *(value.reshape(-1).to(expr) for value in rest)])
 
 
-__all__ = ["BLENDSHAPE_PARTS", "MAX_EXPRESSION_MODES", "POSE_CODE_DIM", "expression_code", "expression_code_dims",
-           "expression_face_mask"]
+__all__ = ["BLENDSHAPE_PARTS", "BlendshapeMode", "HEAD_CODE_DIM", "MAX_EXPRESSION_MODES", "POSE_CODE_DIM",
+           "code_masks", "expression_code", "expression_code_dims", "expression_groups"]

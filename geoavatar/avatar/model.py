@@ -68,7 +68,7 @@ class GaussianAvatar(nn.Module):
     """Gaussians rigged to the faces of a head model."""
 
     def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1, normal_shading: bool = False,
-                 expression_dims: int = 0, expression_faces: Tensor | np.ndarray | None = None):
+                 expression_dims: int = 0, expression_groups: Tensor | None = None, code_masks: Tensor | None = None):
         super().__init__()
         faces = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces, dtype=torch.long)
         if faces.dim() != 2 or faces.shape[1] != 3:
@@ -82,18 +82,23 @@ class GaussianAvatar(nn.Module):
             init["means_expr"] = torch.zeros(faces.shape[0], 3 * expression_dims)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in init.items()})
         self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
-        # [F] 1 where a face's Gaussians carry expression blendshapes (None: every face)
-        self.register_buffer("expression_faces", None if expression_faces is None
-                             else torch.as_tensor(expression_faces, dtype=torch.float32).reshape(-1))
+        # With blendshapes: each face's group [F] (0: the face's skin, 1: the rest) and which code entries drive each
+        # group [2, K] (avatar/expression.code_masks; None: every entry drives every Gaussian)
+        self.register_buffer("expression_groups", None if expression_groups is None
+                             else torch.as_tensor(expression_groups, dtype=torch.long).reshape(-1))
+        self.register_buffer("code_masks", None if code_masks is None else torch.as_tensor(code_masks).float())
 
     @classmethod
     def for_model(cls, head, model) -> "GaussianAvatar":
         """The avatar a `config.ModelConfig` describes, bound to `head`'s faces (one Gaussian per face)."""
-        from geoavatar.avatar.expression import expression_code_dims, expression_face_mask
+        from geoavatar.avatar.expression import code_masks, expression_code_dims, expression_groups
 
-        dims = expression_code_dims(head.num_expr) if model.expression_blendshapes != "off" else 0
-        faces = expression_face_mask(head) if model.expression_blendshapes == "face" else None
-        return cls(head.faces.cpu(), model.init_opacity, model.normal_shading, dims, faces)
+        mode = model.expression_blendshapes
+        if mode == "off":
+            return cls(head.faces.cpu(), model.init_opacity, model.normal_shading)
+        dims = expression_code_dims(head.num_expr)
+        return cls(head.faces.cpu(), model.init_opacity, model.normal_shading, dims, expression_groups(head),
+                   code_masks(mode, dims))
 
     @property
     def num_faces(self) -> int:
@@ -116,11 +121,8 @@ class GaussianAvatar(nn.Module):
         p = self.params
         local_means, colour_offset = p["means"], None
         if code is not None and "f_expr" in p:
-            carried = None if self.expression_faces is None else self.expression_faces[self.binding][:, None]  # [N, 1]
-            move, colour_offset = self.blendshape(p["means_expr"], code), self.blendshape(p["f_expr"], code)  # [N, 3]
-            if carried is not None:
-                move, colour_offset = move * carried, colour_offset * carried
-            local_means = p["means"] + move
+            local_means = p["means"] + self.grouped_blendshape(p["means_expr"], code)  # [N, 3]
+            colour_offset = self.grouped_blendshape(p["f_expr"], code)  # [N, 3]
         means, quats, scales = local_to_global(local_means, p["quats"], p["scales"], self.binding, frames)
         if "f_normal" in p:
             # The face normal in world axes (detached: shading must not pull the geometry or the tracking).
@@ -147,6 +149,14 @@ class GaussianAvatar(nn.Module):
     def expression_dims(self) -> int:
         """K, the length of the expression code the blendshapes take (0: the avatar has none)."""
         return int(self.params["f_expr"].shape[1]) // 3 if "f_expr" in self.params else 0
+
+    def grouped_blendshape(self, basis: Tensor, code: Tensor) -> Tensor:
+        """[N, 3]: each Gaussian's blendshape driven by the code entries its face's group takes (code_masks)."""
+        if self.code_masks is None:
+            return self.blendshape(basis, code)
+        group = self.expression_groups[self.binding][:, None]  # [N, 1]
+        face, rest = (self.blendshape(basis, code * mask) for mask in self.code_masks)  # [N, 3] each
+        return torch.where(group == 0, face, rest)
 
     @staticmethod
     def blendshape(basis: Tensor, code: Tensor) -> Tensor:
