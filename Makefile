@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 REQS := requirements/base.txt requirements/nodeps.txt requirements/dev.txt pyproject.toml
 
-.PHONY: test install install-cuda demo head-show clean-venv
+.PHONY: test install install-cuda demo head-show clean-venv web
 
 install: $(STAMP)
 
@@ -27,6 +27,11 @@ test: $(STAMP)
 # The main job: generate a subject, train, evaluate, render; read demo_output/report.md.
 demo: $(STAMP)
 	$(VENV)/bin/geoavatar demo --out demo_output
+
+# The browser player's bundle (geoavatar/web/static/player.js, committed): rebuild it after editing web/.
+# Needs Node 20 and npm; `make` and pip use the committed bundle and need neither.
+web:
+	cd web && npm ci --no-audit --no-fund && npm run build
 
 head-show: $(STAMP)
 	$(VENV)/bin/geoavatar head show --out head.png

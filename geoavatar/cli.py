@@ -46,10 +46,10 @@ _DESCRIPTIONS = {
     "ablate": "Train + evaluate datasets x ablation presets on Ray; the paper's ablation table and mouth crops.",
     "render": "Self re-enactment video of a run: ground truth | render | error map (mp4).",
     "reenact": "Cross re-enactment: drive a trained avatar with another dataset's or video's motion (mp4).",
-    "drive": "Live driving from a webcam or a video: landmarks, online fit, the avatar rendered (mp4 / viewer).",
+    "drive": "Live driving from a webcam or a video: landmarks, online fit, the avatar rendered (mp4) or streamed to the browser player.",
     "orbit": "Novel views: a yaw/pitch sweep around the head (mp4).",
-    "export": "Export Gaussians as a standard 3DGS PLY (one frame, or a sequence as PLYs / npz).",
-    "view": "Web viewer (viser) with expression, jaw and head-pose sliders and sequence playback.",
+    "export": "Export as a standard 3DGS PLY (one frame, or a sequence as PLYs / npz), or a browser player of a clip (--format web).",
+    "view": "The browser player of a run, with expression and jaw sliders posed in Python and streamed to it.",
     "bench": "Frames per second of the full animation path and of rasterization alone.",
 }
 
@@ -88,25 +88,17 @@ def main(argv: list[str] | None = None) -> int:
             continue
         break
 
+    from geoavatar.apps import call_command
+    from geoavatar.errors import GeoAvatarError, one_line
     from geoavatar.runtime import setup_process
 
     setup_process()
-    import tyro
-
-    from geoavatar.errors import GeoAvatarError
-
     _notes_on_one_line()
-
-    func = _resolve(entry)
     try:
-        parse_argv = getattr(func, "parse_argv", None)  # a command with its own parser (train: defaults follow --preset)
-        if parse_argv is not None:
-            result = func(parse_argv(argv, prog))
-        else:
-            result = tyro.cli(func, args=argv, prog=prog)  # the function's docstring is the description
+        result = call_command(_resolve(entry), argv, prog)
     except GeoAvatarError as err:
         # the user's input is wrong, not the code: one line, no traceback (any other error keeps it)
-        print(f"{prog}: {_one_line(str(err))}", file=sys.stderr)
+        print(f"{prog}: {one_line(str(err))}", file=sys.stderr)
         return 2
     return int(result) if isinstance(result, int) else 0
 
@@ -116,7 +108,7 @@ def _notes_on_one_line() -> None:
     Python adds; every other warning as Python prints it."""
     import warnings
 
-    from geoavatar.errors import GeoAvatarWarning
+    from geoavatar.errors import GeoAvatarWarning, one_line
 
     python_show = warnings.showwarning
     if getattr(python_show, "geoavatar_notes", False):
@@ -124,16 +116,12 @@ def _notes_on_one_line() -> None:
 
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, GeoAvatarWarning):
-            print(f"geoavatar: note: {_one_line(str(message))}", file=file or sys.stderr)
+            print(f"geoavatar: note: {one_line(str(message))}", file=file or sys.stderr)
         else:
             python_show(message, category, filename, lineno, file, line)
 
     show.geoavatar_notes = True
     warnings.showwarning = show
-
-
-def _one_line(message: str) -> str:
-    return " ".join(message.split()) or "failed (no message)"
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ a hard wall under Adam. L_angle is part of the same sum in the paper, so it gets
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, is_dataclass, replace
-from typing import Any, Iterable, Literal
+from typing import Any, Iterable, Literal, get_args
 
 # Which regulariser threshold each face uses (see geoavatar.avatar.aps.face_set_ids):
 #   "aps"             rigid until the APS step, then per-part rigid/flexible; mouth faces tau_mouth
@@ -43,6 +43,9 @@ FaceSetMode = Literal["aps", "rigid", "flexible", "gaussianavatars"]
 # Mouth interior appended to the head model (geoavatar.head.mouth):
 #   "none" no interior, "gaussianavatars" frontal teeth only, "geoavatar" teeth+molars+palate+floor
 MouthKind = Literal["none", "gaussianavatars", "geoavatar"]
+# The 10 APS parts (geoavatar.head.regions.PART_NAMES, the part index there is their priority order; a test keeps
+# the two lists equal): named here so that a configuration is checked without loading the head layer.
+APSPart = Literal["eyeballs", "lips", "nose", "eye_region", "ears", "forehead", "face", "boundary", "neck", "scalp"]
 BackgroundMode = Literal["dataset", "random"]
 InitColour = Literal["grey", "images"]
 
@@ -139,7 +142,7 @@ class WarpedViewConfig:
     every: int = 1
     # APS parts whose faces lie on skin the head model fits: not the scalp (hair lies centimetres above it), forehead
     # (fringes), ears and neck (hair, collars) or the mouth interior (hidden by the lips)
-    parts: tuple[str, ...] = ("face", "nose", "eye_region", "lips")
+    parts: tuple[APSPart, ...] = ("face", "nose", "eye_region", "lips")
     depth_tolerance: float = 0.005  # metres behind the training camera's z-buffer that still counts as seen there
     max_angle: float = 70.0  # degrees between a face's normal and the training camera's line of sight, at most
 
@@ -282,12 +285,11 @@ class TrainConfig:
             problems.append(f"warped_view.every must be >= 1 (got {wv.every})")
         if not 0 < wv.max_angle <= 90:
             problems.append(f"warped_view.max_angle must lie in (0, 90] degrees (got {wv.max_angle})")
-        from geoavatar.head.regions import PART_NAMES
-
-        unknown = [name for name in wv.parts if name not in PART_NAMES]
+        part_names = get_args(APSPart)
+        unknown = [name for name in wv.parts if name not in part_names]
         if unknown or not wv.parts:
             given = ", ".join(wv.parts) or "none"
-            problems.append(f"warped_view.parts must be some of {', '.join(PART_NAMES)} (got {given})")
+            problems.append(f"warped_view.parts must be some of {', '.join(part_names)} (got {given})")
         d = self.densify
         if d.every < 1 or d.reset_opacity_every < 1:
             problems.append("densify.every and densify.reset_opacity_every must be >= 1")

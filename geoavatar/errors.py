@@ -6,9 +6,9 @@ its own: it names the file or option and says what is wrong (and, where it helps
 
 Layer errors derive from it: RunError (train/checkpoint.py), DatasetError (data/errors.py),
 PrepareError (prep/errors.py), TrainingDiverged (train/trainer.py), ForbiddenPickleGlobal and
-UnreadablePickle (head/safe_pickle.py), FlameFileNotFoundError and FlameFileError (head/flame.py),
-LPIPSWeightsError (eval/lpips.py). Each keeps its older built-in base (ValueError, RuntimeError, ...)
-so that code catching those still works.
+UnreadablePickle (io/safe_pickle.py), FlameFileNotFoundError and FlameFileError (head/flame.py),
+MetricWeightsError (eval/weights.py; LPIPSWeightsError, eval/lpips.py, is one). Each keeps its older
+built-in base (ValueError, RuntimeError, ...) so that code catching those still works.
 """
 
 from __future__ import annotations
@@ -18,6 +18,11 @@ import errno
 
 class GeoAvatarError(Exception):
     """A problem with the user's input, files, options or machine; the message is one line for them."""
+
+
+def one_line(message: str) -> str:
+    """A message as the one line the CLI prints (whitespace runs, newlines included, become one space)."""
+    return " ".join(message.split()) or "failed (no message)"
 
 
 class GeoAvatarWarning(UserWarning):
@@ -60,4 +65,4 @@ def disk_full_error(path, err: OSError, what: str = "") -> DiskFullError:
 
 
 __all__ = ["DISK_FULL_ERRNOS", "DiskFullError", "GeoAvatarError", "GeoAvatarWarning", "OptionError", "disk_full_error",
-           "is_disk_full"]
+           "is_disk_full", "one_line"]

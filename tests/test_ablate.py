@@ -18,8 +18,9 @@ from PIL import Image
 from apps_fixtures import make_subject
 
 from geoavatar.apps.ablate import ablate
+from geoavatar.apps.ablation_job import JobSpec, eval_argv, run_job, run_state, train_argv
 from geoavatar.cli import main
-from geoavatar.eval.ablation import JobSpec, RunMismatch, eval_argv, metrics_path, run_job, run_state, train_argv
+from geoavatar.eval.ablation import RunMismatch, metrics_path
 
 STEPS = 6
 
@@ -151,3 +152,31 @@ def test_a_failing_job_reports_one_line_and_does_not_raise(subject, tmp_path):
     assert "\n" not in record["message"]
     log = Path(spec.log).read_text()
     assert "$ geoavatar train --data" in log and "gsplat" in log
+
+
+def test_a_job_reads_each_command_s_exit_status_from_its_return_value(monkeypatch, tmp_path):
+    """run_command calls the command function: its return value is the status (130: interrupted, saved), a
+    GeoAvatarError its one-line message; nothing is read back from what the command printed."""
+    from geoavatar.apps import ablation_job
+    from geoavatar.errors import OptionError
+
+    def interrupted(args):
+        print("a line that is not the status")
+        return 130
+
+    def refused(args):
+        raise OptionError("--steps must be\npositive")
+
+    for command in (interrupted, refused):
+        command.parse_argv = lambda argv, prog: argv
+    log = (tmp_path / "log").open("w+", encoding="utf-8")
+    monkeypatch.setattr(ablation_job, "_command", lambda name: interrupted)
+    result = ablation_job.run_command(["train", "--steps", "5"], log)
+    assert result == ablation_job.CommandResult(130, "geoavatar train: interrupted; its checkpoint is saved")
+    monkeypatch.setattr(ablation_job, "_command", lambda name: refused)
+    result = ablation_job.run_command(["eval", "RUN"], log)
+    assert result == ablation_job.CommandResult(2, "geoavatar eval: --steps must be positive")
+    log.seek(0)
+    assert log.read().splitlines() == ["$ geoavatar train --steps 5", "a line that is not the status",
+                                       "geoavatar train: interrupted; its checkpoint is saved", "$ geoavatar eval RUN",
+                                       "geoavatar eval: --steps must be positive"]

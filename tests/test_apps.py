@@ -28,6 +28,7 @@ from geoavatar.apps import render_video
 from geoavatar.apps import view as view_app
 from geoavatar.apps.common import (Camera, RunFrames, colormap_lut, error_map, open_run, open_run_dataset,
                                    pose_gaussians, record_camera, render_params, torch_threads)
+from geoavatar.apps.expression_transfer import TRANSFER_MODES
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
 from geoavatar.io.ply import PLY_PROPERTIES, read_gaussian_ply
@@ -188,12 +189,11 @@ def test_export_sequence_folder_and_npz(run, run_dir, tmp_path):
 # --- reenact -------------------------------------------------------------------------------------
 
 
-def test_reenact_absolute_and_relative_videos(run_dir, driver, tmp_path):
-    for relative in (False, True):
-        out = tmp_path / f"reenact_{relative}.mp4"
-        code = reenact_app.reenact(run_dir, driver, out=out, relative=relative, max_frames=2, device="cpu",
-                                   progress=False)
-        assert code == 0
+def test_reenact_videos_in_every_transfer_mode(run_dir, driver, tmp_path, capsys):
+    for mode in TRANSFER_MODES:
+        out = tmp_path / f"reenact_{mode}.mp4"
+        code = reenact_app.reenact(run_dir, driver, out=out, transfer=mode, max_frames=2, device="cpu", progress=False)
+        assert code == 0 and f"{mode} transfer" in capsys.readouterr().out
         frames = decode(out)
         # driver (40 px, scaled to the avatar's 48 px height) | avatar (48 px)
         assert len(frames) == 2 and frames[0].shape == (SIZE, 2 * SIZE, 3)
@@ -210,21 +210,23 @@ def test_driven_params_absolute_and_relative_rules(run, driver):
     avatar_ref = reenact_app.reference_frame(frames.values.to_npz(), frames.timesteps, "first")
     identity = frames.identity()
 
-    absolute = reenact_app.driven_params(identity, avatar_ref, values, driver_ref, relative=False)
+    absolute = reenact_app.driven_params(identity, avatar_ref, values, driver_ref, "absolute")
     assert torch.equal(absolute["expr"], values["expr"]) and torch.equal(absolute["jaw_pose"], values["jaw_pose"])
     assert torch.equal(absolute["shape"], frames.values.shape)  # the avatar's identity
     assert torch.allclose(absolute["translation"][0], avatar_ref["translation"][0])  # neutral frame: avatar's place
     moved = values["translation"][2] - values["translation"][0]
     assert torch.allclose(absolute["translation"][2] - absolute["translation"][0], moved, atol=1e-6)
 
-    relative = reenact_app.driven_params(identity, avatar_ref, values, driver_ref, relative=True)
+    relative = reenact_app.driven_params(identity, avatar_ref, values, driver_ref, "relative")
+    assert all(torch.equal(relative[k], v) for k, v in reenact_app.driven_params(identity, avatar_ref, values,
+                                                                                 driver_ref, True).items())
     for key in ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose"):  # the driver's neutral -> the avatar's
         assert torch.allclose(relative[key][0], avatar_ref[key][0], atol=1e-5), key
     delta = values["expr"][2] - values["expr"][0]
     assert torch.allclose(relative["expr"][2] - relative["expr"][0], delta, atol=1e-5)
     # Driving the avatar with its own sequence, relative to its own first frame, gives that sequence back.
     own = {k: v for k, v in frames.values.to_npz().items()}
-    same = reenact_app.driven_params(identity, avatar_ref, own, avatar_ref, relative=True)
+    same = reenact_app.driven_params(identity, avatar_ref, own, avatar_ref, "relative")
     for key in ("expr", "rotation", "jaw_pose", "translation"):
         assert torch.allclose(same[key], own[key], atol=1e-5), key
     mean = reenact_app.reference_frame(values, timesteps, "mean")

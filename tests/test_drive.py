@@ -119,34 +119,40 @@ def test_a_fast_source_drops_frames_and_counts_them(run, clip, tmp_path):
 
 
 @needs_video
-def test_relative_driving_renders(run, clip, tmp_path):
-    stats = drive_avatar(run, open_video(clip), tmp_path / "rel.mp4", relative=True, size=32, init_seconds=0.2,
+@pytest.mark.parametrize("transfer", ["relative", "subspace"])
+def test_relative_and_subspace_driving_render(run, clip, tmp_path, transfer):
+    stats = drive_avatar(run, open_video(clip), tmp_path / "rel.mp4", transfer, size=32, init_seconds=0.2,
                          lossless=True, max_frames=8, status=False, init_steps=INIT_STEPS)
     assert stats.init_frames == 5 and stats.processed == 8
 
 
 @needs_video
-def test_view_mode_sends_every_online_frame_to_the_live_viewer(run, clip):
-    pytest.importorskip("viser")
-    import socket
+def test_view_mode_streams_every_online_frame_to_the_browser(run, clip):
+    import struct
+
+    from websockets.sync.client import connect
 
     from geoavatar.apps.view import start_viewer
 
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    viewer = start_viewer(run, port=port, expr_sliders=0, live=True)
+    viewer = start_viewer(run, port=0, live=True)
     try:
-        before = viewer.splats.centers.copy()
         shown = []
         show_live = viewer.show_live
-        viewer.show_live = lambda gaussians, info="": (shown.append(info), show_live(gaussians, info))
-        stats = drive_avatar(run, open_video(clip), None, viewer=viewer, size=32, init_seconds=0.2, lossless=True,
-                             max_frames=10, status=False, init_steps=INIT_STEPS)
-        assert stats.processed == 10 and len(shown) == 10 - 5 and shown[-1].startswith("live: frame 9")
+        viewer.show_live = lambda vertices, info="", read_time=None: (shown.append((info, read_time)),
+                                                                      show_live(vertices, info, read_time))
+        with connect(viewer.url.replace("http", "ws") + "ws") as browser:
+            assert viewer.server.wait_for_client(10.0)
+            stats = drive_avatar(run, open_video(clip), None, viewer=viewer, size=32, init_seconds=0.2, lossless=True,
+                                 max_frames=10, status=False, init_steps=INIT_STEPS)
+            last = browser.recv(timeout=10)  # newest-only: at least the last mesh arrives
+        assert stats.processed == 10 and len(shown) == 10 - 5 and shown[-1][0].startswith("live: frame 9")
+        assert all(read_time is not None for _, read_time in shown)  # the frame's read time, for read -> sent
         assert not stats.stage_ms["render"]  # --view without --out: the browser renders, the render stage is skipped
-        after = viewer.splats.centers
-        assert after.shape == before.shape and np.isfinite(after).all() and not np.allclose(after, before)
+        vertices = np.frombuffer(last[16:], dtype="<f4").reshape(-1, 3)
+        assert struct.unpack("<I", last[:4])[0] == 1 and vertices.shape == (run.head.num_vertices, 3)
+        assert np.isfinite(vertices).all()
+        assert viewer.server.sent >= 1 and len(viewer.server.latency_ms) == viewer.server.sent
+        assert "read->sent" in viewer.summary()
     finally:
         viewer.stop()
 

@@ -9,7 +9,7 @@ from geoavatar.data import DatasetError
 from geoavatar.errors import DiskFullError, GeoAvatarError, OptionError
 from geoavatar.eval.lpips import LPIPSWeightsError
 from geoavatar.head.flame import FlameFileError, FlameFileNotFoundError
-from geoavatar.head.safe_pickle import ForbiddenPickleGlobal, UnreadablePickle
+from geoavatar.io.safe_pickle import ForbiddenPickleGlobal, UnreadablePickle
 from geoavatar.prep.errors import PrepareError
 from geoavatar.train.checkpoint import RunError
 from geoavatar.train.trainer import TrainingDiverged

@@ -13,7 +13,7 @@ from geoavatar.head import HeadModel, load_head_data
 from geoavatar.head.flame import (
     FLAME_LIP_RING_LOWER, FLAME_LIP_RING_UPPER, FlameFileNotFoundError, load_flame,
 )
-from geoavatar.head.safe_pickle import ForbiddenPickleGlobal, load_restricted_pickle, loads_restricted
+from geoavatar.io.safe_pickle import ForbiddenPickleGlobal, load_restricted_pickle, loads_restricted
 from head_fakes import procedural_head, renumber_to_flame, write_fake_flame
 
 

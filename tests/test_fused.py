@@ -6,9 +6,8 @@ import torch
 import torch.nn.functional as F
 
 from geoavatar.avatar import face_frames, local_to_global
-from geoavatar.avatar.fused import place_gaussians, polar_coordinates as fused_polar
+from geoavatar.avatar.fused import native_loops_available, place_gaussians, polar_coordinates as fused_polar
 from geoavatar.geometry import quaternion_multiply
-from geoavatar.render.cpu_backend import cpu_backend_available
 
 
 def plain_local_to_global(means, quats, log_scales, binding, frames):
@@ -74,7 +73,7 @@ def test_place_gaussians_matches_plain_ops_values_and_gradients(batch):
 
 
 def _native_or_skip(native):
-    if native and not cpu_backend_available():
+    if native and not native_loops_available():
         pytest.skip("the native CPU extension is not available")
 
 
@@ -91,7 +90,7 @@ def test_place_gaussians_gradcheck(native):
 
 @pytest.mark.parametrize("batch", [None, 2])
 def test_native_placement_matches_the_torch_function(batch):
-    """The native loops (render/csrc) against _PlaceGaussians: the same maths, float rounding apart."""
+    """The native loops (avatar/csrc) against _PlaceGaussians: the same maths, float rounding apart."""
     _native_or_skip(True)
     verts, faces = sheet(torch.float32, batch)
     frames = face_frames(verts, faces)

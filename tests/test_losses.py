@@ -8,8 +8,9 @@ import torch.nn.functional as F
 
 from geoavatar.avatar.aps import BASELINE, FLEXIBLE, MOUTH, RIGID
 from geoavatar.config import LossConfig
+from geoavatar.imaging import ssim
 from geoavatar.train.losses import (
-    angle_loss, avatar_loss, position_loss, regularization_losses, rgb_loss, scale_loss, ssim,
+    angle_loss, avatar_loss, position_loss, regularization_losses, rgb_loss, scale_loss,
 )
 
 

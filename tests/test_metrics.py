@@ -25,7 +25,7 @@ from scipy.ndimage import gaussian_filter
 
 from geoavatar.eval import metrics
 from geoavatar.eval.lpips import LPIPS, load_lpips_weights, weights_path
-from geoavatar.head.safe_pickle import ForbiddenPickleGlobal
+from geoavatar.io.safe_pickle import ForbiddenPickleGlobal
 
 
 @pytest.fixture(scope="module")
@@ -265,9 +265,9 @@ def _ssim_2d_reference(image: torch.Tensor, target: torch.Tensor) -> torch.Tenso
 
 
 def test_separable_ssim_matches_the_2d_window_and_its_gradient():
-    """The shared SSIM (geoavatar.train.losses.ssim: 1x11 then 11x1 convolutions) equals the 11x11 2D
+    """The shared SSIM (geoavatar.imaging.ssim: 1x11 then 11x1 convolutions) equals the 11x11 2D
     window within float tolerance, in value and in the gradient the training loss uses."""
-    from geoavatar.train.losses import ssim as separable_ssim
+    from geoavatar.imaging import ssim as separable_ssim
 
     a, b = _ssim_pair(37, 52, border=4)
     pred = torch.from_numpy(a).float() + 0.02 * torch.rand(37, 52, 3, generator=torch.Generator().manual_seed(0))

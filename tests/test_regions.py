@@ -1,8 +1,11 @@
 """Faces -> the 10 APS parts: coverage, priority of overlapping regions, the mouth set."""
 
+from typing import get_args
+
 import numpy as np
 import pytest
 
+from geoavatar.config import APSPart
 from geoavatar.head.mouth import add_mouth_structure
 from geoavatar.head.regions import PART_NAMES, PART_REGIONS, face_parts
 from head_fakes import head_by_name, procedural_head
@@ -93,3 +96,8 @@ def test_mouth_faces_are_minus_one_and_the_rest_unchanged(head, kind):
 def test_head_without_regions_is_refused():
     with pytest.raises(ValueError, match="region"):
         face_parts(procedural_head().copy_with(regions={}))
+
+
+def test_the_configuration_names_the_same_parts_as_the_head_layer():
+    """config.APSPart lists the part names so that a configuration is checked without the head layer."""
+    assert get_args(APSPart) == PART_NAMES

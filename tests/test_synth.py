@@ -23,7 +23,8 @@ from geoavatar.data.synth.subjects import get_subject
 from geoavatar.data.synth.tracking import apply_tracking_noise
 from geoavatar.errors import OptionError
 from geoavatar.render.camera import world_to_camera
-from geoavatar.render.mesh import box_downsample, rasterize_mesh, scale_intrinsics
+from geoavatar.render.camera import scale_intrinsics
+from geoavatar.render.mesh import box_downsample, rasterize_mesh
 
 FRAMES = 8
 SIZE = 64

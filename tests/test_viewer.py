@@ -1,11 +1,13 @@
-"""The web viewer (viser): it serves a page on localhost, poses the avatar for the GUI state, plays the
-sequence, and stops cleanly. Uses an untrained run (the trainer's step-0 state) of a 4-frame subject."""
+"""`geoavatar view` and the live player server: the page and the avatar over HTTP on localhost, view's slider
+edits posed in Python and streamed back over the websocket, live meshes counted by a real browser, a port in use
+as one line. Uses an untrained run (the trainer's step-0 state) of a 4-frame subject."""
 
 from __future__ import annotations
 
+import json
 import math
 import socket
-import time
+import struct
 import urllib.request
 
 import numpy as np
@@ -13,11 +15,12 @@ import pytest
 import torch
 
 from apps_fixtures import make_subject, make_untrained_run
+from geoavatar import cli
 from geoavatar.apps import view as view_app
-from geoavatar.apps.common import RunFrames, head_centre, open_run, pose_gaussians
+from geoavatar.apps.common import RunFrames, head_centre, open_run, posed_head_vertices
 from geoavatar.geometry import axis_angle_to_matrix
-
-pytest.importorskip("viser")  # the optional [viewer] extra
+from geoavatar.web.browser import browser_missing, chromium_page
+from geoavatar.web.live import KIND_VERTICES, LiveServerError
 
 
 @pytest.fixture(scope="module")
@@ -27,64 +30,47 @@ def run(tmp_path_factory):
     return open_run(make_untrained_run(data, root / "run"), "cpu")
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+def fetch(url: str) -> tuple[int, str, bytes]:
+    with urllib.request.urlopen(url, timeout=10) as response:
+        return response.status, response.headers.get("Content-Type", ""), response.read()
 
 
-def fetch(url: str, attempts: int = 50) -> tuple[int, str, str]:
-    for _ in range(attempts):
-        try:
-            with urllib.request.urlopen(url, timeout=5) as response:
-                return response.status, response.headers.get("Content-Type", ""), response.read().decode("utf-8", "replace")
-        except OSError:
-            time.sleep(0.1)  # the server thread may still be binding
-    raise AssertionError(f"no answer from {url}")
+def received_mesh(message: bytes, vertex_count: int) -> tuple[int, np.ndarray]:
+    kind, sequence, _sent = struct.unpack("<IId", message[:16])
+    assert kind == KIND_VERTICES
+    return sequence, np.frombuffer(message[16:], dtype="<f4").reshape(vertex_count, 3)
 
 
-def test_viewer_serves_a_page_on_localhost_and_follows_the_gui(run):
-    port = free_port()
-    viewer = view_app.start_viewer(run, port=port, expr_sliders=4)
+def test_view_serves_the_player_and_streams_slider_edits(run):
+    from websockets.sync.client import connect
+
+    viewer = view_app.start_viewer(run, port=0, expr_sliders=3)
     try:
-        assert viewer.url == f"http://127.0.0.1:{port}/" and viewer.host == "127.0.0.1"
+        assert viewer.url.startswith("http://127.0.0.1:") and viewer.port > 0
         status, kind, body = fetch(viewer.url)
-        assert status == 200 and "text/html" in kind and "<html" in body.lower()
+        assert status == 200 and "text/html" in kind and b"player.js" in body
+        assert "javascript" in fetch(viewer.url + "player.js")[1]
+        manifest = json.loads(fetch(viewer.url + "avatar.json")[2])
+        assert manifest["live"] == "view" and len(manifest["edit"]["expressions"]) == 3
+        assert manifest["clip"]["timesteps"] == RunFrames(run).timesteps
+        with pytest.raises(OSError):
+            fetch(viewer.url + "nothing.bin")
 
-        n = run.avatar.num_gaussians
-        centres = viewer.splats.centers.copy()
-        assert centres.shape == (n, 3)
-        params, t = RunFrames(run).params(RunFrames(run).timesteps[0])
-        expected = pose_gaussians(run, params, t).means.detach().numpy()
-        assert np.allclose(centres, expected, atol=1e-6)
-
-        viewer.jaw.value = 0.3  # GUI edits run the update synchronously
-        opened = viewer.splats.centers.copy()
-        moved = np.linalg.norm(opened - centres, axis=1)
-        assert moved.max() > 1e-3 and np.median(moved) < 1e-6  # the jaw moves, the skull does not
-
-        viewer.reset_edits()
-        assert np.allclose(viewer.splats.centers, centres, atol=1e-6)
-        viewer.frame.value = 2
-        assert not np.allclose(viewer.splats.centers, centres)
-
-        viewer.fps.value = 60.0
-        viewer.playing.value = True  # playback advances the frame slider on its own thread
-        deadline = time.time() + 20.0
-        shown = viewer.frame.value
-        while shown == 2 and time.time() < deadline:
-            time.sleep(0.05)
-            shown = viewer.frame.value  # read once: at 60 fps over 4 frames it may be back at 2 a moment later
-        viewer.playing.value = False
-        assert shown != 2
-        time.sleep(0.3)  # a step already under way finishes
-        paused_at = viewer.frame.value
-        time.sleep(0.3)
-        assert viewer.frame.value == paused_at  # pausing stops the playback
+        with connect(viewer.url.replace("http", "ws") + "ws") as socket_:
+            socket_.send(json.dumps({"type": "edit", "frame": 1, "expr": [0.8, 0.0, 0.0], "jaw": 0.3, "yaw": 20.0}))
+            _, mesh = received_mesh(socket_.recv(timeout=30), run.head.num_vertices)
+            socket_.send("not json")  # ignored
+            socket_.send(json.dumps({"type": "edit", "frame": 99, "expr": [], "jaw": 0.0}))  # out of range: ignored
+        params, _ = RunFrames(run).params(RunFrames(run).timesteps[1])
+        expected = posed_head_vertices(run, view_app.edited_params(run.head, params, [0.8, 0.0, 0.0], 0.3, 20.0, 0.0,
+                                                                   viewer.centre), None)
+        np.testing.assert_allclose(mesh, expected.detach().numpy(), atol=1e-5)
+        unedited = posed_head_vertices(run, *RunFrames(run).params(RunFrames(run).timesteps[1])).detach().numpy()
+        assert np.abs(mesh - unedited).max() > 1e-3  # the jaw opened, the head turned
     finally:
         viewer.stop()
     with pytest.raises(OSError):
-        urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2)
+        fetch(viewer.url)
 
 
 def test_head_turn_edit_turns_the_head_about_its_centre(run):
@@ -106,42 +92,62 @@ def test_head_turn_edit_turns_the_head_about_its_centre(run):
 
 
 def test_view_command_starts_and_stops(run, capsys):
-    assert view_app.view(run.info.run_dir, port=free_port(), device="cpu", serve_forever=False) == 0
+    assert view_app.view(run.info.run_dir, port=0, device="cpu", serve_forever=False) == 0
     assert "http://127.0.0.1:" in capsys.readouterr().out
 
 
-def sent_splats(handle) -> tuple[np.ndarray, np.ndarray]:
-    """(centres [N, 3], covariance upper triangles [N, 6]) exactly as viser packs them for the browser:
-    rows of 8 uint32 words, float32 centre in words 0-2, float16 covariance terms in words 4-6."""
-    buffer = np.asarray(handle.buffer)
-    assert buffer.dtype == np.uint32 and buffer.ndim == 2 and buffer.shape[1] == 8
-    centres = np.ascontiguousarray(buffer[:, 0:3]).view(np.float32)
-    covariance = np.ascontiguousarray(buffer[:, 4:7]).view(np.float16).astype(np.float32)
-    return centres, covariance
+def test_a_port_in_use_is_one_line(run, capsys):
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        with pytest.raises(LiveServerError, match=f"--port {port}: already in use"):
+            view_app.start_viewer(run, port=port)
+        assert cli.main(["view", str(run.info.run_dir), "--port", str(port), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("geoavatar view: ") and "already in use" in err
 
 
-def test_viewer_sends_only_finite_positions(run):
-    """The browser must get finite centres, finite positive-diagonal covariances (float16: no overflow) and a
-    finite initial camera, for the first frame and for extreme edits (a NaN here would give three.js a NaN
-    bounding sphere)."""
-    viewer = view_app.start_viewer(run, port=free_port(), expr_sliders=4)
+@pytest.mark.skipif(browser_missing() is not None, reason=f"browser tests: {browser_missing()}")
+def test_a_browser_counts_and_draws_every_live_mesh(run):
+    viewer = view_app.start_viewer(run, port=0, live=True)
     try:
-        def check() -> None:
-            centres, cov = sent_splats(viewer.splats)
-            assert centres.shape == (run.avatar.num_gaussians, 3)
-            assert np.isfinite(centres).all() and np.isfinite(cov).all()
-            assert (cov[:, [0, 3, 5]] >= 0).all() and (cov[:, [0, 3, 5]].sum(axis=1) > 0).all()
+        frames = RunFrames(run)
+        meshes = [posed_head_vertices(run, *frames.params(t)).detach() for t in frames.timesteps]
+        with chromium_page(160, 120) as page:
+            page.goto(viewer.url)
+            page.wait_for_function("window.geoavatar && window.geoavatar.stats.ready", timeout=120_000)
+            assert viewer.server.wait_for_client(30.0)
+            for k, mesh in enumerate(meshes):
+                viewer.show_live(mesh, read_time=None)
+                page.wait_for_function(f"window.geoavatar.stats.received === {k + 1}", timeout=60_000)
+            shown = np.asarray(page.evaluate("Array.from(window.geoavatar.player.liveVertices)"), dtype=np.float32)
+            np.testing.assert_array_equal(shown, meshes[-1].numpy().reshape(-1))
+            page.wait_for_function("window.geoavatar.stats.frameCostMs > 0")
+        assert viewer.server.sent == len(meshes)
+    finally:
+        viewer.stop()
 
-        check()
-        camera = viewer.server.initial_camera
-        for value in (camera.position, camera.look_at, camera.up, (camera.fov,)):
-            assert np.isfinite(np.asarray(value, dtype=np.float64)).all()
-        assert 0.0 < camera.fov < math.pi
-        for slider in viewer.expr:
-            slider.value = slider.max
-        viewer.jaw.value, viewer.yaw.value, viewer.pitch.value = 0.5, 45.0, -45.0
-        check()
-        viewer.frame.value = len(viewer.frames) - 1
-        check()
+
+@pytest.mark.skipif(browser_missing() is not None, reason=f"browser tests: {browser_missing()}")
+def test_the_pages_jaw_slider_is_posed_in_python_and_shown(run):
+    viewer = view_app.start_viewer(run, port=0, expr_sliders=2)
+    try:
+        with chromium_page(320, 240) as page:
+            page.goto(viewer.url + "?frame=2&paused=1")
+            page.wait_for_function("window.geoavatar && window.geoavatar.stats.ready", timeout=120_000)
+            sliders = page.locator("#edits input[type=range]")
+            assert sliders.count() == 5  # two expressions, the jaw, head yaw and pitch
+            sliders.nth(2).fill("0.25")
+            sliders.nth(2).dispatch_event("input")
+            page.wait_for_function("window.geoavatar.stats.received >= 1 && window.geoavatar.player.liveVertices",
+                                   timeout=60_000)
+            shown = np.asarray(page.evaluate("Array.from(window.geoavatar.player.liveVertices)"), dtype=np.float32)
+            page.click("#edits button")  # reset: the page plays its own clip again
+            page.wait_for_function("window.geoavatar.player.liveVertices === null", timeout=30_000)
+        params, _ = RunFrames(run).params(RunFrames(run).timesteps[2])
+        expected = posed_head_vertices(run, view_app.edited_params(run.head, params, [0.0, 0.0], 0.25, 0.0, 0.0,
+                                                                   viewer.centre), None)
+        np.testing.assert_allclose(shown, expected.detach().numpy().reshape(-1), atol=1e-6)
     finally:
         viewer.stop()

@@ -8,9 +8,10 @@ down at the end); `--address auto` joins the cluster this machine belongs to, `-
 one reached through Ray Client. On a cluster every node needs GeoAvatar installed and the datasets and
 DIR at the same paths (a shared file system).
 
-A task trains through `geoavatar train` and evaluates through `geoavatar eval` in its worker process
-(geoavatar.eval.ablation.run_job); the run folders are ordinary RUN folders. Finished runs are skipped,
-interrupted ones resumed, so the command can be repeated until the matrix is complete.
+A task trains through `geoavatar train` and evaluates through `geoavatar eval`, called as functions in
+its worker process (geoavatar.apps.ablation_job.run_job); the run folders are ordinary RUN folders.
+Finished runs are skipped, interrupted ones resumed, so the command can be repeated until the matrix is
+complete.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ from typing import Literal, Optional
 
 from geoavatar.config import ABLATIONS, PAPER_STEPS
 from geoavatar.errors import GeoAvatarError, OptionError
-from geoavatar.eval.ablation import (JobSpec, LOG_DIR, RunMismatch, read_summary, run_folder, run_job, run_state,
-                                     write_ablation, write_mouth_crops)
+from geoavatar.apps.ablation_job import JobSpec, run_job, run_state
+from geoavatar.eval.ablation import LOG_DIR, RunMismatch, read_summary, run_folder, write_ablation, write_mouth_crops
 
 DEFAULT_PRESETS = ("A", "B", "C", "D", "E")
 
@@ -106,14 +107,7 @@ def ablate(
              for d, name in zip(data, names) for p in presets]
     states = _plan(specs, redo)
     pending = [s for s in specs if states[s] != "done"]
-    total = len(specs)
-    counts = {state: sum(1 for s in specs if states[s] == state) for state in ("resume", "eval")}
-    print(f"ablate: {len(names)} dataset(s) x {len(presets)} preset(s) = {total} runs, {steps} steps each; "
-          f"{total - len(pending)} finished, {len(pending)} to run ({counts['resume']} to resume, {counts['eval']} "
-          f"to evaluate only) -> {out}", flush=True)
-    for n, spec in enumerate(s for s in specs if states[s] == "done"):
-        print(f"[{n + 1}/{total}] {spec.label}: finished earlier, skipped "
-              f"(PSNR {_psnr(read_summary(spec.run_dir))})", flush=True)
+    _print_plan(specs, states, len(names), len(presets), out)
     failed: list[dict] = []
     interrupted = False
     if pending:
@@ -121,31 +115,51 @@ def ablate(
             import torch
 
             gpus_per_job = 1.0 if device != "cpu" and torch.cuda.is_available() else 0.0
-        failed, interrupted = _run_on_ray(pending, states, address, threads, gpus_per_job, total - len(pending), total)
-    summaries = {}
-    for spec in specs:
-        if run_state(spec) == "done":
-            summaries[(spec.name, spec.preset)] = read_summary(spec.run_dir)
+        failed, interrupted = _run_on_ray(pending, states, address, threads, gpus_per_job, len(specs) - len(pending),
+                                          len(specs))
+    summaries = {(spec.name, spec.preset): read_summary(spec.run_dir) for spec in specs if run_state(spec) == "done"}
     settings = {"steps": steps, "resolution": resolution, "seed": seed, "max_frames": max_frames,
                 "datasets": {name: str(Path(d).resolve()) for d, name in zip(data, names)}}
     table = write_ablation(out, names, presets, summaries, settings)
     if "A" in presets and "E" in presets:
-        for name in names:
-            if (name, "A") in summaries and (name, "E") in summaries:
-                path, chosen = write_mouth_crops(out, name, run_folder(out, name, "A"), run_folder(out, name, "E"),
-                                                 mouth_frames, device=device, backend=backend)
-                frames = ", ".join(f"t={f.timestep} ({f.jaw:.2f} rad)" for f in chosen)
-                print(f"mouth crops: {path} (widest jaw opening: {frames})", flush=True)
-    print(f"table: {table} ({len(summaries)} of {total} runs, {_duration(time.perf_counter() - started)})", flush=True)
+        _write_mouth_crops(out, names, summaries, mouth_frames, device, backend)
+    print(f"table: {table} ({len(summaries)} of {len(specs)} runs, {_duration(time.perf_counter() - started)})",
+          flush=True)
+    return _exit_status(failed, interrupted)
+
+
+def _print_plan(specs: list[JobSpec], states: dict[JobSpec, str], datasets: int, presets: int, out: Path) -> None:
+    """One line for the matrix (how many runs, finished, to run), then one per run finished earlier."""
+    total, pending = len(specs), sum(1 for s in specs if states[s] != "done")
+    counts = {state: sum(1 for s in specs if states[s] == state) for state in ("resume", "eval")}
+    print(f"ablate: {datasets} dataset(s) x {presets} preset(s) = {total} runs, {specs[0].steps} steps each; "
+          f"{total - pending} finished, {pending} to run ({counts['resume']} to resume, {counts['eval']} "
+          f"to evaluate only) -> {out}", flush=True)
+    for n, spec in enumerate(s for s in specs if states[s] == "done"):
+        print(f"[{n + 1}/{total}] {spec.label}: finished earlier, skipped "
+              f"(PSNR {_psnr(read_summary(spec.run_dir))})", flush=True)
+
+
+def _write_mouth_crops(out: Path, names: list[str], summaries: dict, mouth_frames: int, device: str,
+                       backend: str) -> None:
+    """DIR/mouth_<dataset>.png for every dataset whose A and E runs are finished."""
+    for name in names:
+        if (name, "A") in summaries and (name, "E") in summaries:
+            path, chosen = write_mouth_crops(out, name, run_folder(out, name, "A"), run_folder(out, name, "E"),
+                                             mouth_frames, device=device, backend=backend)
+            frames = ", ".join(f"t={f.timestep} ({f.jaw:.2f} rad)" for f in chosen)
+            print(f"mouth crops: {path} (widest jaw opening: {frames})", flush=True)
+
+
+def _exit_status(failed: list[dict], interrupted: bool) -> int:
+    """130 when interrupted (run again to continue), 1 when a job failed (each named on stderr), else 0."""
     if interrupted:
         print("ablate: interrupted; run the same command again to continue", file=sys.stderr)
         return 130
-    if failed:
-        for record in failed:
-            print(f"ablate: {record['dataset']} {record['preset']} failed: {record['message']} (log: {record['log']})",
-                  file=sys.stderr)
-        return 1
-    return 0
+    for record in failed:
+        print(f"ablate: {record['dataset']} {record['preset']} failed: {record['message']} (log: {record['log']})",
+              file=sys.stderr)
+    return 1 if failed else 0
 
 
 def _psnr(summary: dict) -> str:

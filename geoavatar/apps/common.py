@@ -21,7 +21,6 @@ its traceback.
 
 from __future__ import annotations
 
-import os
 import time
 import warnings
 from contextlib import contextmanager
@@ -40,9 +39,10 @@ from geoavatar.data.subject import Subject
 from geoavatar.errors import OptionError
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
 from geoavatar.head.regions import skull_centre
+from geoavatar.imaging import fit_height, to_uint8  # the commands' image helpers, kept importable from here
 from geoavatar.render.camera import Camera
-from geoavatar.runtime import num_threads, resolve_device
-from geoavatar.train.checkpoint import LoadedRun, RunError, load_run, open_run_dataset
+from geoavatar.runtime import num_threads
+from geoavatar.train.checkpoint import LoadedRun, RunError, open_run, open_run_dataset
 
 # The RUN folder: the first, positional argument of every command (`geoavatar render RUN`).
 RunPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
@@ -61,15 +61,6 @@ def synchronize(device: torch.device | str) -> None:
         torch.cuda.synchronize(device)
     elif device.type == "mps":
         torch.mps.synchronize()
-
-
-def open_run(run_dir: str | os.PathLike, device: str = "auto", flame_dir: str | os.PathLike | None = None) -> LoadedRun:
-    """load_run on the resolved device (auto: CUDA when available). RunError / OptionError on bad input."""
-    try:
-        torch_device = resolve_device(device)
-    except ValueError as err:  # resolve_device's messages name --device
-        raise OptionError(str(err)) from err
-    return load_run(run_dir, torch_device, flame_dir=flame_dir)
 
 
 def run_device(run: LoadedRun) -> torch.device:
@@ -111,6 +102,15 @@ def record_camera(subject: Subject, timestep: int, resolution: int | None) -> Ca
     if resolution is not None and resolution < max(frame.width, frame.height):
         camera = camera.resized(resolution)
     return camera
+
+
+def split_timesteps(run: LoadedRun, split: str) -> list[int]:
+    """The timesteps of a split of the run (all, train, val, test); OptionError naming --split otherwise."""
+    if split == "all":
+        return list(run.info.timesteps["all"])
+    if split not in run.info.timesteps:
+        raise OptionError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
+    return list(run.info.timesteps[split])
 
 
 class RunFrames:
@@ -185,13 +185,6 @@ def head_centre(run: LoadedRun, params: HeadParams) -> Tensor:
 # --- images ------------------------------------------------------------------------------------------
 
 
-def to_uint8(image: Tensor | np.ndarray) -> np.ndarray:
-    """[H, W, 3] float in [0, 1] -> uint8 numpy (rounded)."""
-    if isinstance(image, Tensor):
-        image = image.detach().float().cpu().numpy()
-    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
 _COLORMAP_CACHE: dict[str, Tensor] = {}
 
 
@@ -230,16 +223,6 @@ def side_by_side(*images: np.ndarray) -> np.ndarray:
     return np.concatenate(images, axis=1)
 
 
-def fit_height(image: np.ndarray, height: int) -> np.ndarray:
-    """Resize a uint8 [H, W, 3] image to `height` rows, keeping its aspect ratio (area filter)."""
-    if image.shape[0] == height:
-        return image
-    from PIL import Image
-
-    width = max(1, round(image.shape[1] * height / image.shape[0]))
-    return np.asarray(Image.fromarray(image).resize((width, height), Image.Resampling.BOX))
-
-
 def default_output(run: LoadedRun, folder: str, name: str) -> Path:
     return Path(run.info.run_dir) / folder / name
 
@@ -273,5 +256,5 @@ __all__ = [
     "default_output", "error_map", "evenly_spaced", "fit_height", "head_centre", "open_run", "open_run_dataset",
     "pose_gaussians", "posed_head_vertices", "progress", "rasterize_gaussians", "record_camera", "render_params",
     "RENDER_THREADS", "run_background", "run_device",
-    "side_by_side", "synchronize", "to_uint8", "torch_threads",
+    "side_by_side", "split_timesteps", "synchronize", "to_uint8", "torch_threads",
 ]

@@ -2,7 +2,8 @@
 
 generate a subject → train GeoAvatar (preset E) → evaluate on the held-out test frames → render the
 self re-enactment, a novel-view orbit and a cross re-enactment driven by a second generated subject
-→ demo_output/report.md with the metrics table, the time of every stage and pictures.
+→ the browser player of the avatar (demo_output/web/, `export --format web`) → demo_output/report.md with the
+metrics table, the time of every stage and pictures.
 
 Each stage writes into its own folder and is skipped when its output is already complete, so an
 interrupted demo continues where it stopped (training itself resumes from its last checkpoint).
@@ -102,6 +103,7 @@ def demo(
         progress: Show progress bars.
     """
     from geoavatar.apps.eval import eval_runs
+    from geoavatar.apps.export import export
     from geoavatar.apps.orbit import orbit
     from geoavatar.apps.reenact import reenact
     from geoavatar.apps.render_video import render
@@ -147,6 +149,11 @@ def demo(
                                        backend=backend, progress=progress),
                                "reenact"))
 
+    player = out / "web"
+    timer.run("write the web player", (player / "avatar.json").is_file,
+              lambda: _checked(export(run, out=player, format="web", overwrite=True, device=device,
+                                      progress=progress), "export"))
+
     stills = {name: out / f"{name}.png" for name in videos}
     for name, video in videos.items():
         save_still(video, stills[name])
@@ -155,6 +162,8 @@ def demo(
     print()
     print(f"Demo finished: {sum(timer.seconds.values()) / 60:.1f} min of stage time in all.")
     print(f"Open {report} (metrics, timings, pictures); videos: {', '.join(str(v) for v in videos.values())}")
+    print(f"The avatar in your browser: python3 -m http.server 8000 --bind 127.0.0.1 --directory {player}\n"
+          f"  then open http://127.0.0.1:8000/ (or: geoavatar view {run}, with expression and jaw sliders)")
     return 0
 
 
@@ -212,6 +221,9 @@ def write_report(out: Path, data: Path, run: Path, metrics_json: Path, videos: d
         f"![cross re-enactment]({rel(stills['reenact'])})",
         "",
         f"The generated subject across its sequence: `{rel(data / 'preview.png')}`",
+        "",
+        f"The animated avatar in a browser (test split, posed on the GPU): `python3 -m http.server 8000 --bind "
+        f"127.0.0.1 --directory {out / 'web'}`, then open http://127.0.0.1:8000/ (docs/web_player.md).",
         aps_text,
         "## Time",
         "",

@@ -8,16 +8,17 @@ keeping only the newest item of the one before):
     fit         the driver's pose, jaw, eyes and expression: prep/tracking.py's OnlineFit, two damped
                 Gauss-Newton iterations (or L-BFGS, --solver) warm-started from the previous frame, on the
                 energy of the batch tracker
-    pose        the avatar's parameters from the driver's (apps/reenact.py's driven_params: absolute,
-                or --relative offsets from the driver's neutral onto the avatar's), avatar.pose_avatar
+    pose        the avatar's parameters from the driver's (apps/reenact.py's driven_params in the --transfer
+                mode of apps/expression_transfer.py), avatar.pose_avatar
     render      avatar.rasterize_gaussians with the avatar's dataset camera at --size
 
 The first second of the driver (`--init-seconds`) is the identity stage: its frames are collected,
 the crop's side and centres come from the face detector as in `prepare` (prep/video.py's
 smooth_crop_boxes), and the batched tracker (prep/tracking.track) fits the driver's identity, smooth
 static offset and focal length over them; these stay frozen and the online fit continues from the last
-of those frames. The driver's neutral (for --relative and for the head's translation) is the mean of
-the first second.
+of those frames. The driver's neutral (for relative transfer and for the head's translation) is the mean of
+the first second, and so are the driver's statistics (--transfer statistics; their spread is shrunk toward the
+avatar's, expression_transfer.PRIOR_FRAMES).
 
 Real time: `--video` plays the file at its own frame rate, as a live source would deliver it: when the
 pipeline is busy, a newer frame replaces the waiting one and the older is dropped (counted), never queued.
@@ -25,8 +26,9 @@ The file's clock starts after the identity stage (a camera's frames are dropped 
 Latency is measured from the moment a frame is available to the moment its output is done. A status
 line shows the FPS, drops and the per-stage times. The written mp4 (`--out`, driver | avatar) runs at
 the source's frame rate; a dropped frame repeats the previous output, so the video keeps real time.
-`--view` serves the browser viewer (apps/view.py) in live mode: the posed Gaussians are sent to the
-browser, which renders them itself (without --out the render stage is skipped).
+`--view` serves the browser player (apps/view.py, geoavatar/web) in live mode: each frame's posed head mesh is
+streamed over a websocket and the browser places, shades and draws the splats on its GPU (without --out the render
+stage is skipped); the summary adds the stream's latency from frame read to message sent.
 
 The fit runs on the CPU (a few hundred landmarks: a GPU's launch overhead would dominate); posing and
 rendering run on --device (auto: CUDA when there).
@@ -44,8 +46,10 @@ from typing import Callable, Iterator, Literal, Optional
 import numpy as np
 import torch
 
-from geoavatar.apps.common import (RunFrames, RunPath, fit_height, open_run, record_camera, run_background, side_by_side,
-                                   to_uint8)
+from geoavatar.apps.common import (RunFrames, RunPath, fit_height, open_run, posed_head_vertices, record_camera,
+                                   run_background, side_by_side, to_uint8)
+from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, avatar_expressions,
+                                                expression_statistics, resolve_transfer)
 from geoavatar.apps.reenact import TRANSFERRED_KEYS, driven_params, reference_frame
 from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.data import DatasetError, open_subject
@@ -312,6 +316,7 @@ class DriverTracker:
         fitted = HeadParams.from_npz(values)
         npz = fitted.to_npz()
         self.neutral = reference_frame(npz, list(range(fitted.batch)), "mean")
+        self.statistics = expression_statistics(npz)  # the driver's, for --transfer statistics / subspace
         # the crop follows the face from here: the detector's centre, estimated from the landmarks
         last = raw[-1][:, :2] / scale + boxes[-1][:2] - boxes[-1][2] / 2
         self._offset = np.mean([boxes[k][:2] - (raw[k][:, :2].mean(0) / scale + boxes[k][:2] - boxes[k][2] / 2)
@@ -402,7 +407,7 @@ def drive_avatar(
     run: LoadedRun,
     source: Source,
     out: Path | None = None,
-    relative: bool = False,
+    transfer: TransferMode | bool = DEFAULT_TRANSFER,  # a bool is the old `relative` flag
     size: int = 512,
     init_seconds: float = 1.0,
     iterations: int | None = None,
@@ -435,6 +440,7 @@ def drive_avatar(
         raise RunError(f"{run.info.run_dir}: the camera comes from its dataset {avatar_root}, which cannot be read "
                        f"({err}); pass --data DIR") from err
     avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, "first")
+    avatar_learned = avatar_expressions(frames)
     identity = frames.identity()
     background = run_background(run).to(device)
     render = (out is not None or viewer is None) if render is None else render
@@ -462,11 +468,15 @@ def drive_avatar(
         t0 = time.perf_counter()
         driver_now = {k: getattr(driver.params, k).to(device) for k in TRANSFERRED_KEYS}
         driver_ref = {k: v.to(device) for k, v in tracker.neutral.items()}
-        params = HeadParams.from_npz(driven_params(identity, avatar_ref, driver_now, driver_ref, relative))
-        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer)
+        learned = TransferStatistics(*avatar_learned, tracker.statistics)
+        params = HeadParams.from_npz(driven_params(identity, avatar_ref, driver_now, driver_ref, transfer,
+                                                   learned=learned))
+        # the browser places the Gaussians itself: without a render only the head is posed
+        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer) if render else None
         if viewer is not None:
-            viewer.show_live(posed.gaussians, f"live: frame {index}, {stats.fps:.1f} fps, "
-                                                f"dropped {mailbox.dropped + fitted.dropped}")
+            vertices = posed.vertices if posed is not None else posed_head_vertices(run, params, None)
+            viewer.show_live(vertices, f"live: frame {index}, {stats.fps:.1f} fps, "
+                                       f"dropped {mailbox.dropped + fitted.dropped}", available)
         t1 = time.perf_counter()
         timings["pose"] = t1 - t0
         if render:
@@ -576,6 +586,7 @@ def drive(
     camera: Optional[int] = None,
     video: Optional[Path] = None,
     relative: bool = False,
+    transfer: Optional[TransferMode] = None,
     out: Optional[Path] = None,
     view: bool = False,
     size: int = 512,
@@ -601,10 +612,13 @@ def drive(
         run: Run folder written by `geoavatar train` (the avatar).
         camera: Webcam number N (/dev/videoN through PyAV's v4l2 input, else OpenCV).
         video: A video file played as a live source at its own frame rate.
-        relative: Transfer expression and pose as offsets from the driver's neutral (its first second) onto
-            the avatar's neutral (its first frame), instead of the driver's absolute values.
+        relative: The same as --transfer relative.
+        transfer: How the driver's expression, jaw and eyes become the avatar's: absolute, relative (offsets from
+            the driver's neutral, its first second, onto the avatar's first frame), statistics (the driver's
+            first-second statistics mapped to the avatar's training-set statistics) or subspace (relative, kept
+            inside the expressions the avatar was trained on), as `geoavatar reenact --transfer`. Default: subspace.
         out: Write driver | avatar to this mp4 (at the source's frame rate; a dropped frame repeats the last output).
-        view: Show the avatar live in the browser viewer (viser) on --host/--port.
+        view: Show the avatar live in the browser player on --host/--port (posed meshes streamed to it).
         size: Side of the rendered avatar in pixels (the avatar's dataset camera, scaled).
         init_seconds: Length of the identity stage at the start of the driver.
         solver: Online fit per frame: gauss_newton (damped Gauss-Newton; closer to the offline tracking at
@@ -626,6 +640,7 @@ def drive(
         raise OptionError("give one driving source: --camera N or --video FILE")
     if out is None and not view:
         raise OptionError("nothing to show: pass --out FILE.mp4 and/or --view")
+    mode = resolve_transfer(transfer, relative)
     source = open_video(video) if video is not None else open_camera(camera)
     loaded = open_run(run, device, flame_dir)
     viewer = None
@@ -638,7 +653,7 @@ def drive(
             raise GeoAvatarError(f"cannot start the viewer: {err}") from err
         print(f"GeoAvatar live viewer: {viewer.url}", flush=True)
     try:
-        stats = drive_avatar(loaded, source, out, relative, size, init_seconds, iterations, solver, max_frames=max_frames,
+        stats = drive_avatar(loaded, source, out, mode, size, init_seconds, iterations, solver, max_frames=max_frames,
                              viewer=viewer, backend=backend, data=data, status=status, flame_dir=flame_dir,
                              threads=threads)
     except KeyboardInterrupt:
@@ -647,7 +662,7 @@ def drive(
         if viewer is not None:
             viewer.stop()
     print(f"drive: {stats.summary()}; identity stage {stats.init_frames} frames in {stats.init_seconds:.1f} s"
-          + (f"; wrote {out}" if out is not None else ""))
+          + (f"; wrote {out}" if out is not None else "") + (f"; {viewer.summary()}" if viewer is not None else ""))
     return 0
 
 

@@ -1,13 +1,16 @@
-"""`geoavatar eval RUN [RUN ...]`: MSE, PSNR, SSIM, LPIPS (+ mouth PSNR / LPIPS) of trained runs."""
+"""`geoavatar eval RUN [RUN ...]`: MSE, PSNR, SSIM, LPIPS (+ mouth PSNR / LPIPS, face metrics) of trained runs;
+`geoavatar eval RUN --driver DATA | --driver-video FILE`: a cross re-enactment scored without ground truth."""
 
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Optional, Sequence
 
 import tyro
 
+from geoavatar.apps.expression_transfer import TransferMode
 from geoavatar.errors import OptionError
 
 
@@ -35,8 +38,15 @@ def eval_runs(
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
     flame_dir: Optional[Path] = None,
     progress: bool = True,
+    faces: bool = True,
+    driver: Optional[Path] = None,
+    driver_video: Optional[Path] = None,
+    relative: bool = False,
+    transfer: tuple[TransferMode, ...] = (),
+    driver_cache: Optional[Path] = None,
 ) -> int:
-    """Evaluate trained runs on a split of their datasets, as the paper's Table 1 does.
+    """Evaluate trained runs on a split of their datasets, as the paper's Table 1 does, or score one run's cross
+    re-enactment (--driver / --driver-video), as the paper's appendix does.
 
     Renders every frame of the split, composites the ground truth on the dataset's background as
     GaussianAvatars and INSTA do, and measures MSE, PSNR, SSIM and LPIPS per frame (mean ± std), plus
@@ -44,7 +54,14 @@ def eval_runs(
     timesteps: they use the dataset's tracked parameters and T = 0 for the mouth deformer.
     Writes RUN/eval/SPLIT/metrics.json (per frame, summary, settings) and metrics.md (Table 1 layout)
     for each run (RUN/eval/SPLIT@COPY with --data COPY, another copy of the run's dataset); with several runs
-    also one comparison table (Table 1 and ablation layouts).
+    also one comparison table (Table 1 and ablation layouts). Face metrics (--no-faces skips them): dlib identity
+    similarity of each render to the avatar's training frames, FER2013 expression similarity to the ground truth,
+    and the landmark agreement of mouth, eyes and brows over the clip (docs/cross_reenactment.md).
+
+    With --driver DATA or --driver-video FILE, one run is driven as `geoavatar reenact` drives it, once per
+    --transfer mode, and each render is scored against the driver's frame (identity against the avatar's training
+    frames, expression and landmarks against the driver): RUN/eval/cross@<driver>/metrics.json (per frame and
+    summary, per mode) and metrics.md (rows = modes). Renders without a detected face are counted, not scored.
 
     Args:
         runs: One or more RUN folders written by `geoavatar train`.
@@ -69,7 +86,23 @@ def eval_runs(
         backend: Rasterizer: auto (gsplat on CUDA, the native cpu kernel on CPU when it builds, else torch), cpu, torch or gsplat.
         flame_dir: Folder with your FLAME model files (runs on FLAME-tracked data only).
         progress: Show progress bars.
+        faces: Measure the face metrics (dlib identity similarity, FER2013 expression similarity, landmark
+            agreement); --no-faces skips them.
+        driver: Score a cross re-enactment: the tracked dataset that drives the run (as `reenact --driver`).
+        driver_video: Score a cross re-enactment driven by a video, tracked and cached as `reenact --driver-video`
+            does (RUN/drivers/, reused by reenact and later calls).
+        relative: With a driver: the same as --transfer relative.
+        transfer: With a driver: the transfer modes to score, each a row of the report (absolute, relative,
+            statistics, subspace; default: reenact's default mode).
+        driver_cache: With --driver-video: the folder of its tracking (as `reenact --driver-cache`).
     """
+    if driver is not None or driver_video is not None or driver_cache is not None:
+        if len(runs) != 1 or split != "test" or out is not None:
+            raise OptionError("--driver / --driver-video score one RUN (no --split, no --out)")
+        return eval_cross(runs[0], driver, driver_video, driver_cache, relative, transfer, max_frames, device, data,
+                          checkpoint, backend, flame_dir, progress)
+    if relative or transfer:
+        raise OptionError("--relative and --transfer go with --driver or --driver-video")
     from geoavatar.eval.evaluate import EvalConfig, evaluate_run
     from geoavatar.eval.report import (check_comparison_target, comparison_markdown, distinct_labels, extra_sections,
                                        metric_table, write_comparison, write_run_report)
@@ -80,7 +113,7 @@ def eval_runs(
         raise SystemExit("geoavatar eval: give at least one RUN folder")
     config = EvalConfig(split=split, lpips_net=lpips_net, lpips_unit_inputs=lpips_unit_inputs, max_frames=max_frames,
                         mouth=mouth, backend=backend, keep_images=save_images, floaters=floaters,
-                        floater_frames=floater_frames)
+                        floater_frames=floater_frames, faces=faces)
     config.validate()  # OptionError naming the option
     if out is not None:
         check_comparison_target(out)  # before the evaluation, not after it
@@ -108,6 +141,67 @@ def eval_runs(
     return 0
 
 
+def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, driver_cache: Path | None,
+               relative: bool, transfer: tuple[str, ...], max_frames: int | None, device: str, data: Path | None,
+               checkpoint: str, backend: str, flame_dir: Path | None, progress: bool) -> int:
+    """`geoavatar eval RUN --driver ...`: the cross re-enactment report, RUN/eval/cross@<driver>/."""
+    from geoavatar.apps.expression_transfer import resolve_transfer
+    from geoavatar.apps.reenact import DrivenAvatar, DrivingOptions, check_driver_options, track_driver
+    from geoavatar.eval.cross import cross_dir, mode_table, write_cross_report
+    from geoavatar.runtime import resolve_device
+    from geoavatar.train.checkpoint import load_run
+
+    modes = list(dict.fromkeys(resolve_transfer(mode, False) for mode in transfer)) if transfer else \
+        [resolve_transfer(None, relative)]
+    if relative and modes != ["relative"]:
+        raise OptionError(f"--relative means --transfer relative; it cannot go with --transfer {' '.join(transfer)}")
+    if max_frames is not None and max_frames <= 0:
+        raise OptionError(f"--max-frames must be positive, got {max_frames}")
+    check_driver_options(driver, driver_video, driver_cache, None, False, "eval")
+    try:
+        torch_device = resolve_device(device)
+    except ValueError as err:
+        raise OptionError(str(err)) from err
+    run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
+    root, _, name = track_driver(run, driver, driver_video, driver_cache, flame_dir=flame_dir, progress=progress)
+    driven = DrivenAvatar(run, root, DrivingOptions(transfer=modes[0], data=data, backend=backend))
+    result = evaluate_cross(run, driven, modes, name, max_frames, data=data, flame_dir=flame_dir, progress=progress)
+    written = write_cross_report(result, cross_dir(run.info.run_dir, name))
+    print(mode_table(result.summaries), end="")
+    print(f"{result.label} driven by {name}: {len(next(iter(result.modes.values())))} frames x {len(modes)} "
+          f"transfer modes in {result.seconds:.1f} s -> {written['json']}")
+    return 0
+
+
+def evaluate_cross(run, driven, modes: Sequence[str], driver: str, max_frames: int | None = None,
+                   scorer=None, data: Path | None = None, flame_dir: Path | None = None, progress: bool = True):
+    """CrossResult of a DrivenAvatar: `max_frames` driver frames (spread evenly; all by default) rendered in each
+    transfer mode of `modes` and scored against the driver's frames (eval/cross.py). `scorer`: a FaceScorer holding
+    the avatar's identity reference (default: eval's, from the run's training frames; closed after)."""
+    from geoavatar.data import evenly_spaced
+    from geoavatar.eval.cross import CrossResult, score_cross
+    from geoavatar.eval.evaluate import face_scorer, face_settings, run_label
+
+    started = time.perf_counter()
+    own_scorer = scorer is None
+    scorer = face_scorer(run, data, flame_dir) if own_scorer else scorer
+    try:
+        scored = score_cross(driven.pictures(modes, max_frames), modes, scorer, progress, f"eval cross@{driver}")
+    finally:
+        if own_scorer:
+            scorer.close()
+    options = driven.options
+    evaluated = len(evenly_spaced(len(driven.dataset), max_frames))
+    settings = {
+        "frames_in_driver": len(driven.dataset), "frames_evaluated": evaluated, "max_frames": max_frames, "driver_split": options.driver_split, "driver_neutral": options.driver_neutral,
+        "avatar_neutral": options.avatar_neutral, "camera": options.camera, "backend": options.backend,
+        "resolution": run.info.resolution, "faces": face_settings(scorer),
+        "source": "the driver's frame composited on its background (what reenact shows beside the render)",
+    }
+    return CrossResult(run.info.run_dir, run_label(run)[0], driver, Path(driven.subject.root), scored, settings,
+                       time.perf_counter() - started)
+
+
 def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> Path:
     """RUN/eval/SPLIT, or RUN/eval/SPLIT@NAME for a copy NAME of the dataset given while the recorded one exists."""
     from geoavatar.eval.report import eval_dir
@@ -118,4 +212,4 @@ def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> 
     return folder.with_name(f"{split}@{Path(data).resolve().name}")
 
 
-__all__ = ["eval_runs", "report_dir"]
+__all__ = ["eval_cross", "eval_runs", "evaluate_cross", "report_dir"]

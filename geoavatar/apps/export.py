@@ -26,7 +26,9 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from geoavatar.apps.common import EXPORT_DIR, RunFrames, RunPath, default_output, open_run, pose_gaussians, progress
+from geoavatar.apps.common import (EXPORT_DIR, RunFrames, RunPath, default_output, open_run, pose_gaussians, progress,
+                                   split_timesteps)
+from geoavatar.apps.expression_transfer import TransferMode, resolve_transfer
 from geoavatar.avatar import GlobalGaussians
 from geoavatar.avatar.model import rgb_to_sh_dc
 from geoavatar.errors import OptionError
@@ -65,25 +67,23 @@ def export_frame(run: LoadedRun, out: Path, timestep: int | None = None) -> Path
     return write_gaussian_ply(out, to_ply_gaussians(run, frame_gaussians(run, frames, frames.resolve(timestep))))
 
 
-def sequence_timesteps(run: LoadedRun, split: str) -> list[int]:
-    if split == "all":
-        return list(run.info.timesteps["all"])
-    if split not in run.info.timesteps:
-        raise OptionError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
-    return list(run.info.timesteps[split])
-
-
-def export_sequence_ply(run: LoadedRun, out: Path, split: str = "all", overwrite: bool = False,
-                        show_progress: bool = True) -> Path:
-    """One PLY per frame into the folder `out`, which appears complete or not at all."""
+def check_folder_target(out: Path, overwrite: bool) -> Path:
+    """--out as a folder to (re)write: OptionError when it exists and --overwrite is not given, or is a file."""
     out = Path(out)
     if out.exists() and not overwrite:
         raise OptionError(f"--out {out} already exists; pass --overwrite to replace it")
     if out.exists() and not out.is_dir():
         raise OptionError(f"--out {out} exists and is not a folder")
+    return out
+
+
+def export_sequence_ply(run: LoadedRun, out: Path, split: str = "all", overwrite: bool = False,
+                        show_progress: bool = True) -> Path:
+    """One PLY per frame into the folder `out`, which appears complete or not at all."""
+    out = check_folder_target(out, overwrite)
     frames = RunFrames(run)
     with atomic_folder(out) as folder:
-        for t in progress(sequence_timesteps(run, split), enabled=show_progress, desc="export"):
+        for t in progress(split_timesteps(run, split), enabled=show_progress, desc="export"):
             gaussians = to_ply_gaussians(run, frame_gaussians(run, frames, t))
             write_gaussian_ply(folder / FRAME_FILE.format(t), gaussians)
     return out
@@ -92,7 +92,7 @@ def export_sequence_ply(run: LoadedRun, out: Path, split: str = "all", overwrite
 def export_sequence_npz(run: LoadedRun, out: Path, split: str = "all", show_progress: bool = True) -> Path:
     """Per-frame Gaussian parameters of a split in one npz (see the module docstring for the keys)."""
     frames = RunFrames(run)
-    timesteps = sequence_timesteps(run, split)
+    timesteps = split_timesteps(run, split)
     means, quats, log_scales, colours = [], [], [], []
     for t in progress(timesteps, enabled=show_progress, desc="export"):
         g = to_ply_gaussians(run, frame_gaussians(run, frames, t))
@@ -115,38 +115,60 @@ def export(
     out: Optional[Path] = None,
     frame: Optional[int] = None,
     sequence: bool = False,
-    format: Literal["ply", "npz"] = "ply",
-    split: str = "all",
+    format: Literal["ply", "npz", "web"] = "ply",
+    split: Optional[str] = None,
+    driver: Optional[Path] = None,
+    driver_video: Optional[Path] = None,
+    relative: bool = False,
+    transfer: Optional[TransferMode] = None,
+    fps: Optional[float] = None,
     overwrite: bool = False,
+    data: Optional[Path] = None,
     device: str = "cpu",
     flame_dir: Optional[Path] = None,
     progress: bool = True,
 ) -> int:
-    """Export the avatar's Gaussians of a frame as a standard 3DGS PLY (for splat viewers).
+    """Export the avatar: a frame's Gaussians as a standard 3DGS PLY, a sequence, or a web player of a clip.
 
     The Gaussians are posed with the frame's parameters (the run's refined ones for training frames);
     the PLY has x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3 (opacity as logit, scale as log,
-    rotation w x y z), binary little-endian.
+    rotation w x y z), binary little-endian. --format web writes a static folder (index.html, its script, the
+    avatar and a clip of posed meshes) that plays the animated avatar in any WebGL2 browser from any static
+    file server (docs/web_player.md).
 
     Args:
         run: Run folder written by `geoavatar train`.
-        out: File to write (.ply; with --sequence a folder, or an .npz with --format npz). Default:
-            RUN/export/frame_<K>.ply, RUN/export/sequence_<split>/ or RUN/export/sequence_<split>.npz.
+        out: File to write (.ply; with --sequence a folder, or an .npz with --format npz; with --format web a
+            folder). Default: RUN/export/frame_<K>.ply, RUN/export/sequence_<split>[.npz] or RUN/export/web_<clip>/.
         frame: Timestep (frame index of the video) to pose the avatar with (default: the first one).
         sequence: Export every frame of --split instead of one frame.
-        format: With --sequence: ply (a folder of per-frame PLYs) or npz (one file of per-frame arrays).
-        split: With --sequence: all, train, val or test.
-        overwrite: Replace an existing --sequence folder.
+        format: With --sequence: ply (a folder of per-frame PLYs) or npz (one file of per-frame arrays); web: the
+            browser player of a clip (--split, --driver or --driver-video; no --sequence needed).
+        split: The frames: all, train, val or test (default: all with --sequence, test with --format web).
+        driver: --format web: play this tracked dataset's motion on the avatar (as `geoavatar reenact --driver`).
+        driver_video: --format web: play this video's motion (tracked as `geoavatar reenact --driver-video` does).
+        relative: With --driver / --driver-video: the same as --transfer relative.
+        transfer: With --driver / --driver-video: how the driver's expression, jaw and eyes become the avatar's,
+            as `geoavatar reenact --transfer` (absolute, relative, statistics, subspace; default: reenact's).
+        fps: --format web: the clip's frame rate (default: the driver video's, else 25).
+        overwrite: Replace an existing --sequence or --format web folder.
+        data: The run's dataset folder, when it moved since training (--format web reads its camera there).
         device: cpu, auto (CUDA when available), cuda or cuda:N.
         flame_dir: Folder with your FLAME model files (runs trained on FLAME data only).
         progress: Show progress bars.
     """
+    if format == "web":
+        return _export_web(run, out, frame, split, driver, driver_video, relative, transfer, fps, overwrite, data,
+                           device, flame_dir, progress)
+    if driver is not None or driver_video is not None or relative or transfer is not None or fps is not None:
+        raise OptionError("--driver, --driver-video, --relative, --transfer and --fps go with --format web")
     if frame is not None and sequence:
         raise OptionError("--frame and --sequence exclude each other (--sequence exports every frame of --split)")
     if out is not None and not sequence and out.suffix.lower() != ".ply":
         raise OptionError(f"--out {out}: a single frame is written as a .ply file")
     if out is not None and sequence and format == "npz" and out.suffix.lower() != ".npz":
         raise OptionError(f"--out {out}: --format npz writes an .npz file")
+    split = split or "all"
     loaded = open_run(run, device, flame_dir)
     if not sequence:
         timestep = RunFrames(loaded).resolve(frame)
@@ -156,12 +178,35 @@ def export(
     elif format == "ply":
         target = out or default_output(loaded, EXPORT_DIR, f"sequence_{split}")
         export_sequence_ply(loaded, target, split, overwrite, progress)
-        print(f"wrote {target}/ ({len(sequence_timesteps(loaded, split))} frames)")
+        print(f"wrote {target}/ ({len(split_timesteps(loaded, split))} frames)")
     else:
         target = out or default_output(loaded, EXPORT_DIR, f"sequence_{split}.npz")
         export_sequence_npz(loaded, target, split, progress)
-        print(f"wrote {target} ({len(sequence_timesteps(loaded, split))} frames)")
+        print(f"wrote {target} ({len(split_timesteps(loaded, split))} frames)")
     return 0
 
 
-__all__ = ["export", "export_frame", "export_sequence_npz", "export_sequence_ply", "frame_gaussians", "to_ply_gaussians"]
+def _export_web(run, out, frame, split, driver, driver_video, relative, transfer, fps, overwrite, data, device,
+                flame_dir, progress) -> int:
+    from geoavatar.apps.web_export import export_web, folder_size
+
+    if frame is not None:
+        raise OptionError("--frame does not go with --format web (the player plays a whole clip)")
+    if driver is not None and driver_video is not None:
+        raise OptionError("give at most one of --driver and --driver-video")
+    if (driver is not None or driver_video is not None) and split is not None:
+        raise OptionError("--split chooses the run's own frames; it does not go with --driver / --driver-video")
+    if (relative or transfer is not None) and driver is None and driver_video is None:
+        raise OptionError("--relative and --transfer go with --driver or --driver-video")
+    mode = resolve_transfer(transfer, relative)
+    loaded = open_run(run, device, flame_dir)
+    clip = Path(driver_video or driver).stem if (driver or driver_video) else (split or "test")
+    target = check_folder_target(out or default_output(loaded, EXPORT_DIR, f"web_{clip}"), overwrite)
+    export_web(loaded, target, split or "test", driver, driver_video, mode, fps, data, flame_dir, progress)
+    print(f"wrote {target}/ ({folder_size(target) / 1e6:.1f} MB): serve it with any static file server, e.g.\n"
+          f"  python3 -m http.server 8000 --bind 127.0.0.1 --directory {target}\n"
+          "and open http://127.0.0.1:8000/ in a browser")
+    return 0
+
+
+__all__ = ["check_folder_target", "export", "export_frame", "export_sequence_npz", "export_sequence_ply", "frame_gaussians", "to_ply_gaussians"]

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from geoavatar.head.base import HeadModel
+from geoavatar.imaging import to_uint8
 from geoavatar.io.atomic import atomic_write_png
 from geoavatar.render.camera import intrinsics_from_fov, look_at, world_to_camera
 from geoavatar.render.mesh import Lighting, render_mesh
@@ -282,7 +283,7 @@ def _render_tile(head: HeadModel, scene: _HeadScene, spec: Tile, size: int) -> n
         image = draw(torch.nonzero(far_half).squeeze(1), face_colors=face_colors).image
     else:
         raise ValueError(f"unknown tile style '{spec.style}'")
-    return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+    return to_uint8(image)
 
 
 def _orbit_camera(centre: Tensor, radius: float, yaw_deg: float, pitch_deg: float, size: int) -> tuple[Tensor, Tensor]:

@@ -19,14 +19,19 @@ default folder differs, so the landmark-only and the photometric track are both 
 face is found are interpolated (prepare's default) and listed in DIR/report.json. The output video
 plays at the driver video's frame rate unless --fps says otherwise.
 
-Parameters of every driver frame (FLAME npz layout; what is taken from whom):
+Parameters of every driver frame (FLAME npz layout; what is taken from whom), by --transfer (driven_params):
 
     shape, static_offset        the avatar's (its identity, from the run)
-    expr, jaw, eyes, neck,      absolute (default): the driver's values
-      rotation                  --relative: the avatar's neutral + the driver's change from its neutral
+    expr, jaw, eyes, neck,      absolute: the driver's values
+      rotation                  relative (--relative): the avatar's neutral + the driver's change from its neutral
                                   expr = expr_avatar_neutral + (expr_driver(t) - expr_driver_neutral)
                                   R    = R_driver(t) R_driver_neutral^T R_avatar_neutral   (each joint,
                                          and the global rotation: rotation matrices, not axis-angles)
+                                statistics (apps/expression_transfer.py): expr, jaw and eyes standardised by the
+                                  driver's statistics and mapped to the avatar's training-set statistics; neck and
+                                  rotation as relative
+                                subspace: relative, then expr projected onto the expressions the avatar was trained
+                                  on and clamped to their range, jaw and eyes clamped to their training range
     translation                 the avatar's neutral translation + the driver's displacement from its
                                 neutral frame (tracked translations depend on each video's camera, so
                                 only the motion carries over); with --camera driver the driver's own
@@ -55,12 +60,16 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Iterator, Literal, Optional, Sequence
 
 import torch
 from torch import Tensor
 
+from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, resolve_transfer,
+                                                statistics_transfer, subspace_projection, transfer_mode,
+                                                transfer_statistics)
 from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, check_threads,
                                    default_output, evenly_spaced, fit_height, open_run, progress, record_camera, render_params,
                                    run_background, side_by_side, to_uint8, torch_threads)
@@ -68,6 +77,7 @@ from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
 from geoavatar.data.dataset import item_camera
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError, OptionError
+from geoavatar.eval.cross import DrivenPicture
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from geoavatar.io.video import Mp4Writer
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
@@ -122,21 +132,31 @@ def driven_params(
     avatar_ref: dict[str, Tensor],  # the avatar's neutral frame, per-frame keys [1, ...]
     driver: dict[str, Tensor],  # the driver's per-timestep keys [T, ...]
     driver_ref: dict[str, Tensor],  # the driver's neutral frame [1, ...]
-    relative: bool = False,
+    mode: TransferMode | bool = "absolute",  # a bool is the old `relative` flag
     driver_translation: bool = False,  # keep the driver's absolute translation (--camera driver)
+    learned: TransferStatistics | None = None,  # for 'statistics' / 'subspace': transfer_statistics(...)
 ) -> dict[str, Tensor]:
-    """Per-frame parameters [T, ...] of the avatar driven by `driver` (rules in the module docstring)."""
+    """Per-frame parameters [T, ...] of the avatar driven by `driver` in transfer `mode` (rules in the module
+    docstring and in apps/expression_transfer.py)."""
+    mode = transfer_mode(mode)
+    if mode in ("statistics", "subspace") and learned is None:
+        raise ValueError(f"driven_params: transfer {mode!r} needs the statistics "
+                         "(expression_transfer.transfer_statistics)")
     out: dict[str, Tensor] = {}
     driver_expr, ref_expr = _match_width(driver["expr"], driver_ref["expr"])
-    if relative:
+    if mode == "absolute":
+        out["expr"] = driver["expr"].clone()
+        for key in ROTATION_KEYS:
+            out[key] = driver[key].clone()
+    else:
         avatar_expr, delta = _match_width(avatar_ref["expr"], driver_expr - ref_expr)
         out["expr"] = avatar_expr + delta  # [T, E]
         for key in ROTATION_KEYS:
             out[key] = _compose_relative(driver[key], driver_ref[key], avatar_ref[key])
-    else:
-        out["expr"] = driver["expr"].clone()
-        for key in ROTATION_KEYS:
-            out[key] = driver[key].clone()
+    if mode == "statistics":
+        out.update(statistics_transfer(driver, learned))  # expr, jaw, eyes from the two sequences' statistics
+    elif mode == "subspace":
+        out.update(subspace_projection(out, learned))  # the relative result kept inside the training expressions
     if driver_translation:
         out["translation"] = driver["translation"].clone()
     else:
@@ -158,6 +178,28 @@ def open_driver(driver: Path, run: LoadedRun) -> Subject:
         raise RunError(f"--driver {driver}: tracked with head model '{subject.head_model}', but the avatar uses "
                        f"'{run.info.head_model}'; expression and pose parameters do not carry across head models")
     return subject
+
+
+def driven_clip(run: LoadedRun, frames: RunFrames, driver_root: Path, mode: TransferMode | bool = "absolute",
+                driver_neutral: str = "first", avatar_neutral: str = "first",
+                driver_translation: bool = False) -> tuple[Subject, dict[str, Tensor]]:
+    """The driver (`--driver`) and the avatar's parameters [T, ...] for each of its timesteps in transfer `mode` (a
+    bool is the old `relative` flag); reenact's video, `eval --driver` and `export --format web` pose these."""
+    subject = open_driver(driver_root, run)
+    return subject, subject_params(run, frames, subject, mode, driver_neutral, avatar_neutral, driver_translation)
+
+
+def subject_params(run: LoadedRun, frames: RunFrames, subject: Subject, mode: TransferMode | bool = "absolute",
+                   driver_neutral: str = "first", avatar_neutral: str = "first",
+                   driver_translation: bool = False) -> dict[str, Tensor]:
+    """driven_params for every timestep of an opened driver, with the neutral frames of the module docstring and,
+    for statistics / subspace transfer, the two sequences' statistics."""
+    driver_values = {k: v.to(frames.device) for k, v in subject.params.items()}
+    driver_ref = reference_frame(driver_values, list(subject.timesteps), driver_neutral, what="--driver-neutral")
+    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, avatar_neutral,
+                                 mean_over=run.info.timesteps.get("train"), what="--avatar-neutral")
+    learned = transfer_statistics(frames, driver_values) if transfer_mode(mode) in ("statistics", "subspace") else None
+    return driven_params(frames.identity(), avatar_ref, driver_values, driver_ref, mode, driver_translation, learned)
 
 
 DRIVERS_DIR = "drivers"  # RUN/drivers/<video stem>-<hash>/: tracked driver videos, reused by later calls
@@ -194,66 +236,110 @@ def prepare_driver(video: Path, cache: Path, head_model: str, size: int = DRIVER
     return dataset, float(report["fps"])
 
 
+@dataclass
+class DrivingOptions:
+    """How a driver drives the avatar: the options `reenact` and `eval --driver` share."""
+
+    transfer: TransferMode = DEFAULT_TRANSFER
+    driver_neutral: str = "first"
+    avatar_neutral: str = "first"
+    camera: str = "avatar"  # avatar: the avatar's dataset camera; driver: each driver frame's
+    driver_split: str = "all"
+    data: Path | None = None  # the avatar's dataset folder, when it moved since training
+    backend: str = "auto"
+
+
+class DrivenAvatar:
+    """An avatar driven by a tracked driver dataset, frame by frame: the one driving path of `reenact` and of
+    `eval --driver` (parameters by driven_params, the camera and background below, T = 0)."""
+
+    def __init__(self, run: LoadedRun, driver_root: Path, options: DrivingOptions):
+        if options.camera not in ("avatar", "driver"):
+            raise OptionError(f"--camera must be avatar or driver, got {options.camera!r}")
+        self.run, self.options = run, options
+        self.frames = frames = RunFrames(run)
+        self.device = frames.device
+        self.subject = open_driver(driver_root, run)
+        self.row_of = {t: i for i, t in enumerate(self.subject.timesteps)}
+        self._params: dict[str, dict[str, Tensor]] = {}
+        self.params(options.transfer)  # the neutral frames checked before any work
+        self.dataset = HeadAvatarDataset(self.subject, options.driver_split, DataConfig(cache="none"), check_head=False)
+        if len(self.dataset) == 0:
+            raise OptionError(f"--driver-split {options.driver_split}: the driver has no frames in this split")
+        self.fixed_camera = self._avatar_camera(frames) if options.camera == "avatar" else None
+        self.background = run_background(run).to(self.device)
+
+    def _avatar_camera(self, frames: RunFrames):
+        """The camera of the avatar's neutral frame (its first frame for 'first' and 'mean') at the run's resolution."""
+        run = self.run
+        avatar_root = Path(self.options.data) if self.options.data is not None else run.info.data_root
+        if not avatar_root.is_dir():
+            raise RunError(f"{run.info.run_dir}: its dataset folder {avatar_root} is not found (the camera comes from "
+                           "it); pass --data DIR, or --camera driver")
+        neutral = self.options.avatar_neutral
+        camera_timestep = frames.timesteps[0] if neutral in ("first", "mean") else int(neutral)
+        return record_camera(open_subject(avatar_root), camera_timestep, run.info.resolution)
+
+    def params(self, mode: TransferMode) -> dict[str, Tensor]:
+        """The avatar's per-frame parameters [T, ...] driven in transfer `mode` (computed once per mode)."""
+        if mode not in self._params:
+            options = self.options
+            self._params[mode] = subject_params(self.run, self.frames, self.subject, mode, options.driver_neutral,
+                                                options.avatar_neutral, options.camera == "driver")
+        return self._params[mode]
+
+    def camera(self, item: dict):
+        if self.fixed_camera is not None:
+            return self.fixed_camera
+        camera = item_camera(item)
+        resolution = self.run.info.resolution
+        if resolution is not None and max(camera.width, camera.height) > resolution:
+            camera = camera.resized(resolution)
+        return camera
+
+    @torch.no_grad()
+    def render(self, item: dict, mode: TransferMode | None = None) -> Tensor:
+        """rgb [H, W, 3] in [0, 1]: the avatar driven by the driver's dataset item (default: the options' mode)."""
+        params = self.params(mode or self.options.transfer)
+        return render_params(self.run, frame_of(params, self.row_of[item["timestep"]]), self.camera(item), None,
+                             self.background, self.options.backend)
+
+
+    def pictures(self, modes: Sequence[str], max_frames: int | None = None) -> Iterator[DrivenPicture]:
+        """(driver timestep, driver picture uint8, {mode: render uint8}) of `max_frames` driver frames spread evenly
+        (all by default), each rendered in every transfer mode of `modes`: what `eval --driver` scores."""
+        for index in evenly_spaced(len(self.dataset), max_frames):
+            item = self.dataset[index]
+            yield (int(item["timestep"]), to_uint8(driver_picture(item)),
+                   {mode: to_uint8(self.render(item, mode)) for mode in modes})
+
+
+def driver_picture(item: dict) -> Tensor:
+    """[H, W, 3] the driver's frame as shown and scored: its photo on its background outside its mask."""
+    return composite_target(item["image"], item["mask"], item["background"])
+
+
 @torch.no_grad()
 def reenact_video(
     run: LoadedRun,
     driver_root: Path,
     out: Path,
-    relative: bool = False,
-    driver_neutral: str = "first",
-    avatar_neutral: str = "first",
-    camera_mode: str = "avatar",
-    driver_split: str = "all",
+    options: DrivingOptions,
     max_frames: int | None = None,
     fps: float = 25.0,
     crf: int = 18,
     show_driver: bool = True,
-    backend: str = "auto",
-    data: Path | None = None,
     show_progress: bool = True,
     threads: int = RENDER_THREADS,
 ) -> int:
     """Write the re-enactment video; returns the number of frames. `threads`: CPU threads of the frame loop."""
-    if camera_mode not in ("avatar", "driver"):
-        raise OptionError(f"--camera must be avatar or driver, got {camera_mode!r}")
-    frames = RunFrames(run)
-    device = frames.device
-    subject = open_driver(driver_root, run)
-    driver_values = {k: v.to(device) for k, v in subject.params.items()}
-    driver_timesteps = list(subject.timesteps)
-    driver_ref = reference_frame(driver_values, driver_timesteps, driver_neutral, what="--driver-neutral")
-    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, avatar_neutral,
-                                 mean_over=run.info.timesteps.get("train"), what="--avatar-neutral")
-    params = driven_params(frames.identity(), avatar_ref, driver_values, driver_ref, relative,
-                           driver_translation=camera_mode == "driver")
-
-    driver_set = HeadAvatarDataset(subject, driver_split, DataConfig(cache="none"), check_head=False)
-    if len(driver_set) == 0:
-        raise OptionError(f"--driver-split {driver_split}: the driver has no frames in this split")
-    if camera_mode == "avatar":
-        avatar_root = Path(data) if data is not None else run.info.data_root
-        if not avatar_root.is_dir():
-            raise RunError(f"{run.info.run_dir}: its dataset folder {avatar_root} is not found (the camera comes from "
-                           "it); pass --data DIR, or --camera driver")
-        # the camera of the avatar's neutral frame (its first frame for 'first' and 'mean')
-        camera_timestep = frames.timesteps[0] if avatar_neutral in ("first", "mean") else int(avatar_neutral)
-        fixed_camera = record_camera(open_subject(avatar_root), camera_timestep, run.info.resolution)
-    background = run_background(run).to(device)
-    row_of = {t: i for i, t in enumerate(driver_timesteps)}
+    driven = DrivenAvatar(run, driver_root, options)
     with torch_threads(threads), Mp4Writer(out, fps=fps, crf=crf) as video:
-        for index in progress(evenly_spaced(len(driver_set), max_frames), enabled=show_progress, desc="reenact"):
-            item = driver_set[index]
-            if camera_mode == "avatar":
-                camera = fixed_camera
-            else:
-                camera = item_camera(item)
-                if run.info.resolution is not None and max(camera.width, camera.height) > run.info.resolution:
-                    camera = camera.resized(run.info.resolution)
-            pred = to_uint8(render_params(run, frame_of(params, row_of[item["timestep"]]), camera, None, background,
-                                          backend))
+        for index in progress(evenly_spaced(len(driven.dataset), max_frames), enabled=show_progress, desc="reenact"):
+            item = driven.dataset[index]
+            pred = to_uint8(driven.render(item))
             if show_driver:
-                shown = composite_target(item["image"], item["mask"], item["background"])
-                pred = side_by_side(fit_height(to_uint8(shown), pred.shape[0]), pred)
+                pred = side_by_side(fit_height(to_uint8(driver_picture(item)), pred.shape[0]), pred)
             video.write(pred)
     return video.frames
 
@@ -263,6 +349,7 @@ def reenact(
     driver: Optional[Path] = None,
     out: Optional[Path] = None,
     relative: bool = False,
+    transfer: Optional[TransferMode] = None,
     driver_neutral: str = "first",
     avatar_neutral: str = "first",
     camera: Literal["avatar", "driver"] = "avatar",
@@ -285,19 +372,25 @@ def reenact(
     """Cross-re-enactment: drive the avatar with another video's expression, jaw, eyes and head motion.
 
     The avatar keeps its identity (shape and static offsets); every frame of the driver gives the
-    expression, the jaw/neck/eye rotations and the head rotation; the head's translation is the avatar's
-    plus the driver's displacement. The driver is a tracked dataset (--driver) or a video (--driver-video),
-    tracked first as `geoavatar prepare` does and cached (RUN/drivers/ by default) for the next call.
+    expression, the jaw/neck/eye rotations and the head rotation, transferred as --transfer says; the head's
+    translation is the avatar's plus the driver's displacement. The driver is a tracked dataset (--driver) or a video
+    (--driver-video), tracked first as `geoavatar prepare` does and cached (RUN/drivers/ by default) for the next call.
     Writes an mp4 of driver | avatar.
 
     Args:
         run: Run folder written by `geoavatar train` (the avatar).
         driver: Dataset folder of the driving video (any layout `geoavatar train` reads), tracked with the
             same head model as the avatar. Give this or --driver-video.
-        out: Video file to write (default RUN/videos/reenact_<driver name>[_relative].mp4); atomic.
-        relative: Transfer the driver's change from its neutral frame onto the avatar's neutral frame
-            (expression added, rotations composed) instead of the driver's absolute values.
-        driver_neutral: The driver's neutral frame for --relative and for the translation: first, mean
+        out: Video file to write (default RUN/videos/reenact_<driver name>[_<transfer>].mp4, the transfer
+            named unless it is the default); atomic.
+        relative: The same as --transfer relative (kept from before --transfer existed).
+        transfer: How the driver's expression, jaw and eyes become the avatar's: absolute (the driver's values),
+            relative (the driver's change from its neutral frame onto the avatar's neutral frame), statistics
+            (each coefficient standardised by the driver's statistics, mapped to the avatar's training-set
+            statistics) or subspace (relative, then projected onto the expressions the avatar was trained on and
+            clamped to their range). Head rotation and neck follow the driver's change from its neutral frame in
+            every mode but absolute. Default: subspace (docs/cross_reenactment.md).
+        driver_neutral: The driver's neutral frame for relative transfer and for the translation: first, mean
             (over all its frames) or a timestep number.
         avatar_neutral: The avatar's neutral frame: first, mean (over its training frames) or a timestep.
         camera: avatar: the avatar's own dataset camera (default); driver: each driver frame's camera
@@ -324,30 +417,53 @@ def reenact(
             (OpenMP threads waiting for each other); more may pay on a quiet machine. Tracking a --driver-video
             keeps the process's threads.
     """
+    mode = resolve_transfer(transfer, relative)
+    check_driver_options(driver, driver_video, driver_cache, driver_size, photometric, "reenact")
+    check_threads(threads)  # before a --driver-video is tracked
+    loaded = open_run(run, device, flame_dir)
+    driver, video_fps, driver_name = track_driver(loaded, driver, driver_video, driver_cache, driver_size, photometric,
+                                                  flame_dir, progress)
+    name = f"reenact_{driver_name}{'' if mode == DEFAULT_TRANSFER else '_' + mode}.mp4"
+    target = out or default_output(loaded, VIDEO_DIR, name)
+    options = DrivingOptions(mode, driver_neutral, avatar_neutral, camera, driver_split, data, backend)
+    count = reenact_video(loaded, driver, target, options, max_frames, fps or video_fps or 25.0, crf, side_by_side,
+                          progress, threads)
+    shown = "driver | avatar" if side_by_side else "avatar"
+    print(f"wrote {target} ({count} frames: {shown}, {mode} transfer)")
+    return 0
+
+
+def check_driver_options(driver: Path | None, driver_video: Path | None, driver_cache: Path | None,
+                         driver_size: int | None, photometric: bool, command: str) -> None:
+    """OptionError unless exactly one of --driver / --driver-video is given, with the options that go with it."""
     if (driver is None) == (driver_video is None):
-        raise OptionError("reenact: give exactly one of --driver DATASET and --driver-video VIDEO")
+        raise OptionError(f"{command}: give exactly one of --driver DATASET and --driver-video VIDEO")
     if driver_video is None and (driver_cache is not None or driver_size is not None or photometric):
         raise OptionError("--driver-cache, --driver-size and --photometric go with --driver-video, not --driver")
     if driver_size is not None and driver_size < 32:
         raise OptionError(f"--driver-size must be at least 32 pixels, got {driver_size}")
-    check_threads(threads)  # before a --driver-video is tracked
-    loaded = open_run(run, device, flame_dir)
-    if driver_video is not None:
-        cache = driver_cache or driver_cache_dir(loaded.info.run_dir, driver_video, photometric)
-        driver, video_fps = prepare_driver(Path(driver_video), cache, loaded.info.head_model,
-                                           driver_size or DRIVER_SIZE, photometric, flame_dir, progress)
-        fps = fps or video_fps
-        print(f"driver: {driver_video} tracked in {cache}")
-    name = f"reenact_{Path(driver_video).stem if driver_video is not None else Path(driver).name}" \
-           f"{'_relative' if relative else ''}.mp4"
-    target = out or default_output(loaded, VIDEO_DIR, name)
-    fps = fps or 25.0
-    count = reenact_video(loaded, Path(driver), target, relative, driver_neutral, avatar_neutral, camera,
-                          driver_split, max_frames, fps, crf, side_by_side, backend, data, progress, threads)
-    shown = "driver | avatar" if side_by_side else "avatar"
-    print(f"wrote {target} ({count} frames: {shown}, {'relative' if relative else 'absolute'} transfer)")
-    return 0
 
 
-__all__ = ["DRIVERS_DIR", "driven_params", "driver_cache_dir", "prepare_driver", "reenact", "reenact_video",
-           "reference_frame"]
+def dataset_name(root: Path) -> str:
+    """A dataset's name: its folder's, or its parent's for prepare's OUT/dataset layout (`.../wojtek/dataset`)."""
+    root = Path(root).resolve()
+    return root.parent.name if root.name == "dataset" and root.parent.name else root.name
+
+
+def track_driver(run: LoadedRun, driver: Path | None, driver_video: Path | None, driver_cache: Path | None = None,
+                 driver_size: int | None = None, photometric: bool = False, flame_dir: Path | None = None,
+                 progress: bool = True) -> tuple[Path, float | None, str]:
+    """(the driver's dataset folder, its video's frame rate or None, its name): --driver as given, or --driver-video
+    tracked by prepare's pipeline into its cache (reused when nothing changed)."""
+    if driver_video is None:
+        return Path(driver), None, dataset_name(Path(driver))
+    cache = driver_cache or driver_cache_dir(run.info.run_dir, driver_video, photometric)
+    dataset, fps = prepare_driver(Path(driver_video), cache, run.info.head_model, driver_size or DRIVER_SIZE,
+                                  photometric, flame_dir, progress)
+    print(f"driver: {driver_video} tracked in {cache}")
+    return dataset, fps, Path(driver_video).stem
+
+
+__all__ = ["DRIVERS_DIR", "DrivenAvatar", "DrivingOptions", "check_driver_options", "dataset_name", "driven_clip",
+           "driven_params", "driver_cache_dir", "driver_picture", "prepare_driver", "reenact", "reenact_video",
+           "reference_frame", "subject_params", "track_driver"]

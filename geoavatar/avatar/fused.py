@@ -7,20 +7,42 @@ index_put_(accumulate=True), the slowest op of the training step after the raste
 data is gathered once from one [F, 17] table and the face gradients go back with one index_add_; the
 backward is plain PyTorch, so it runs on any device. The formulas are documented in binding.py;
 tests/test_avatar.py checks both Functions with gradcheck and against autograd of the plain ops.
+
+On CPU the same maths runs as loops of this layer's native extension (csrc/binding_cpu.cpp, built on first use
+by geoavatar.native), when it builds: tests/test_fused.py checks them against the Functions here.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from geoavatar.native import ExtensionSpec, load_extension as load_native_extension, new_state
 from geoavatar.geometry import quaternion_multiply
 
 _EPS = 1e-12  # F.normalize's and vector_norm's floor, as the plain-op code used
 NORMAL_AXIS = 1  # local axis along the face normal (a1)
 TABLE_WIDTH = 17  # per-face row: R row-major (9), C (3), k (1), face quaternion (4)
 _CONJ = (1.0, -1.0, -1.0, -1.0)
+
+_EXTENSION = ExtensionSpec(
+    name="binding_cpu", source=Path(__file__).with_name("csrc") / "binding_cpu.cpp",
+    what="the avatar's native CPU loops (face placement, polar coordinates)",
+    instead="the avatar places its Gaussians on CPU with PyTorch ops (slower)")
+_state = new_state()
+
+
+def load_extension():
+    """The compiled module of csrc/binding_cpu.cpp (built on first use), or None with one warning."""
+    return load_native_extension(_EXTENSION, _state)
+
+
+def native_loops_available() -> bool:
+    """True when the native placement and polar-coordinate loops are built and loaded (builds them first)."""
+    return load_extension() is not None
 
 
 def _conj(q: Tensor) -> Tensor:
@@ -109,13 +131,11 @@ class _PlaceGaussians(torch.autograd.Function):
 
 class _PlaceGaussiansCPU(torch.autograd.Function):
     """_PlaceGaussians in the native CPU extension (place_forward / place_backward in
-    render/csrc/rasterize_cpu.cpp): one loop over the Gaussians each way instead of some 70 PyTorch ops
+    csrc/binding_cpu.cpp): one loop over the Gaussians each way instead of some 70 PyTorch ops
     (15 % of a 1-thread training step at 100k Gaussians). The table is [M, 17] here, not [17, M]."""
 
     @staticmethod
     def forward(ctx, table: Tensor, means: Tensor, quats: Tensor, log_scales: Tensor, index: Tensor):
-        from geoavatar.render.cpu_backend import load_extension
-
         args = [t.detach().contiguous() for t in (table, means, quats, log_scales)]
         index = index.reshape(-1).contiguous()
         means_g, quats_g, scales_g, aux = load_extension().place_forward(*args, index)
@@ -125,8 +145,6 @@ class _PlaceGaussiansCPU(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_means: Tensor, g_quats: Tensor, g_scales: Tensor):
-        from geoavatar.render.cpu_backend import load_extension
-
         table, means, quats, log_scales, index, aux = ctx.saved_tensors
         dtype = means.dtype
         g_table, g_mu, g_q, g_s = load_extension().place_backward(
@@ -136,14 +154,12 @@ class _PlaceGaussiansCPU(torch.autograd.Function):
 
 
 def _native_placement(*tensors: Tensor) -> bool:
-    """CPU float tensors of one dtype and the native extension loaded (or loadable: as rasterize's "auto"):
-    the native placement and polar coordinates run."""
+    """CPU float tensors of one dtype and the native extension loaded (or loadable: as rasterize's "auto" builds
+    the rasterizer): the native placement and polar coordinates run."""
     dtype = tensors[0].dtype
     if dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu" or t.dtype != dtype for t in tensors):
         return False
-    from geoavatar.render.cpu_backend import cpu_backend_available
-
-    return cpu_backend_available()
+    return native_loops_available()
 
 
 def place_gaussians(
@@ -214,12 +230,10 @@ class _PolarCoordinates(torch.autograd.Function):
 
 class _PolarCoordinatesCPU(torch.autograd.Function):
     """_PolarCoordinates in the native CPU extension (polar_forward / polar_backward in
-    render/csrc/rasterize_cpu.cpp): one loop each way instead of ~25 PyTorch ops."""
+    csrc/binding_cpu.cpp): one loop each way instead of ~25 PyTorch ops."""
 
     @staticmethod
     def forward(ctx, means: Tensor, two_sided: bool):
-        from geoavatar.render.cpu_backend import load_extension
-
         mu = means.detach().contiguous()
         ctx.save_for_backward(mu)
         ctx.two_sided = two_sided
@@ -229,8 +243,6 @@ class _PolarCoordinatesCPU(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_r: Tensor, g_phi: Tensor):
-        from geoavatar.render.cpu_backend import load_extension
-
         (mu,) = ctx.saved_tensors
         grad = load_extension().polar_backward(mu, g_r.to(mu.dtype).contiguous(), g_phi.to(mu.dtype).contiguous(),
                                                ctx.two_sided)

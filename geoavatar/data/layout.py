@@ -44,7 +44,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import math
 import os
 import shutil
 from dataclasses import asdict
@@ -68,8 +67,9 @@ from geoavatar.data.subject import (
 )
 from geoavatar.errors import DiskFullError
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
+from geoavatar.imaging import to_uint8
 from geoavatar.io.atomic import disk_full_as_error, replace_folder, temporary_folder_for
-from geoavatar.render.camera import opengl_c2w_to_viewmat, viewmat_to_opengl_c2w
+from geoavatar.render.camera import field_of_view, focal_length, opengl_c2w_to_viewmat, viewmat_to_opengl_c2w
 
 log = logging.getLogger(__name__)
 
@@ -299,7 +299,7 @@ def _frame_record(root: Path, frame: dict, top: dict, where: str, timestep: int,
         angle = field("camera_angle_x")
         if angle is None:
             raise DatasetError(f"{where}: no intrinsics (need fl_x/fl_y/cx/cy or camera_angle_x)")
-        fl_x = 0.5 * width / math.tan(0.5 * float(angle))
+        fl_x = focal_length(float(angle), width)
     fl_y = fl_x if fl_y is None else fl_y
     cx = field("cx") if field("cx") is not None else width / 2.0
     cy = field("cy") if field("cy") is not None else height / 2.0
@@ -461,7 +461,7 @@ class LayoutWriter:
         fl_x, fl_y, cx, cy = K_np[0, 0], K_np[1, 1], K_np[0, 2], K_np[1, 2]
         frame.update({
             "transform_matrix": c2w.tolist(), "fl_x": fl_x, "fl_y": fl_y, "cx": cx, "cy": cy, "w": width, "h": height,
-            "camera_angle_x": 2.0 * math.atan(width / (2.0 * fl_x)), "camera_angle_y": 2.0 * math.atan(height / (2.0 * fl_y)),
+            "camera_angle_x": field_of_view(fl_x, width), "camera_angle_y": field_of_view(fl_y, height),
         })
         (self.frames if split is None else self.extra.setdefault(split, [])).append(frame)
         self._keys.add((timestep, camera))
@@ -596,7 +596,7 @@ def _to_uint8(value: np.ndarray | Tensor, name: str) -> np.ndarray:
     if array.dtype == np.uint8:
         return np.ascontiguousarray(array)
     if np.issubdtype(array.dtype, np.floating):
-        return np.ascontiguousarray(np.clip(np.round(array * 255.0), 0, 255).astype(np.uint8))
+        return np.ascontiguousarray(to_uint8(array))
     if array.dtype == np.bool_:
         return np.ascontiguousarray(array.astype(np.uint8) * 255)
     raise ValueError(f"{name} must be uint8, bool or float in [0, 1], got dtype {array.dtype}")

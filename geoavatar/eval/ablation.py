@@ -1,30 +1,19 @@
-"""The ablation matrix of `geoavatar ablate`: which runs exist, one job (train + eval), the tables, the
-mouth crops. The scheduling (Ray) lives in geoavatar/apps/ablate.py; everything here is plain
-functions on folders, so a job runs the same in a Ray worker, a test or a shell.
+"""The results of `geoavatar ablate`'s matrix: the tables and the mouth crops, plain functions on folders.
+Which runs exist and one job (train + eval) are in geoavatar/apps/ablation_job.py, the scheduling (Ray) in
+geoavatar/apps/ablate.py.
 
     DIR/<dataset>/<preset>/          one RUN folder per (dataset, preset), as `geoavatar train` writes it
     DIR/<dataset>/<preset>/eval/test/metrics.json   its `geoavatar eval` (final checkpoint, test split)
     DIR/logs/<dataset>__<preset>.log what the job's train and eval printed (appended on every attempt)
     DIR/ablation.md, ablation.json   the paper's Table 3 layout per dataset and averaged over datasets
     DIR/mouth_<dataset>.png          ground truth | A | E mouth crops on the widest-open test frames
-
-State of a run (`run_state`), decided from its checkpoints and metrics.json:
-    "done"    final.pt holds the requested preset/steps/resolution/seed/dataset and metrics.json is
-              the evaluation of that final checkpoint (with the requested --max-frames): skipped
-    "eval"    trained (final.pt matches), evaluation missing or stale: evaluate only
-    "resume"  last.pt matches but the run is not finished: `geoavatar train --resume`, then evaluate
-    "new"     no checkpoint: train from the start, then evaluate
-A checkpoint with other settings is a RunMismatch naming the run and the differences.
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import math
 import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -37,35 +26,10 @@ METRICS_FILE = Path("eval") / "test" / "metrics.json"
 TABLE_FILE = "ablation.md"
 JSON_FILE = "ablation.json"
 LOG_DIR = "logs"
-# The metrics the progress lines and the averaged table are about (the paper's Table 3 + mouth PSNR).
-HEADLINE = ("psnr", "ssim", "lpips", "mouth_psnr")
 
 
 class RunMismatch(GeoAvatarError):
     """A run folder of the matrix holds a run with other settings than the ones asked for."""
-
-
-@dataclass(frozen=True)
-class JobSpec:
-    """One cell of the matrix: train `preset` on `data` into `run_dir`, then evaluate it. Plain values
-    only (paths as absolute strings), so that it travels to a Ray worker on any node."""
-
-    data: str  # dataset folder (absolute)
-    name: str  # dataset name: the folder's name, the first level of DIR
-    preset: str
-    steps: int
-    resolution: int | None
-    seed: int
-    run_dir: str  # DIR/<name>/<preset> (absolute)
-    log: str  # DIR/logs/<name>__<preset>.log
-    threads: int
-    device: str = "auto"
-    backend: str = "auto"
-    max_frames: int | None = None  # eval --max-frames
-
-    @property
-    def label(self) -> str:
-        return f"{self.name} {self.preset}"
 
 
 def run_folder(out: Path, name: str, preset: str) -> Path:
@@ -74,160 +38,6 @@ def run_folder(out: Path, name: str, preset: str) -> Path:
 
 def metrics_path(run_dir: str | os.PathLike) -> Path:
     return Path(run_dir) / METRICS_FILE
-
-
-# --- which runs are finished ----------------------------------------------------------------------
-
-
-def _checkpoint_settings(path: Path) -> dict:
-    """preset, steps, resolution, seed, data, step and model settings recorded in a checkpoint of `geoavatar train`."""
-    from geoavatar.train.checkpoint import RunError, config_from_json, load_checkpoint
-
-    payload = load_checkpoint(path)  # RunError naming the file when it is unreadable
-    try:
-        config = config_from_json(payload["config"], where=str(path))
-        run = json.loads(payload.get("run", "{}"))
-    except (KeyError, TypeError, ValueError) as err:
-        raise RunMismatch(f"{path}: the checkpoint does not record its configuration ({err})") from None
-    except RunError as err:
-        raise RunMismatch(str(err)) from None
-    return {"preset": run.get("preset"), "steps": config.steps, "resolution": run.get("resolution"),
-            "seed": run.get("seed"), "data": run.get("data"), "step": int(payload.get("step", -1)),
-            "model": _model_values(config)}
-
-
-# The sections of a run's configuration that a preset fixes; a default changed since the run was trained (e.g. #18's
-# normal shading) makes it another model than `--preset` asks for today.
-MODEL_SECTIONS = ("model.", "loss.")
-
-
-def _model_values(config) -> dict:
-    """The MODEL_SECTIONS fields of a TrainConfig, by dotted name."""
-    from geoavatar.config import config_values
-
-    return {k: v for k, v in config_values(config).items() if k.startswith(MODEL_SECTIONS)}
-
-
-def _differences(spec: JobSpec, saved: dict) -> list[str]:
-    wanted = {"preset": spec.preset, "steps": spec.steps, "resolution": spec.resolution, "seed": spec.seed}
-    out = [f"{key} {saved.get(key)} (asked {value})" for key, value in wanted.items() if saved.get(key) != value]
-    data = saved.get("data")
-    if data is None or Path(data).resolve() != Path(spec.data).resolve():
-        out.append(f"dataset {data} (asked {spec.data})")
-    if not out:  # same preset name: the model it stands for today
-        from geoavatar.config import preset
-
-        asked = _model_values(preset(spec.preset, spec.steps))
-        out += [f"{key} {saved['model'].get(key)!r} (preset {spec.preset} today: {value!r})"
-                for key, value in asked.items() if saved["model"].get(key) != value]
-    return out
-
-
-def _evaluated(spec: JobSpec) -> bool:
-    """metrics.json exists and is the evaluation of the run's final checkpoint at the requested settings."""
-    path = metrics_path(spec.run_dir)
-    if not path.is_file():
-        return False
-    try:
-        report = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return False  # torn or foreign: evaluate again (eval rewrites it atomically)
-    settings = report.get("settings") or {}
-    return (report.get("step") == spec.steps and str(report.get("checkpoint", "")).endswith("final.pt")
-            and report.get("split") == "test" and settings.get("max_frames") == spec.max_frames)
-
-
-def run_state(spec: JobSpec) -> str:
-    """"done", "eval", "resume" or "new" (see the module docstring); RunMismatch for other settings."""
-    from geoavatar.train.checkpoint import run_checkpoint_path
-
-    final, last = run_checkpoint_path(spec.run_dir, "final"), run_checkpoint_path(spec.run_dir, "last")
-    path = final if final.is_file() else last if last.is_file() else None
-    if path is None:
-        return "new"
-    saved = _checkpoint_settings(path)
-    differences = _differences(spec, saved)
-    if differences:
-        raise RunMismatch(f"{spec.run_dir}: holds a run with {', '.join(differences)}; pass --redo to train it "
-                          "again with the requested settings, or choose another --out")
-    if path == final and saved["step"] == spec.steps:
-        return "done" if _evaluated(spec) else "eval"
-    return "resume"
-
-
-# --- one job: train + eval through the CLI -------------------------------------------------------
-
-
-def _call_cli(argv: list[str], log) -> tuple[int, str]:
-    """geoavatar.cli.main(argv) in this process, its output appended to `log`; (exit status, last line)."""
-    from geoavatar.cli import main
-
-    buffer = io.StringIO()
-    with contextlib.redirect_stdout(buffer), contextlib.redirect_stderr(buffer):
-        print(f"$ geoavatar {' '.join(argv)}", flush=True)
-        try:
-            code = main(argv)
-        except SystemExit as exit_:  # a command's own SystemExit("message"), or tyro's usage error
-            if isinstance(exit_.code, str):
-                print(exit_.code)
-                code = 2
-            else:
-                code = int(exit_.code or 0)
-    text = buffer.getvalue()
-    log.write(text)
-    log.flush()
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    if code == 130:  # the trainer's "interrupted at step S: saved ...", not the run folder printed after it
-        lines = [line for line in lines if line.startswith("interrupted")] or lines
-    return code, (lines[-1] if lines else "")
-
-
-def train_argv(spec: JobSpec, resume: bool) -> list[str]:
-    argv = ["train", "--data", spec.data, "--out", spec.run_dir, "--preset", spec.preset, "--steps", str(spec.steps),
-            "--seed", str(spec.seed), "--device", spec.device, "--backend", spec.backend, "--no-progress"]
-    if spec.resolution is not None:
-        argv += ["--resolution", str(spec.resolution)]
-    return argv + (["--resume"] if resume else [])
-
-
-def eval_argv(spec: JobSpec) -> list[str]:
-    argv = ["eval", spec.run_dir, "--split", "test", "--checkpoint", "final", "--device", spec.device,
-            "--backend", spec.backend, "--no-progress"]
-    return argv + (["--max-frames", str(spec.max_frames)] if spec.max_frames is not None else [])
-
-
-def run_job(spec: JobSpec) -> dict:
-    """Train (or resume) and evaluate one run; what happened as a dict (never raises for a failed run:
-    status "failed" with the command's last line, so the other jobs of the matrix go on)."""
-    import torch
-
-    from geoavatar.runtime import setup_process
-
-    started = time.perf_counter()
-    setup_process()
-    torch.set_num_threads(spec.threads)  # the job's share of the node (a reused worker may have had another)
-    record = {"dataset": spec.name, "preset": spec.preset, "run": spec.run_dir, "log": spec.log,
-              "host": os.uname().nodename, "threads": spec.threads}
-    Path(spec.log).parent.mkdir(parents=True, exist_ok=True)
-    with open(spec.log, "a", encoding="utf-8") as log:
-        log.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} on {record['host']}, {spec.threads} threads\n")
-        try:
-            state = run_state(spec)
-        except GeoAvatarError as err:
-            return {**record, "status": "failed", "message": str(err), "seconds": time.perf_counter() - started}
-        record["state"] = state
-        steps = [("train", train_argv(spec, state == "resume"))] if state in ("new", "resume") else []
-        if state != "done":
-            steps.append(("eval", eval_argv(spec)))
-        for what, argv in steps:
-            code, last = _call_cli(argv, log)
-            if code != 0:
-                status = "interrupted" if code == 130 else "failed"
-                return {**record, "status": status, "message": f"{what}: {last or f'exit status {code}'}",
-                        "seconds": time.perf_counter() - started}
-    summary = read_summary(spec.run_dir)
-    return {**record, "status": "done", "psnr": summary.get("psnr", {}).get("mean"),
-            "seconds": time.perf_counter() - started}
 
 
 def read_summary(run_dir: str | os.PathLike) -> dict:
@@ -374,8 +184,10 @@ def mouth_crops(run_a: str | os.PathLike, run_e: str | os.PathLike, count: int =
     and T = 0 on test frames, the dataset background). The crop box is the bounding box of both runs'
     mouth masks (mouth structure + lips faces, z-buffered, eval.evaluate.mouth_mask), grown to a
     square of at least a quarter of the image side; each crop is scaled to `height` pixels."""
-    from geoavatar.apps.common import fit_height, open_run, to_uint8
     from geoavatar.eval.evaluate import crop_box, mouth_face_mask, mouth_mask, open_run_dataset, render_run_frames
+    from geoavatar.imaging import fit_height, to_uint8
+    from geoavatar.render.mesh import dilation_pixels
+    from geoavatar.train.checkpoint import open_run
 
     runs = {"A": open_run(run_a, device), "E": open_run(run_e, device)}
     datasets = {k: open_run_dataset(r, "test") for k, r in runs.items()}
@@ -389,7 +201,7 @@ def mouth_crops(run_a: str | os.PathLike, run_e: str | os.PathLike, count: int =
         a, e = rendered["A"][n], rendered["E"][n]
         item = e.item
         width, height_px = int(item["width"]), int(item["height"])
-        dilate = max(1, round(0.02 * max(width, height_px)))
+        dilate = dilation_pixels(0.02, width, height_px)
         masks = [mouth_mask(r.vertices, runs[k].head.faces, mouth_face_mask(runs[k].head), item["viewmat"],
                              item["K"], width, height_px, dilate) for k, r in (("A", a), ("E", e))]
         mask = masks[0].to(masks[1].device) | masks[1]
@@ -424,7 +236,7 @@ def write_mouth_crops(out: Path, name: str, run_a: Path, run_e: Path, count: int
 
 
 __all__ = [
-    "JobSpec", "MouthFrame", "RunMismatch", "ablation_tables", "average_summaries", "eval_argv", "metrics_path",
-    "mouth_crops", "read_summary", "run_folder", "run_job", "run_state", "train_argv", "widest_open_frames",
-    "write_ablation", "write_mouth_crops",
+    "JSON_FILE", "LOG_DIR", "METRICS_FILE", "MouthFrame", "RunMismatch", "TABLE_FILE", "ablation_tables",
+    "average_summaries", "metrics_path", "mouth_crops", "mouth_share", "read_summary", "run_folder",
+    "widest_open_frames", "write_ablation", "write_mouth_crops",
 ]

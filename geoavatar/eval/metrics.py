@@ -4,10 +4,10 @@ Images are channel-last in [0, 1], [H, W, 3] (the renderer's layout); each funct
 pair (the per-frame numbers that the tables average), except `lpips`, which also takes a batch.
 
 - MSE  mean squared error over pixels and channels (data range 1; Table 1 prints it x 1e3).
-- PSNR -10 log10(MSE), data range 1; inf for identical images (`geoavatar.train.losses.psnr_from_mse`, which the
+- PSNR -10 log10(MSE), data range 1; inf for identical images (`geoavatar.imaging.psnr_from_mse`, which the
   trainer's log uses too).
 - SSIM the Gaussian-window SSIM (11 x 11, sigma 1.5, K1 0.01, K2 0.03, data range 1) of 3DGS's
-  `ssim`, i.e. `geoavatar.train.losses.ssim`: the 3DGS / GaussianAvatars evaluation scores with the
+  `ssim`, i.e. `geoavatar.imaging.ssim`: the 3DGS / GaussianAvatars evaluation scores with the
   very function that trains, so we do too (one implementation, no drift). Its border handling is
   3DGS's: zero padding of 5 px, the map averaged over every pixel. scikit-image's
   structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
@@ -22,8 +22,8 @@ import torch
 from torch import Tensor
 
 from geoavatar.eval.lpips import lpips_model
-from geoavatar.train.losses import psnr_from_mse
-from geoavatar.train.losses import ssim as _ssim_3dgs
+from geoavatar.imaging import psnr_from_mse
+from geoavatar.imaging import ssim as _ssim_3dgs
 
 
 def _check_pair(pred: Tensor, target: Tensor, name: str) -> None:

@@ -46,6 +46,8 @@ COLUMNS: tuple[MetricColumn, ...] = (
     MetricColumn("lpips", "LPIPS (×10⁻¹) ↓", 1e1, False),
     MetricColumn("mouth_psnr", "Mouth PSNR ↑", 1.0, True),
     MetricColumn("mouth_lpips", "Mouth LPIPS (×10⁻¹) ↓", 1e1, False),
+    MetricColumn("id_similarity", "ID similarity (dlib) ↑", 1.0, True),
+    MetricColumn("expression_similarity", "Expression similarity ↑", 1.0, True),
 )
 
 
@@ -167,8 +169,33 @@ def side_view_table(results: Sequence[EvalResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def face_table(results: Sequence[EvalResult]) -> str:
+    """Face metrics beyond the per-frame means: renders with a face and the landmark agreement, one row per run."""
+    rows = [r for r in results if r.faces]
+    if not rows:
+        return ""
+    from geoavatar.eval.landmark_agreement import SIGNALS
+
+    lines = ["| Run | renders with a face | landmark agreement ↑ | " + " | ".join(SIGNALS) + " |",
+             "|---|---:|---:|" + "---:|" * len(SIGNALS)]
+    for r in rows:
+        faces, agreement = r.faces["faces"], r.faces["landmark_agreement"]
+        cells = [f"{faces['render_found']} of {faces['frames']}", _number(agreement["agreement"])]
+        cells += [_number(agreement["correlations"][name]) for name in SIGNALS]
+        lines.append(f"| {_escape(r.label)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _number(value: float | None, digits: int = 3) -> str:
+    return "–" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
 def extra_sections(results: Sequence[EvalResult]) -> str:
     out = ""
+    faces = face_table(results)
+    if faces:
+        out += ("\n## Faces (dlib identity similarity and FER2013 expression similarity above; landmark agreement: "
+                "Pearson r of mouth / eye openings and brow height, render vs ground truth, over the clip)\n\n" + faces)
     views = view_table(results)
     if views:
         out += "\n## Per view (novel views)\n\n" + views
@@ -213,7 +240,7 @@ def run_json(result: EvalResult) -> dict:
         "checkpoint": result.checkpoint, "step": result.step, "split": result.split,
         "seconds": round(result.seconds, 3),
         "summary": result.summary, "by_view": result.by_view, "by_view_range": result.by_view_range,
-        "side_views": result.side_views,
+        "side_views": result.side_views, "faces": result.faces,
         "settings": result.settings, "frames": frame_dicts(result),
     }
 
@@ -297,6 +324,7 @@ def write_comparison(results: Sequence[EvalResult], path: str | Path) -> dict[st
 
 
 __all__ = ["COLUMNS", "MetricColumn", "ablation_table", "check_comparison_target", "comparison_paths", "extra_sections",
+           "face_table",
            "side_view_table", "view_range_table", "view_table",
            "comparison_markdown", "distinct_labels", "eval_dir", "metric_table",
            "run_json", "run_markdown", "write_comparison", "write_frame_images", "write_run_report"]

@@ -9,7 +9,7 @@ Files looked for in the FLAME folder:
 - `FLAME_masks.pkl` ("FLAME Vertex Masks" on the same site): the 14 region vertex lists.
 
 Both are Python 2 pickles referencing chumpy; they are read with the restricted unpickler of
-`geoavatar.head.safe_pickle` (numpy, scipy.sparse, a chumpy stand-in, nothing else).
+`geoavatar.io.safe_pickle` (numpy, scipy.sparse, a chumpy stand-in, nothing else).
 
 Lip rings: FLAME has no lip-ring list of its own. We use the inner lip rings (the 15 vertices
 along the upper and the lower edge of the mouth opening) that VHAP / GaussianAvatars define on
@@ -29,7 +29,7 @@ import numpy as np
 
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.head.base import FLAME_SHAPE_DIM, JOINT_NAMES, PARENTS, REGION_NAMES, HeadModelData
-from geoavatar.head.safe_pickle import load_restricted_pickle
+from geoavatar.io.safe_pickle import load_restricted_pickle
 
 FLAME_SITE = "https://flame.is.tue.mpg.de"
 FLAME_DIR_ENV = "GEOAVATAR_FLAME_DIR"

@@ -1,6 +1,7 @@
 """Everything GeoAvatar writes goes through here: atomic files and folders (atomic.py, with the
 umask's permissions and a one-line DiskFullError), the one mp4 writer (video.py) and the standard
-3DGS PLY (ply.py)."""
+3DGS PLY (ply.py). Pickles that are not ours (FLAME's, LPIPS's weights) are read only through the
+restricted unpickler (safe_pickle.py)."""
 
 from geoavatar.io.atomic import (
     DiskFullError, atomic_file, atomic_folder, atomic_write_bytes, atomic_write_json, atomic_write_npz, atomic_write_png,

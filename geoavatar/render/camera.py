@@ -42,9 +42,10 @@ class Camera(NamedTuple):
         return Camera(self.viewmat, scale_intrinsics(self.K, width / self.width, height / self.height), width, height)
 
 
-def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
-    """K [..., 3, 3] for the image resized by (sx, sy): rows 0 and 1 scaled, so pixel centres at +0.5 keep their meaning."""
-    factors = torch.tensor([sx, sy, 1.0], dtype=K.dtype, device=K.device)
+def scale_intrinsics(K: Tensor, sx: float, sy: float | None = None) -> Tensor:
+    """K [..., 3, 3] for the image resized by (sx, sy) (sy = sx when not given): rows 0 and 1 scaled, so pixel
+    centres at +0.5 keep their meaning."""
+    factors = torch.tensor([sx, sx if sy is None else sy, 1.0], dtype=K.dtype, device=K.device)
     return K * factors[:, None]
 
 
@@ -104,8 +105,7 @@ def intrinsics_from_fov(
         raise ValueError(f"intrinsics_from_fov: fov_deg must be in (0, 180), got {fov_deg}")
     if width <= 0 or height <= 0:
         raise ValueError(f"intrinsics_from_fov: width and height must be positive, got {width}x{height}")
-    extent = width if axis == "x" else height
-    focal = 0.5 * extent / math.tan(math.radians(fov_deg) / 2.0)
+    focal = focal_length(math.radians(fov_deg), width if axis == "x" else height)
     return torch.tensor(
         [[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]], dtype=dtype, device=device
     )
@@ -122,11 +122,21 @@ def centred_intrinsics(K: Tensor, width: int, height: int) -> Tensor:
     return out
 
 
+def focal_length(fov: float, extent: float) -> float:
+    """Focal length in pixels that shows a full field of view of `fov` radians across `extent` pixels."""
+    return 0.5 * extent / math.tan(0.5 * fov)
+
+
+def field_of_view(focal: float, extent: float) -> float:
+    """Full field of view in radians across `extent` pixels at focal length `focal` (pixels): NeRF/VHAP's
+    camera_angle_x with the image width."""
+    return 2.0 * math.atan(0.5 * extent / focal)
+
+
 def fov_from_intrinsics(K: Tensor, width: int, height: int, axis: Literal["x", "y"] = "x") -> float:
     """Inverse of intrinsics_from_fov: full field of view in degrees across width (x) or height (y)."""
     focal = float(K[..., 0, 0] if axis == "x" else K[..., 1, 1])
-    extent = width if axis == "x" else height
-    return math.degrees(2.0 * math.atan(0.5 * extent / focal))
+    return math.degrees(field_of_view(focal, width if axis == "x" else height))
 
 
 def world_to_camera(points: Tensor, viewmat: Tensor) -> Tensor:
@@ -231,7 +241,8 @@ def _homogeneous(matrix: Tensor, name: str) -> Tensor:
 
 
 __all__ = [
-    "Camera", "look_at", "intrinsics_from_fov", "centred_intrinsics", "fov_from_intrinsics", "world_to_camera", "project",
+    "Camera", "look_at", "intrinsics_from_fov", "centred_intrinsics", "field_of_view", "focal_length",
+    "fov_from_intrinsics", "world_to_camera", "project",
     "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "camera_centre", "scale_intrinsics",
     "orbit_viewmat", "orbit_cameras",
 ]

@@ -13,23 +13,14 @@ composite a Gaussian over several pixels of a row per step (GCC/Clang vector typ
 for AVX-512, AVX2 and the baseline ISA, "vector": NEON on ARM; picked at run time, see SIMD_ENV and
 simd_path()); float64 inputs take the per-pixel loop.
 
-The extension is built on first use with torch.utils.cpp_extension (g++ and ninja; about 40 s on
-our machines) into $GEOAVATAR_EXT_CACHE/<key>, else $GEOAVATAR_CACHE/ext/<key>, else
-~/.cache/geoavatar/ext/<key>; the key hashes the C++ source, the compiler flags, torch, Python and
-the machine, so a cache is never reused by a different build. Without a compiler, or when the build fails, `load_extension()` warns once and
-returns None; rasterize(backend="auto") then uses the torch backend.
+The extension is built on first use and cached by geoavatar.native (g++ and ninja; under a minute on our
+machines); without a compiler, or when the build fails, `load_extension()` warns once and returns None, and
+rasterize(backend="auto") then uses the torch backend.
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
-import platform
-import shutil
-import sys
-import threading
-import time
-import warnings
 from pathlib import Path
 from types import ModuleType
 from typing import Optional
@@ -37,15 +28,10 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from geoavatar import native
+from geoavatar.native import ExtensionSpec
 from geoavatar.render.torch_backend import Projection, project_gaussians, render_cameras
 
-SOURCE = Path(__file__).with_name("csrc") / "rasterize_cpu.cpp"
-# No -march=native, so a cache built on one machine runs on any x86-64 one (the float32 compositing
-# picks AVX-512 / AVX2 code at run time instead). No FMA contraction: every SIMD path and the scalar
-# backward then compute the same alpha bit for bit. -fno-trapping-math changes no result (only the
-# floating-point exception flags): without it GCC keeps branches in the lane loop and cannot vectorise it.
-CFLAGS = ["-O3", "-fopenmp", "-std=c++17", "-ffp-contract=off", "-fno-trapping-math"]
-LDFLAGS = ["-fopenmp"]
 # 32: with the AVX-512 kernel's 4 x 4 blocks the pixel work does not depend on the tile size, larger tiles
 # cut the (tile, Gaussian) entries and their per-entry costs (100k Gaussians at 256 px: 204k -> 146k
 # entries, fwd + bwd -8 % at 1 thread, also at 512 px); tiles go to the threads largest first, which keeps
@@ -57,126 +43,16 @@ DEFAULT_TILE_SIZE = 32
 # state, the kernel before the SIMD paths; float64 inputs always use it).
 SIMD_ENV = "GEOAVATAR_CPU_SIMD"
 
-_lock = threading.Lock()
-_state: dict = {"module": None, "tried": False, "error": None}
-
-
-def _cache_root() -> Path:
-    """$GEOAVATAR_EXT_CACHE, else $GEOAVATAR_CACHE/ext, else ~/.cache/geoavatar/ext. Builds are keyed by
-    their inputs, so one folder can serve several checkouts and test sessions."""
-    ext = os.environ.get("GEOAVATAR_EXT_CACHE")
-    if ext:
-        return Path(ext)
-    env = os.environ.get("GEOAVATAR_CACHE")
-    return (Path(env) if env else Path.home() / ".cache" / "geoavatar") / "ext"
-
-
-def _build_key() -> str:
-    digest = hashlib.sha256()
-    digest.update(SOURCE.read_bytes())
-    for part in (CFLAGS, LDFLAGS, torch.__version__, sys.version, platform.machine(), platform.system()):
-        digest.update(repr(part).encode())
-    return digest.hexdigest()[:16]
-
-
-def _compiler() -> Optional[str]:
-    return shutil.which(os.environ.get("CXX", "c++"))
+_EXTENSION = ExtensionSpec(
+    name="rasterize_cpu", source=Path(__file__).with_name("csrc") / "rasterize_cpu.cpp",
+    what="the native CPU rasterizer (backend 'cpu')", instead="rendering on CPU uses the slower PyTorch backend")
+_state = native.new_state()
 
 
 def load_extension(verbose: bool = False) -> Optional[ModuleType]:
     """The compiled kernel module (built on first use, then loaded from the cache), or None with one
     warning when it cannot be built. Safe to call from several threads; later calls are free."""
-    with _lock:
-        if _state["tried"]:
-            return _state["module"]
-        _state["tried"] = True
-        try:
-            _state["module"] = _build(verbose)
-        except Exception as error:  # any build or load failure: fall back, say why once
-            _state["error"] = _summarise(error)
-            warnings.warn(
-                "geoavatar: the native CPU rasterizer (backend 'cpu') could not be built, so rendering on CPU "
-                f"uses the slower PyTorch backend. Reason: {_state['error']}. Install g++ (e.g. apt-get install "
-                "g++) and ninja (pip install ninja) to enable it.",
-                RuntimeWarning,
-                stacklevel=3,
-            )
-        return _state["module"]
-
-
-def _summarise(error: Exception) -> str:
-    """One line: the first compiler 'error:' line when there is one, else the exception's last line."""
-    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
-    first_error = next((line for line in lines if "error:" in line), None)
-    return f"{type(error).__name__}: {first_error or (lines[-1] if lines else '')}"
-
-
-def _ninja_dirs() -> list[str]:
-    """Folders that may hold the `ninja` of PyPI's ninja package when the venv is not activated."""
-    dirs = [str(Path(sys.executable).parent)]
-    try:
-        import ninja  # the PyPI package: BIN_DIR holds its executable
-
-        dirs.insert(0, str(ninja.BIN_DIR))
-    except (ImportError, AttributeError):
-        pass
-    return dirs
-
-
-def _clear_stale_lock(build_dir: Path, max_age_s: float = 900.0) -> None:
-    """cpp_extension waits forever on the lock file of a build that was killed: drop one that is old."""
-    lock = build_dir / "lock"
-    try:
-        if time.time() - lock.stat().st_mtime > max_age_s:
-            lock.unlink()
-    except FileNotFoundError:
-        pass
-
-
-def _source_copy(build_dir: Path) -> Path:
-    """SOURCE copied into its build folder (the key hashes it, so one content per folder), the path compiled.
-
-    ninja rebuilds when a build command changes, and the command names the source's path: compiled from each
-    checkout's own csrc/, a cache shared by several checkouts (worktrees, an installed copy and a clone) was
-    rebuilt, about a minute, whenever the last build came from another one."""
-    from geoavatar.io.atomic import atomic_write_bytes
-
-    copy = build_dir / SOURCE.name
-    data = SOURCE.read_bytes()
-    if not copy.is_file() or copy.read_bytes() != data:  # untouched when equal: its time stays, ninja is content
-        atomic_write_bytes(copy, data)
-    return copy
-
-
-def _build(verbose: bool) -> ModuleType:
-    from torch.utils import cpp_extension
-
-    if _compiler() is None:
-        raise RuntimeError(f"no C++ compiler found (looked for {os.environ.get('CXX', 'c++')!r} on PATH)")
-    path_before = os.environ.get("PATH", "")
-    if shutil.which("ninja") is None:  # a venv used without activation: its bin folder is not on PATH
-        os.environ["PATH"] = os.pathsep.join([*_ninja_dirs(), path_before])
-    try:
-        if not cpp_extension.is_ninja_available():
-            raise RuntimeError("ninja is not available (pip install ninja)")
-        key = _build_key()
-        build_dir = _cache_root() / f"rasterize_cpu-{key}"
-        build_dir.mkdir(parents=True, exist_ok=True)
-        _clear_stale_lock(build_dir)
-        name = f"geoavatar_rasterize_cpu_{key}"  # unique per build: never clashes with another in sys.modules
-        if not (build_dir / f"{name}.so").exists():
-            print("geoavatar: building the native CPU rasterizer (first use only, about a minute) in "
-                  f"{build_dir} ...", file=sys.stderr, flush=True)
-        return cpp_extension.load(
-            name=name,
-            sources=[str(_source_copy(build_dir))],
-            extra_cflags=CFLAGS,
-            extra_ldflags=LDFLAGS,
-            build_directory=str(build_dir),
-            verbose=verbose,
-        )
-    finally:
-        os.environ["PATH"] = path_before
+    return native.load_extension(_EXTENSION, _state, verbose)
 
 
 def cpu_backend_available() -> bool:

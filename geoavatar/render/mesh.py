@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from geoavatar.render.camera import world_to_camera
+from geoavatar.render.camera import scale_intrinsics, world_to_camera
 
 _EMPTY_KEY = torch.iinfo(torch.int64).max
 _INSIDE_EPS = 1e-5  # barycentric tolerance of the inside test
@@ -410,12 +410,6 @@ def box_downsample(image: Tensor, factor: int) -> Tensor:
     return x[..., 0] if squeeze else x
 
 
-def scale_intrinsics(K: Tensor, factor: float) -> Tensor:
-    """K for an image `factor` times larger (pixel centres at +0.5 stay consistent)."""
-    scale = torch.tensor([factor, factor, 1.0], dtype=K.dtype, device=K.device)
-    return K * scale[:, None]
-
-
 def render_mesh(
     vertices: Tensor,  # [V, 3] world coordinates
     faces: Tensor,  # [F, 3]
@@ -468,5 +462,5 @@ def render_mesh(
 __all__ = [
     "Fragments", "rasterize_mesh", "interpolate", "face_attribute", "behind_surface", "dilate_mask", "dilation_pixels",
     "vertex_normals", "face_normals",
-    "Lighting", "shade", "MeshImage", "render_mesh", "box_downsample", "scale_intrinsics",
+    "Lighting", "shade", "MeshImage", "render_mesh", "box_downsample",
 ]

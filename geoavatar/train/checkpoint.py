@@ -53,7 +53,7 @@ import torch
 
 from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
-from geoavatar.errors import DiskFullError, GeoAvatarError, GeoAvatarWarning, disk_full_error
+from geoavatar.errors import DiskFullError, GeoAvatarError, GeoAvatarWarning, OptionError, disk_full_error
 from geoavatar.io.atomic import atomic_write_bytes, atomic_write_json
 from geoavatar.train.randomness import restore_rng, rng_state
 
@@ -400,6 +400,19 @@ def load_run(
     deformer = deformer.to(device).eval() if deformer is not None else None
     return LoadedRun(config, head, avatar, deformer, info)
 
+
+def open_run(run_dir: str | os.PathLike, device: str = "auto", flame_dir: str | os.PathLike | None = None) -> LoadedRun:
+    """load_run on the device a --device option names (auto: CUDA when available); RunError / OptionError
+    on bad input."""
+    from geoavatar.runtime import resolve_device
+
+    try:
+        torch_device = resolve_device(device)
+    except ValueError as err:  # resolve_device's messages name --device
+        raise OptionError(str(err)) from err
+    return load_run(run_dir, torch_device, flame_dir=flame_dir)
+
+
 def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None = None,
                      flame_dir: str | os.PathLike | None = None) -> HeadAvatarDataset:
     """A split of the dataset the run trained on, loaded as training loaded it (resolution, split rule).
@@ -434,6 +447,6 @@ __all__ = [
     "APS_FILE", "CHECKPOINT_DIR", "CONFIG_FILE", "FINAL_CHECKPOINT", "LAST_CHECKPOINT", "LOG_FILE", "VAL_DIR",
     "FIELDS_ADDED_LATER", "FIELDS_REMOVED", "LoadedRun", "RemovedOptionWarning", "RunError", "RunInfo",
     "config_from_json", "config_to_dict", "dataclass_from_dict", "drop_removed_fields", "last_good_checkpoint",
-    "load_checkpoint", "load_head_for", "load_run", "open_run_dataset", "restore_state", "run_checkpoint_path",
+    "load_checkpoint", "load_head_for", "load_run", "open_run", "open_run_dataset", "restore_state", "run_checkpoint_path",
     "save_checkpoint", "saved_step", "state_payload", "write_aps_report",
 ]

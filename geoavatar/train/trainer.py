@@ -51,11 +51,12 @@ from geoavatar.avatar.render import AvatarRender
 from geoavatar.config import TrainConfig
 from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.errors import GeoAvatarError
+from geoavatar.imaging import psnr_from_mse, to_uint8
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png
 from geoavatar.render import Camera, composite_target
 from geoavatar.train import checkpoint as ckpt
 from geoavatar.train.interrupt import InterruptFlag
-from geoavatar.train.losses import avatar_loss, psnr_from_mse
+from geoavatar.train.losses import avatar_loss
 from geoavatar.train.options import Intervals, RunOptions
 from geoavatar.train.randomness import frame_index, step_background
 from geoavatar.train.resume import start_run
@@ -219,7 +220,7 @@ def validation_image(data: TrainingData, state: TrainingState) -> tuple[np.ndarr
         rows.append(torch.cat([target, rgb], dim=1))  # [H, 2W, 3]
     width = max(r.shape[1] for r in rows)
     rows = [torch.nn.functional.pad(r, (0, 0, 0, width - r.shape[1])) for r in rows]
-    image = (torch.cat(rows, dim=0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    image = to_uint8(torch.cat(rows, dim=0))
     return image, float(np.mean(psnrs))
 
 

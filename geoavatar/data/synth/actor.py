@@ -454,148 +454,203 @@ def actor_for_subject(index: int) -> "Actor":
     return build_actor(get_subject(index))
 
 
-def build_actor(subject: Subject, head: HeadModelData | None = None) -> Actor:
-    """The rigged ground-truth actor of `subject` (deterministic)."""
-    if head is None:
-        head = default_head()
-    num_head = head.num_vertices
-    mouth_ids = np.concatenate([np.asarray(v) for k, v in head.vertex_groups.items() if k.startswith("mouth_")]) \
-        if any(k.startswith("mouth_") for k in head.vertex_groups) else np.zeros(0, np.int64)
-    num_model = int(mouth_ids.min()) if len(mouth_ids) else num_head
-    shape = identity_coefficients(subject, head.shapedirs.shape[-1])
-    rest_head = head.v_template + np.einsum("vcs,s->vc", head.shapedirs, shape)  # [V, 3]
+@dataclass
+class _Piece:
+    """Vertices appended to the head model's: a hair or beard shell, the glasses, the tongue, or the joint
+    compensators (in no face). Bases a piece leaves out (None) are zero: no expression, no pose correctives."""
 
-    # Ears: a static change of the template (and so of the rest pose).
-    ear_offset = _ear_offsets(head, rest_head, subject)  # [V, 3]
-    rest_head = rest_head + ear_offset
-    marks = _landmarks(head, rest_head)
+    template: np.ndarray  # [n, 3] template space: rest minus the identity part
+    rest: np.ndarray  # [n, 3] rest positions with the subject's identity (the appearance's canonical space)
+    shapedirs: np.ndarray  # [n, 3, S]
+    lbs_weights: np.ndarray  # [n, J]
+    materials: np.ndarray  # [n, M]
+    part: int  # index into Actor.PARTS; -1 hidden
+    faces: np.ndarray | None = None  # [f, 3] ids within the piece; None: in no face
+    exprdirs: np.ndarray | None = None  # [n, 3, E]
+    posedirs: np.ndarray | None = None  # [n, 3, P]
+    edge: np.ndarray | None = None  # [n] distance to a shell's border (metres); None: 1.0
 
-    shells: list[tuple[str, _Shell]] = [("hair", _hair_shell(head, rest_head, subject, marks))]
-    if subject.beard:
-        shells.append(("beard", _beard_shell(head, rest_head, subject, marks)))
+    def __len__(self) -> int:
+        return len(self.rest)
 
-    v_template = [head.v_template + ear_offset]
-    rest_all = [rest_head]
-    faces = [head.faces]
-    shapedirs, exprdirs, lbs = [head.shapedirs], [head.exprdirs], [head.lbs_weights]
-    posedirs = [head.posedirs] if head.posedirs is not None else None
-    materials = [_materials_of_head(head)]
-    part = [np.zeros(num_head, np.int64)]
-    edges = [np.ones(num_head)]
-    count = num_head
-    info: dict = {"ear_offset_max_mm": float(np.linalg.norm(ear_offset, axis=1).max() * 1000)}
-    for name, shell in shells:
-        n = len(shell.source)
-        # Template-space position = rest position minus the identity part of the copied vertex.
-        identity = np.einsum("vcs,s->vc", head.shapedirs[shell.source], shape)
-        v_template.append(shell.positions - identity)
-        rest_all.append(shell.positions)
-        faces.append(shell.faces + count)
-        shapedirs.append(head.shapedirs[shell.source])
-        exprdirs.append(head.exprdirs[shell.source])
-        lbs.append(head.lbs_weights[shell.source])
-        if posedirs is not None:
-            posedirs.append(head.posedirs[shell.source])
-        mat = np.zeros((n, len(MATERIALS)), np.float32)
-        mat[:, MATERIAL_INDEX[name]] = 1.0
-        materials.append(mat)
-        edges.append(shell.edge)
-        part.append(np.full(n, Actor.PARTS.index(name), np.int64))
-        offsets = np.linalg.norm(shell.positions - rest_head[shell.source], axis=1)
-        info[f"{name}_offset_cm"] = [float(offsets.min() * 100), float(np.percentile(offsets, 50) * 100),
-                                     float(offsets.max() * 100)]
-        info[f"{name}_vertices"] = int(n)
-        count += n
 
-    if subject.glasses:
-        g_vertices, g_faces, anchor = _glasses(head, rest_head, marks)
-        n = len(g_vertices)
-        identity = np.einsum("cs,s->c", head.shapedirs[anchor], shape)
-        v_template.append(g_vertices - identity)
-        rest_all.append(g_vertices)
-        faces.append(g_faces + count)
-        shapedirs.append(np.repeat(head.shapedirs[anchor][None], n, 0))
-        exprdirs.append(np.zeros((n, 3, head.exprdirs.shape[-1]), np.float32))
-        weights = np.zeros((n, len(JOINT_NAMES)), np.float32)
-        weights[:, int(np.argmax(head.lbs_weights[anchor]))] = 1.0  # rigid on the anchor's main joint
-        lbs.append(weights)
-        if posedirs is not None:
-            posedirs.append(np.zeros((n, 3, head.posedirs.shape[-1]), np.float32))
-        mat = np.zeros((n, len(MATERIALS)), np.float32)
-        mat[:, MATERIAL_INDEX["glasses"]] = 1.0
-        materials.append(mat)
-        part.append(np.full(n, Actor.PARTS.index("glasses"), np.int64))
-        edges.append(np.ones(n))
-        info["glasses_vertices"] = int(n)
-        count += n
+def _material_rows(n: int, material: int) -> np.ndarray:
+    """[n, M] one-hot rows of material index `material`."""
+    rows = np.zeros((n, len(MATERIALS)), np.float32)
+    rows[:, material] = 1.0
+    return rows
 
-    if "floor" in head.vertex_groups:
-        t_vertices, t_faces, t_dirs = _tongue(head, rest_head, shape)
-        n = len(t_vertices)
-        v_template.append(t_vertices - np.einsum("vcs,s->vc", t_dirs, shape))
-        rest_all.append(t_vertices)
-        faces.append(t_faces + count)
-        shapedirs.append(t_dirs)
-        exprdirs.append(np.zeros((n, 3, head.exprdirs.shape[-1]), np.float32))
-        weights = np.zeros((n, len(JOINT_NAMES)), np.float32)
-        weights[:, JOINT_NAMES.index("jaw")] = 1.0
-        lbs.append(weights)
-        if posedirs is not None:
-            posedirs.append(np.zeros((n, 3, head.posedirs.shape[-1]), np.float32))
-        mat = np.zeros((n, len(MATERIALS)), np.float32)
-        mat[:, MATERIAL_INDEX["tongue"]] = 1.0
-        materials.append(mat)
-        part.append(np.full(n, Actor.PARTS.index("tongue"), np.int64))
-        edges.append(np.ones(n))
-        count += n
 
-    # The head model's joint regressor also reads some ear vertices; one hidden vertex per joint
-    # (in no face, regressor weight 1, rest position = minus the ears' contribution) cancels the
-    # ear change there, so the actor's joints are exactly the head model's for every identity.
+def _rigid_weights(n: int, joint: int) -> np.ndarray:
+    """[n, J] skinning weights moving n vertices rigidly with one joint."""
+    weights = np.zeros((n, len(JOINT_NAMES)), np.float32)
+    weights[:, joint] = 1.0
+    return weights
+
+
+class _Assembly:
+    """The actor's vertex arrays: the head model's (with the ear change) first, then each piece added in turn."""
+
+    def __init__(self, head: HeadModelData, ear_offset: np.ndarray, rest_head: np.ndarray):
+        self.head = head
+        num_head = head.num_vertices
+        self.template, self.rest, self.faces = [head.v_template + ear_offset], [rest_head], [head.faces]
+        self.shapedirs, self.exprdirs, self.lbs = [head.shapedirs], [head.exprdirs], [head.lbs_weights]
+        self.posedirs = [head.posedirs] if head.posedirs is not None else None
+        self.materials, self.part, self.edges = [_materials_of_head(head)], [np.zeros(num_head, np.int64)], \
+            [np.ones(num_head)]
+        self.count = num_head  # vertices so far
+
+    def add(self, piece: _Piece) -> None:
+        n, head = len(piece), self.head
+        self.template.append(piece.template)
+        self.rest.append(piece.rest)
+        if piece.faces is not None:
+            self.faces.append(piece.faces + self.count)
+        self.shapedirs.append(piece.shapedirs)
+        self.exprdirs.append(piece.exprdirs if piece.exprdirs is not None else
+                             np.zeros((n, 3, head.exprdirs.shape[-1]), np.float32))
+        self.lbs.append(piece.lbs_weights)
+        if self.posedirs is not None:
+            self.posedirs.append(piece.posedirs if piece.posedirs is not None else
+                                 np.zeros((n, 3, head.posedirs.shape[-1]), np.float32))
+        self.materials.append(piece.materials)
+        self.part.append(np.full(n, piece.part, np.int64))
+        self.edges.append(piece.edge if piece.edge is not None else np.ones(n))
+        self.count += n
+
+    def head_model_data(self, name: str, regressor_extra: np.ndarray, info: dict) -> HeadModelData:
+        """The head model's data grown by the pieces; regressor_extra [J, added vertices] (the compensators')."""
+        head = self.head
+        return head.copy_with(
+            name=name,
+            v_template=np.concatenate(self.template).astype(np.float32),
+            faces=np.concatenate(self.faces).astype(np.int64),
+            shapedirs=np.concatenate(self.shapedirs).astype(np.float32),
+            exprdirs=np.concatenate(self.exprdirs).astype(np.float32),
+            j_regressor=np.concatenate([head.j_regressor, regressor_extra], 1),
+            lbs_weights=np.concatenate(self.lbs).astype(np.float32),
+            posedirs=None if self.posedirs is None else np.concatenate(self.posedirs).astype(np.float32),
+            metadata={**head.metadata, "synth_actor": info},
+        )
+
+
+def _shell_piece(head: HeadModelData, name: str, shell: _Shell, shape: np.ndarray) -> _Piece:
+    """A hair or beard shell: each vertex copies the bases and skinning of the head vertex it was built from."""
+    source = shell.source
+    identity = np.einsum("vcs,s->vc", head.shapedirs[source], shape)  # [n, 3]
+    return _Piece(template=shell.positions - identity, rest=shell.positions, shapedirs=head.shapedirs[source],
+                  lbs_weights=head.lbs_weights[source], materials=_material_rows(len(source), MATERIAL_INDEX[name]),
+                  part=Actor.PARTS.index(name), faces=shell.faces, exprdirs=head.exprdirs[source],
+                  posedirs=head.posedirs[source] if head.posedirs is not None else None, edge=shell.edge)
+
+
+def _shell_info(name: str, shell: _Shell, rest_head: np.ndarray) -> dict:
+    """How far a shell stands off the skin (cm: min, median, max) and its vertex count, for the dataset's notes."""
+    offsets = np.linalg.norm(shell.positions - rest_head[shell.source], axis=1)
+    return {f"{name}_offset_cm": [float(offsets.min() * 100), float(np.percentile(offsets, 50) * 100),
+                                  float(offsets.max() * 100)],
+            f"{name}_vertices": int(len(shell.source))}
+
+
+def _glasses_piece(head: HeadModelData, rest_head: np.ndarray, marks: FaceLandmarks, shape: np.ndarray) -> _Piece:
+    """The glasses frame, rigid on the main joint of the vertex it hangs from, with that vertex's identity."""
+    vertices, faces, anchor = _glasses(head, rest_head, marks)
+    n = len(vertices)
+    identity = np.einsum("cs,s->c", head.shapedirs[anchor], shape)  # [3]
+    return _Piece(template=vertices - identity, rest=vertices, shapedirs=np.repeat(head.shapedirs[anchor][None], n, 0),
+                  lbs_weights=_rigid_weights(n, int(np.argmax(head.lbs_weights[anchor]))),
+                  materials=_material_rows(n, MATERIAL_INDEX["glasses"]), part=Actor.PARTS.index("glasses"),
+                  faces=faces)
+
+
+def _tongue_piece(head: HeadModelData, rest_head: np.ndarray, shape: np.ndarray) -> _Piece:
+    """The tongue on the mouth floor, rigid on the jaw."""
+    vertices, faces, dirs = _tongue(head, rest_head, shape)
+    n = len(vertices)
+    return _Piece(template=vertices - np.einsum("vcs,s->vc", dirs, shape), rest=vertices, shapedirs=dirs,
+                  lbs_weights=_rigid_weights(n, JOINT_NAMES.index("jaw")),
+                  materials=_material_rows(n, MATERIAL_INDEX["tongue"]), part=Actor.PARTS.index("tongue"), faces=faces)
+
+
+def _joint_compensators(head: HeadModelData, ear_offset: np.ndarray, appended: int) -> tuple[_Piece | None, np.ndarray]:
+    """(hidden vertices, the joint regressor's columns for every vertex appended to the head [J, appended + n]).
+
+    The head model's joint regressor also reads some ear vertices; one hidden vertex per joint (in no face,
+    regressor weight 1, rest position = minus the ears' contribution) cancels the ear change there, so the
+    actor's joints are exactly the head model's for every identity."""
     ear_shift = head.j_regressor @ ear_offset  # [J, 3]
     compensate = np.flatnonzero(np.abs(ear_shift).max(axis=1) > 0)
-    regressor_extra = np.zeros((head.j_regressor.shape[0], count - num_head + len(compensate)), np.float32)
-    if len(compensate):
-        n = len(compensate)
-        v_template.append(-ear_shift[compensate])
-        rest_all.append(-ear_shift[compensate])
-        shapedirs.append(np.zeros((n, 3, head.shapedirs.shape[-1]), np.float32))
-        exprdirs.append(np.zeros((n, 3, head.exprdirs.shape[-1]), np.float32))
-        weights = np.zeros((n, len(JOINT_NAMES)), np.float32)
-        weights[:, 0] = 1.0
-        lbs.append(weights)
-        if posedirs is not None:
-            posedirs.append(np.zeros((n, 3, head.posedirs.shape[-1]), np.float32))
-        materials.append(np.tile(np.eye(len(MATERIALS), dtype=np.float32)[:1], (n, 1)))
-        part.append(np.full(n, -1, np.int64))
-        edges.append(np.ones(n))
-        regressor_extra[compensate, count - num_head + np.arange(n)] = 1.0
-        count += n
+    n = len(compensate)
+    regressor_extra = np.zeros((head.j_regressor.shape[0], appended + n), np.float32)
+    if n == 0:
+        return None, regressor_extra
+    regressor_extra[compensate, appended + np.arange(n)] = 1.0
+    piece = _Piece(template=-ear_shift[compensate], rest=-ear_shift[compensate],
+                   shapedirs=np.zeros((n, 3, head.shapedirs.shape[-1]), np.float32), lbs_weights=_rigid_weights(n, 0),
+                   materials=_material_rows(n, 0), part=-1)
+    return piece, regressor_extra
 
-    data = head.copy_with(
-        name=f"{head.name}+synth{subject.index}",
-        v_template=np.concatenate(v_template).astype(np.float32),
-        faces=np.concatenate(faces).astype(np.int64),
-        shapedirs=np.concatenate(shapedirs).astype(np.float32),
-        exprdirs=np.concatenate(exprdirs).astype(np.float32),
-        j_regressor=np.concatenate([head.j_regressor, regressor_extra], 1),
-        lbs_weights=np.concatenate(lbs).astype(np.float32),
-        posedirs=None if posedirs is None else np.concatenate(posedirs).astype(np.float32),
-        metadata={**head.metadata, "synth_actor": info},
-    )
-    model = HeadModel(data)
-    num_faces_head = len(head.faces)
-    mouth_face_mask = np.zeros(len(data.faces), bool)
+
+def _rest_head(head: HeadModelData, subject: Subject, shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rest positions [V, 3] with the subject's identity and ears, the ear change [V, 3]): the ears are a static
+    change of the template (and so of the rest pose)."""
+    rest = head.v_template + np.einsum("vcs,s->vc", head.shapedirs, shape)  # [V, 3]
+    ear_offset = _ear_offsets(head, rest, subject)  # [V, 3]
+    return rest + ear_offset, ear_offset
+
+
+def _mouth_and_cavity_faces(head: HeadModelData, num_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """[F] bool masks over the actor's faces: the mouth structure's, and the head's other faces (whose back side
+    is the inside of the head)."""
+    mouth = np.zeros(num_faces, bool)
     if "mouth" in head.face_groups:
-        mouth_face_mask[np.asarray(head.face_groups["mouth"])] = True
-    cavity = np.zeros(len(data.faces), bool)
-    cavity[:num_faces_head] = ~mouth_face_mask[:num_faces_head]
+        mouth[np.asarray(head.face_groups["mouth"])] = True
+    cavity = np.zeros(num_faces, bool)
+    num_faces_head = len(head.faces)
+    cavity[:num_faces_head] = ~mouth[:num_faces_head]
+    return mouth, cavity
+
+
+def _model_vertex_count(head: HeadModelData) -> int:
+    """Vertices of the head model before its mouth structure (the mouth groups' vertices come last)."""
+    groups = [np.asarray(v) for k, v in head.vertex_groups.items() if k.startswith("mouth_")]
+    mouth = np.concatenate(groups) if groups else np.zeros(0, np.int64)
+    return int(mouth.min()) if len(mouth) else head.num_vertices
+
+
+def build_actor(subject: Subject, head: HeadModelData | None = None) -> Actor:
+    """The rigged ground-truth actor of `subject` (deterministic): the head with the subject's identity and ears,
+    then its hair (and beard) shells, glasses, tongue and the hidden joint compensators appended."""
+    head = default_head() if head is None else head
+    shape = identity_coefficients(subject, head.shapedirs.shape[-1])
+    rest_head, ear_offset = _rest_head(head, subject, shape)
+    marks = _landmarks(head, rest_head)
+    info: dict = {"ear_offset_max_mm": float(np.linalg.norm(ear_offset, axis=1).max() * 1000)}
+    assembly = _Assembly(head, ear_offset, rest_head)
+    shells = [("hair", _hair_shell(head, rest_head, subject, marks))]
+    if subject.beard:
+        shells.append(("beard", _beard_shell(head, rest_head, subject, marks)))
+    for name, shell in shells:
+        assembly.add(_shell_piece(head, name, shell, shape))
+        info.update(_shell_info(name, shell, rest_head))
+    if subject.glasses:
+        glasses = _glasses_piece(head, rest_head, marks, shape)
+        assembly.add(glasses)
+        info["glasses_vertices"] = len(glasses)
+    if "floor" in head.vertex_groups:
+        assembly.add(_tongue_piece(head, rest_head, shape))
+    compensators, regressor_extra = _joint_compensators(head, ear_offset, assembly.count - head.num_vertices)
+    if compensators is not None:
+        assembly.add(compensators)
+    data = assembly.head_model_data(f"{head.name}+synth{subject.index}", regressor_extra, info)
+    mouth_faces, cavity_faces = _mouth_and_cavity_faces(head, len(data.faces))
     return Actor(
-        subject=subject, head=head, data=data, model=model, shape=shape, num_head_vertices=num_head,
-        num_model_vertices=num_model, canonical=np.concatenate(rest_all).astype(np.float32),
-        materials=np.concatenate(materials), landmarks=marks, part_of_vertex=np.concatenate(part),
-        shell_edge=np.concatenate(edges).astype(np.float32),
-        cavity_faces=cavity, mouth_faces=mouth_face_mask, info=info,
+        subject=subject, head=head, data=data, model=HeadModel(data), shape=shape, num_head_vertices=head.num_vertices,
+        num_model_vertices=_model_vertex_count(head), canonical=np.concatenate(assembly.rest).astype(np.float32),
+        materials=np.concatenate(assembly.materials), landmarks=marks, part_of_vertex=np.concatenate(assembly.part),
+        shell_edge=np.concatenate(assembly.edges).astype(np.float32),
+        cavity_faces=cavity_faces, mouth_faces=mouth_faces, info=info,
     )
 
 

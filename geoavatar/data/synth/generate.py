@@ -53,6 +53,7 @@ from geoavatar.data.synth.tracking import TrackingNoise, apply_tracking_noise
 from geoavatar.errors import OptionError, disk_full_error, is_disk_full
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
 from geoavatar.head.regions import skull_centre
+from geoavatar.imaging import to_uint8
 from geoavatar.runtime import num_threads
 
 log = logging.getLogger(__name__)
@@ -378,9 +379,7 @@ def _render_one(job: tuple[int, int, Camera | None]) -> tuple[int, int, np.ndarr
     t, index, camera = job
     vertices = _posed_vertices(actor, params, t, t + 1)[0]  # [V, 3], one frame per forward pass
     image, mask = renderer.render(vertices, camera)
-    image_u8 = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
-    mask_u8 = (mask.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
-    return t, index, image_u8, mask_u8
+    return t, index, to_uint8(image), to_uint8(mask)
 
 
 def _worker_init() -> None:
@@ -433,7 +432,7 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     the bare head model with the same parameters (shows the hair volume, ears, glasses, beard)."""
     from PIL import ImageDraw
 
-    from geoavatar.render.camera import intrinsics_from_fov, look_at
+    from geoavatar.render.camera import camera_centre, intrinsics_from_fov, look_at
     from geoavatar.render.mesh import Lighting, render_mesh
 
     tiles: list[tuple[np.ndarray, str]] = []
@@ -451,20 +450,20 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
         height=renderer.camera.height,
     )
     image, _ = renderer.render(posed, close, lights_on_camera=True)
-    tiles.append(((image * 255 + 0.5).to(torch.uint8).numpy(), f"#{t_open} mouth close-up, jaw {motion.jaw[t_open]:.2f}"))
+    tiles.append((to_uint8(image), f"#{t_open} mouth close-up, jaw {motion.jaw[t_open]:.2f}"))
     # Side views of the neutral actor vs the bare head model (hair volume, ears, glasses, beard).
     neutral = {k: (v if k == "shape" else np.zeros_like(v[:1])) for k, v in params.items()}
     neutral["shape"] = params["shape"]
     vertices = _posed_vertices(actor, neutral, 0, 1)[0]
-    target_y = float(torch.linalg.inv(renderer.camera.viewmat.double())[1, 3])
+    target_y = float(camera_centre(renderer.camera.viewmat.double())[1])  # the camera's height
     for yaw in (75.0, -110.0):
         side = orbit_camera(renderer.camera, yaw, 0.0, torch.tensor([0.0, target_y, 0.0]))
         image, _ = renderer.render(vertices, side, lights_on_camera=True)
-        tiles.append(((image * 255 + 0.5).to(torch.uint8).numpy(), f"actor, side {yaw:+.0f} deg"))
+        tiles.append((to_uint8(image), f"actor, side {yaw:+.0f} deg"))
         head = vertices[: actor.num_head_vertices]
         bare = render_mesh(head, torch.from_numpy(actor.head.faces), side.viewmat, side.K, side.width, side.height,
                            lighting=Lighting(), background=(0.85, 0.85, 0.85), ssaa=2)
-        tiles.append(((bare.image * 255 + 0.5).to(torch.uint8).numpy(), "head model alone, same view"))
+        tiles.append((to_uint8(bare.image), "head model alone, same view"))
     size = 240
     columns = 5
     rows = math.ceil(len(tiles) / columns)

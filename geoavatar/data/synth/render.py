@@ -17,8 +17,8 @@ from torch import Tensor
 
 from geoavatar.data.synth.actor import Actor
 from geoavatar.data.synth.appearance import MATERIAL_INDEX, Appearance
-from geoavatar.render.camera import intrinsics_from_fov, look_at, orbit_viewmat, world_to_camera
-from geoavatar.render.mesh import box_downsample, face_normals, rasterize_mesh, scale_intrinsics, vertex_normals
+from geoavatar.render.camera import intrinsics_from_fov, look_at, orbit_viewmat, scale_intrinsics, world_to_camera
+from geoavatar.render.mesh import box_downsample, face_normals, rasterize_mesh, vertex_normals
 
 _MOUTH_MATERIALS = [MATERIAL_INDEX[m] for m in ("teeth", "gums", "tongue")]
 

@@ -23,10 +23,7 @@
 //                    picked at run time; forward and backward state is float32.
 // Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels count.
 
-#include <torch/extension.h>
-
-#include <ATen/Parallel.h>
-#include <omp.h>
+#include "cpu_common.h"  // torch headers, threads_for_torch, parallel_over, check_input (geoavatar/native/csrc)
 
 #include <algorithm>
 #include <cmath>
@@ -43,6 +40,8 @@
 #endif
 
 namespace {
+
+using namespace geoavatar_native;
 
 constexpr double kAlphaMin = 1.0 / 255.0;
 constexpr double kAlphaMax = 0.999;
@@ -74,8 +73,6 @@ struct Grid {
   }
 };
 
-int threads_for_torch() { return std::max(1, at::get_num_threads()); }
-
 // The tiles in the order the threads take them (dynamic schedule): most entries first, so that the
 // last ones handed out are small and the threads finish together (longest-processing-time first; with
 // 64 tiles at tile size 32 the largest holds ~11 % of the work). Ties by index; any order gives the same
@@ -87,13 +84,6 @@ std::vector<int32_t> tiles_by_work(const int64_t* offsets, int64_t n_tiles) {
     return offsets[i + 1] - offsets[i] > offsets[j + 1] - offsets[j];
   });
   return order;
-}
-
-// OpenMP pragmas cannot sit inside AT_DISPATCH's macro argument: loops over Gaussians go through this.
-template <typename Body>
-void parallel_over(int64_t n, const Body& body) {
-#pragma omp parallel for schedule(static) num_threads(threads_for_torch())
-  for (int64_t i = 0; i < n; ++i) body(i);
 }
 
 // Fills splats [N] (the forward's buffer, handed to the backward as a byte tensor: not gathered twice).
@@ -1201,14 +1191,6 @@ void backward_tiles_for(Simd simd, const Splat<float>* splats, const int64_t* of
                          entry_grads);
 }
 
-void check_input(const torch::Tensor& t, const char* name, int64_t dim, torch::ScalarType dtype) {
-  TORCH_CHECK(t.device().is_cpu(), "rasterize_cpu: '", name, "' must be a CPU tensor");
-  TORCH_CHECK(t.is_contiguous(), "rasterize_cpu: '", name, "' must be contiguous");
-  TORCH_CHECK(t.dim() == dim, "rasterize_cpu: '", name, "' must have ", dim, " dimensions");
-  TORCH_CHECK(t.scalar_type() == dtype, "rasterize_cpu: '", name, "' has dtype ", t.scalar_type(), ", expected ",
-              dtype);
-}
-
 Grid make_grid(int64_t width, int64_t height, int64_t tile) {
   TORCH_CHECK(width > 0 && height > 0 && tile > 0, "rasterize_cpu: width, height and tile must be positive");
   return Grid{width, height, tile, (width + tile - 1) / tile, (height + tile - 1) / tile};
@@ -1537,249 +1519,15 @@ std::vector<torch::Tensor> project_backward(const torch::Tensor& means, const to
   return {g_means, g_quats, g_scales};
 }
 
-// ----------------------------------------------------------------------------- face placement
-// fused.py's _PlaceGaussians on CPU (avatar/fused.py documents the maths): mu_g = k R mu + C,
-// q_g = q_face (x) q / |q|, s_g = k exp(s) for every (batch, Gaussian), and the backward, in one loop
-// over the Gaussians each. In PyTorch the same maths is some 30 ops forward and 40 backward over [N]
-// rows plus layout copies: 15 % of a 1-thread training step at 100k Gaussians. Each row of `index`
-// ([B * N], row b * N + i for Gaussian i of batch b) is the face table's row (table [M, 17]: R
-// row-major, C, k, face quaternion). The sums are written in the torch code's order; exp is libm's.
-
-constexpr int kFaceRow = 17;
-
-template <typename T>
-inline void quaternion_product(const T* a, const T* b, T* out) {
-  out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
-  out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
-  out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
-  out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
-}
-
-// |q| floored at fused._EPS (clamp_min: NaN stays NaN)
-template <typename T>
-inline T floored_norm(const T* q) {
-  const T norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-  return norm < T(1e-12) ? T(1e-12) : norm;
-}
-
-void check_placement(const torch::Tensor& table, const torch::Tensor& means, const torch::Tensor& quats,
-                     const torch::Tensor& log_scales, const torch::Tensor& index, bool check_index) {
-  const auto dtype = means.scalar_type();
-  check_input(table, "table", 2, dtype);
-  check_input(means, "means", 2, dtype);
-  check_input(quats, "quats", 2, dtype);
-  check_input(log_scales, "log_scales", 2, dtype);
-  check_input(index, "index", 1, torch::kInt64);
-  TORCH_CHECK(table.size(1) == kFaceRow && means.size(1) == 3 && quats.size(1) == 4 && log_scales.size(1) == 3 &&
-              quats.size(0) == means.size(0) && log_scales.size(0) == means.size(0),
-              "place_gaussians: table [M, 17], means [N, 3], quats [N, 4], log_scales [N, 3] expected");
-  const int64_t n = means.size(0);
-  TORCH_CHECK(n > 0 ? index.numel() % n == 0 : index.numel() == 0, "place_gaussians: index must be [B * N]");
-  if (check_index && index.numel() > 0) {  // the backward gets the forward's index
-    TORCH_CHECK(index.min().item<int64_t>() >= 0 && index.max().item<int64_t>() < table.size(0),
-                "place_gaussians: index out of the table's rows");
-  }
-}
-
-// Per Gaussian: q / |q| (4), exp(s) (3), |q| floored (1), kept by the forward for the backward (it
-// saves 3 exp, a sqrt and 4 divisions per Gaussian there).
-constexpr int kPlacementAux = 8;
-
-// Returns means [B * N, 3], quats [B * N, 4], scales [B * N, 3] and the aux rows [N, 8] for place_backward.
-std::vector<torch::Tensor> place_forward(const torch::Tensor& table, const torch::Tensor& means,
-                                         const torch::Tensor& quats, const torch::Tensor& log_scales,
-                                         const torch::Tensor& index) {
-  check_placement(table, means, quats, log_scales, index, true);
-  const int64_t rows = index.numel(), n = means.size(0);
-  auto opts = means.options();
-  torch::Tensor means_g = torch::empty({rows, 3}, opts), quats_g = torch::empty({rows, 4}, opts);
-  torch::Tensor scales_g = torch::empty({rows, 3}, opts), aux = torch::empty({n, kPlacementAux}, opts);
-  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "place_forward", [&] {
-    using T = scalar_t;
-    const T *tab = table.data_ptr<T>(), *mp = means.data_ptr<T>(), *qp = quats.data_ptr<T>();
-    const T* sp = log_scales.data_ptr<T>();
-    const int64_t* idx = index.data_ptr<int64_t>();
-    T *mo = means_g.data_ptr<T>(), *qo = quats_g.data_ptr<T>(), *so = scales_g.data_ptr<T>();
-    T* ax = aux.data_ptr<T>();
-    parallel_over(n, [&](int64_t i) {
-      const T* q = qp + 4 * i;
-      T* a = ax + kPlacementAux * i;  // unit [0, 4), exp(s) [4, 7), norm 7
-      a[7] = floored_norm(q);
-      for (int c = 0; c < 4; ++c) a[c] = q[c] / a[7];
-      for (int c = 0; c < 3; ++c) a[4 + c] = std::exp(sp[3 * i + c]);
-      const T* mu = mp + 3 * i;
-      for (int64_t row = i; row < rows; row += n) {  // batch b: row b * N + i
-        const T* f = tab + kFaceRow * idx[row];  // R [0, 9), C [9, 12), k 12, face quaternion [13, 17)
-        const T k = f[12];
-        for (int r = 0; r < 3; ++r)
-          mo[3 * row + r] = k * (f[3 * r] * mu[0] + f[3 * r + 1] * mu[1] + f[3 * r + 2] * mu[2]) + f[9 + r];
-        quaternion_product(f + 13, a, qo + 4 * row);
-        for (int c = 0; c < 3; ++c) so[3 * row + c] = k * a[4 + c];
-      }
-    });
-  });
-  return {means_g, quats_g, scales_g, aux};
-}
-
-// Returns the gradients of table [M, 17] (empty unless table_grad), means [N, 3], quats [N, 4],
-// log_scales [N, 3]; the face rows are summed in row order (deterministic for any thread count).
-std::vector<torch::Tensor> place_backward(const torch::Tensor& table, const torch::Tensor& means,
-                                          const torch::Tensor& quats, const torch::Tensor& log_scales,
-                                          const torch::Tensor& index, const torch::Tensor& aux,
-                                          const torch::Tensor& g_means,
-                                          const torch::Tensor& g_quats, const torch::Tensor& g_scales,
-                                          bool table_grad) {
-  check_placement(table, means, quats, log_scales, index, false);
-  const int64_t rows = index.numel(), n = means.size(0), batch = n > 0 ? rows / n : 0;
-  check_input(aux, "aux", 2, means.scalar_type());
-  TORCH_CHECK(aux.size(0) == n && aux.size(1) == kPlacementAux, "place_gaussians: aux must be place_forward's");
-  check_input(g_means, "g_means", 2, means.scalar_type());
-  check_input(g_quats, "g_quats", 2, means.scalar_type());
-  check_input(g_scales, "g_scales", 2, means.scalar_type());
-  TORCH_CHECK(g_means.size(0) == rows && g_quats.size(0) == rows && g_scales.size(0) == rows,
-              "place_gaussians: gradients must be [B * N, ...]");
-  auto opts = means.options();
-  torch::Tensor gm = torch::empty({n, 3}, opts), gq = torch::empty({n, 4}, opts), gs = torch::empty({n, 3}, opts);
-  torch::Tensor g_table = table_grad ? torch::zeros({table.size(0), kFaceRow}, opts) : torch::empty({0}, opts);
-  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "place_backward", [&] {
-    using T = scalar_t;
-    const T *tab = table.data_ptr<T>(), *mp = means.data_ptr<T>();  // quats, log_scales: through aux
-    const int64_t* idx = index.data_ptr<int64_t>();
-    const T *gmp = g_means.data_ptr<T>(), *gqp = g_quats.data_ptr<T>(), *gsp = g_scales.data_ptr<T>();
-    T *gmo = gm.data_ptr<T>(), *gqo = gq.data_ptr<T>(), *gso = gs.data_ptr<T>();
-    const T* ax = aux.data_ptr<T>();
-    // per row: the face row's gradient, summed into g_table below
-    std::unique_ptr<T[]> per_row(table_grad ? new T[static_cast<size_t>(kFaceRow) * rows] : nullptr);
-    parallel_over(n, [&](int64_t i) {
-      const T* mu = mp + 3 * i;
-      const T* unit = ax + kPlacementAux * i;
-      const T* exp_s = unit + 4;
-      const T norm = unit[7];
-      T g_mu[3] = {0, 0, 0}, g_unit[4] = {0, 0, 0, 0}, g_ks[3] = {0, 0, 0};
-      for (int64_t b = 0; b < batch; ++b) {
-        const int64_t row = b * n + i;
-        const T* f = tab + kFaceRow * idx[row];
-        const T k = f[12];
-        const T* g = gmp + 3 * row;
-        const T* gqr = gqp + 4 * row;
-        const T* gsr = gsp + 3 * row;
-        const T kg[3] = {k * g[0], k * g[1], k * g[2]};
-        for (int c = 0; c < 3; ++c) g_mu[c] += f[c] * kg[0] + f[3 + c] * kg[1] + f[6 + c] * kg[2];  // R^T k g
-        const T conj_face[4] = {f[13], -f[14], -f[15], -f[16]};
-        T d_unit[4];
-        quaternion_product(conj_face, gqr, d_unit);  // d(a (x) b)/db = conj(a) (x) g
-        for (int c = 0; c < 4; ++c) g_unit[c] += d_unit[c];
-        for (int c = 0; c < 3; ++c) g_ks[c] += gsr[c] * k;
-        if (table_grad) {
-          T* out = per_row.get() + kFaceRow * row;
-          for (int r = 0; r < 3; ++r)
-            for (int c = 0; c < 3; ++c) out[3 * r + c] = kg[r] * mu[c];  // dR = k g mu^T
-          T dk = 0;
-          for (int r = 0; r < 3; ++r) {
-            out[9 + r] = g[r];  // dC
-            dk += g[r] * (f[3 * r] * mu[0] + f[3 * r + 1] * mu[1] + f[3 * r + 2] * mu[2]);
-          }
-          out[12] = dk + (gsr[0] * exp_s[0] + gsr[1] * exp_s[1] + gsr[2] * exp_s[2]);  // dk
-          const T conj_unit[4] = {unit[0], -unit[1], -unit[2], -unit[3]};
-          quaternion_product(gqr, conj_unit, out + 13);  // d(a (x) b)/da = g (x) conj(b)
-        }
-      }
-      for (int c = 0; c < 3; ++c) gmo[3 * i + c] = g_mu[c];
-      // normalize's backward: (g - u (u . g)) / |q|, and g / eps where the norm was floored
-      const T dot = unit[0] * g_unit[0] + unit[1] * g_unit[1] + unit[2] * g_unit[2] + unit[3] * g_unit[3];
-      const T radial = norm > T(1e-12) ? dot : T(0);
-      for (int c = 0; c < 4; ++c) gqo[4 * i + c] = (g_unit[c] - unit[c] * radial) / norm;
-      for (int c = 0; c < 3; ++c) gso[3 * i + c] = g_ks[c] * exp_s[c];
-    });
-    if (table_grad) {
-      T* gt = g_table.data_ptr<T>();
-      const T* per = per_row.get();
-      for (int64_t row = 0; row < rows; ++row) {
-        T* out = gt + kFaceRow * idx[row];
-        for (int j = 0; j < kFaceRow; ++j) out[j] += per[kFaceRow * row + j];
-      }
-    }
-  });
-  return {g_table, gm, gq, gs};
-}
-
-// ----------------------------------------------------------------------------- polar coordinates
-// fused.py's _PolarCoordinates on CPU (binding.polar_coordinates documents it): r = |mu|,
-// phi = atan2(|mu_tangent|, mu_normal) (|mu_normal| when two-sided), phi = 0 at the origin; one loop
-// each way instead of ~25 PyTorch ops over [N] (3 % of a 1-thread training step at 100k Gaussians).
-// Local axis 1 is the normal (fused.NORMAL_AXIS), 0 and 2 the tangent plane.
-
-// Returns r [N], phi [N].
-std::vector<torch::Tensor> polar_forward(const torch::Tensor& means, bool two_sided) {
-  check_input(means, "means", 2, means.scalar_type());
-  TORCH_CHECK(means.size(1) == 3, "polar_coordinates: means must be [N, 3]");
-  const int64_t n = means.size(0);
-  torch::Tensor r = torch::empty({n}, means.options()), phi = torch::empty({n}, means.options());
-  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "polar_forward", [&] {
-    using T = scalar_t;
-    const T* mu = means.data_ptr<T>();
-    T *ro = r.data_ptr<T>(), *po = phi.data_ptr<T>();
-    parallel_over(n, [&](int64_t i) {
-      const T x = mu[3 * i], y = mu[3 * i + 1], z = mu[3 * i + 2];
-      const T radius = std::sqrt(x * x + y * y + z * z);
-      const bool tiny = radius <= T(1e-12);
-      const T normal = tiny ? T(1) : (two_sided ? std::abs(y) : y);
-      const T tangent = tiny ? T(0) : std::sqrt(x * x + z * z);
-      ro[i] = radius;
-      po[i] = std::atan2(tangent, normal);
-    });
-  });
-  return {r, phi};
-}
-
-// Returns the gradient of means [N, 3] (vector_norm's zero subgradient at 0; no angle gradient there).
-torch::Tensor polar_backward(const torch::Tensor& means, const torch::Tensor& g_r, const torch::Tensor& g_phi,
-                             bool two_sided) {
-  check_input(means, "means", 2, means.scalar_type());
-  check_input(g_r, "g_r", 1, means.scalar_type());
-  check_input(g_phi, "g_phi", 1, means.scalar_type());
-  const int64_t n = means.size(0);
-  TORCH_CHECK(means.size(1) == 3 && g_r.numel() == n && g_phi.numel() == n, "polar_coordinates: shapes differ");
-  torch::Tensor grad = torch::empty({n, 3}, means.options());
-  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "polar_backward", [&] {
-    using T = scalar_t;
-    const T *mu = means.data_ptr<T>(), *gr = g_r.data_ptr<T>(), *gp = g_phi.data_ptr<T>();
-    T* out = grad.data_ptr<T>();
-    parallel_over(n, [&](int64_t i) {
-      const T x = mu[3 * i], y = mu[3 * i + 1], z = mu[3 * i + 2];
-      const T radius = std::sqrt(x * x + y * y + z * z);
-      const bool live = radius > T(1e-12);
-      const T normal = live ? (two_sided ? std::abs(y) : y) : T(1);
-      const T tangent = live ? std::sqrt(x * x + z * z) : T(0);
-      const T along = radius > 0 ? gr[i] / radius : T(0);  // d r = mu / r
-      // atan2(t, n): d t = n / (t^2 + n^2), d n = -t / (t^2 + n^2)
-      const T g = (live ? gp[i] : T(0)) / (live ? tangent * tangent + normal * normal : T(1));
-      const T g_t = tangent > 0 ? g * normal / tangent : T(0);  // d t = mu_t / t
-      T g_n = -g * tangent;
-      if (two_sided) g_n = g_n * static_cast<T>((y > 0) - (y < 0));  // sign(mu_normal)
-      out[3 * i] = along * x + g_t * x;
-      out[3 * i + 1] = along * y + g_n;
-      out[3 * i + 2] = along * z + g_t * z;
-    });
-  });
-  return grad;
-}
-
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.doc() = "geoavatar native CPU rasterize-to-pixels (tile binning, compositing, backward)";
-  // The GIL is released while a call runs (arguments and results are tensors, converted outside the guard):
-  // other Python threads (drive's fit beside its render, a viewer) keep running during a frame.
-  using release_gil = pybind11::call_guard<pybind11::gil_scoped_release>;
+  using geoavatar_native::release_gil;  // other Python threads run during a frame
   module.def("forward", &forward, "rgb, alpha, tile offsets, tile ids, last, t_final", release_gil());
   module.def("backward", &backward, "grads of means2d, conics, opacities, colors", release_gil());
   module.def("project", &project, "means2d, conics, depths, radii, visible of one camera", release_gil());
   module.def("project_backward", &project_backward, "grads of means, quats, scales", release_gil());
-  module.def("place_forward", &place_forward, "fused._PlaceGaussians: global means, quats, scales", release_gil());
-  module.def("place_backward", &place_backward, "grads of the face table, means, quats, log_scales", release_gil());
-  module.def("polar_forward", &polar_forward, "fused._PolarCoordinates: r, phi", release_gil());
-  module.def("polar_backward", &polar_backward, "grad of the local means", release_gil());
   module.def("simd_paths", &simd_paths, "SIMD paths of the float32 compositing this CPU runs, fastest first");
   module.def("max_threads", []() { return omp_get_max_threads(); });
 }

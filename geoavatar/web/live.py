@@ -1,0 +1,198 @@
+"""The live player server: the page, its bundle and an avatar over HTTP, posed meshes over a websocket (/ws).
+
+    server = LiveServer(assets, host, port, on_edit=None).start()   # LiveServerError naming --port when taken
+    server.send_vertices(vertices, read_time)                        # [V, 3]; from any thread
+    server.stop()
+
+One asyncio loop in a thread serves everything on one port. send_vertices is newest-only per browser: while a
+browser's previous mesh is still being written, a newer one replaces the waiting one (counted in `dropped`), so
+a slow connection never builds a queue. Latency: `read_time` (time.perf_counter() when the source frame was
+read) to the moment the message is written to every connected browser's socket (`latency_ms`). A text message
+from the page (view's sliders, JSON) is handed to `on_edit` in a worker thread; it may answer with
+send_vertices. The wire format is web/src/live.js's: a 16-byte header (uint32 1, uint32 sequence number, float64
+send time in Unix seconds) and float32 vertices [V * 3].
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import json
+import struct
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+from urllib.parse import urlsplit
+
+import numpy as np
+import torch
+
+from geoavatar.errors import GeoAvatarError
+from geoavatar.web.pack import PLAYER_FILES, PlayerAssets, static_dir
+
+KIND_VERTICES = 1
+CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
+                 ".json": "application/json", ".bin": "application/octet-stream"}
+
+
+class LiveServerError(GeoAvatarError, OSError):
+    """The player's address cannot be served (a port in use); the message names --host / --port."""
+
+
+def vertex_message(vertices, sequence: int) -> bytes:
+    """The wire message of one posed mesh [V, 3] (see the module docstring)."""
+    if isinstance(vertices, torch.Tensor):
+        vertices = vertices.detach().to("cpu", torch.float32).numpy()
+    body = np.ascontiguousarray(vertices, dtype="<f4").tobytes()
+    return struct.pack("<IId", KIND_VERTICES, sequence & 0xFFFFFFFF, time.time()) + body
+
+
+class _Client:
+    def __init__(self, socket):
+        self.socket = socket
+        self.pending: tuple[bytes, float | None] | None = None
+        self.wake = asyncio.Event()
+
+
+class LiveServer:
+    def __init__(self, assets: PlayerAssets, host: str = "127.0.0.1", port: int = 8080,
+                 on_edit: Callable[[dict], None] | None = None):
+        self.files = {f"/{name}": (static_dir() / name).read_bytes() for name in PLAYER_FILES}
+        self.files.update({f"/{name}": data for name, data in assets.files().items()})
+        self.files["/"] = self.files["/index.html"]
+        self.host, self.port, self.on_edit = host, port, on_edit
+        self.sequence = 0
+        self.sent = 0  # meshes written to a browser (summed over browsers)
+        self.dropped = 0  # meshes replaced before a browser took them
+        self.latency_ms: list[float] = []
+        self._clients: set[_Client] = set()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._server = None
+        self._thread: threading.Thread | None = None
+        self._edits = ThreadPoolExecutor(max_workers=1, thread_name_prefix="geoavatar-live-edit")
+
+    @property
+    def url(self) -> str:
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
+        return f"http://{host}:{self.port}/"
+
+    @property
+    def clients(self) -> int:
+        return len(self._clients)
+
+    def start(self) -> "LiveServer":
+        ready = threading.Event()
+        failure: list[BaseException] = []
+
+        def run() -> None:
+            self._loop = asyncio.new_event_loop()
+            try:
+                self._server = self._loop.run_until_complete(self._listen())
+            except OSError as err:
+                failure.append(err)
+                ready.set()
+                return
+            ready.set()
+            self._loop.run_until_complete(self._server.wait_closed())
+
+        self._thread = threading.Thread(target=run, name="geoavatar-live", daemon=True)
+        self._thread.start()
+        ready.wait()
+        if failure:
+            err = failure[0]
+            if getattr(err, "errno", None) == errno.EADDRINUSE:
+                raise LiveServerError(f"--port {self.port}: already in use on {self.host}; pass another --port "
+                                      "(0: any free port)") from err
+            raise LiveServerError(f"--host {self.host} --port {self.port}: cannot listen there ({err})") from err
+        return self
+
+    async def _listen(self):
+        from websockets.asyncio.server import serve
+
+        server = await serve(self._handle, self.host, self.port, process_request=self._http, compression=None,
+                             max_size=1 << 16)
+        self.port = server.sockets[0].getsockname()[1]
+        return server
+
+    def _http(self, connection, request):
+        """Files for plain HTTP requests; None lets the websocket handshake of /ws go on."""
+        from websockets.datastructures import Headers
+        from websockets.http11 import Response
+
+        path = urlsplit(request.path).path
+        if path == "/ws":
+            return None
+        body = self.files.get(path)
+        if body is None:
+            return connection.respond(404, f"{path}: not found\n")
+        suffix = path[path.rfind("."):] if "." in path else ".html"
+        headers = Headers({"Content-Type": CONTENT_TYPES.get(suffix, "application/octet-stream"),
+                           "Content-Length": str(len(body)), "Cache-Control": "no-store", "Connection": "close"})
+        return Response(200, "OK", headers, body)
+
+    async def _handle(self, socket) -> None:
+        client = _Client(socket)
+        self._clients.add(client)
+        writer = asyncio.create_task(self._write(client))
+        try:
+            async for message in socket:
+                if isinstance(message, str) and self.on_edit is not None:
+                    try:
+                        request = json.loads(message)
+                    except ValueError:
+                        continue  # not ours: ignored
+                    self._loop.run_in_executor(self._edits, self.on_edit, request)
+        except Exception:  # a browser that went away
+            pass
+        finally:
+            self._clients.discard(client)
+            writer.cancel()
+
+    async def _write(self, client: _Client) -> None:
+        while True:
+            await client.wake.wait()
+            client.wake.clear()
+            if client.pending is None:
+                continue
+            message, read_time = client.pending
+            client.pending = None
+            try:
+                await client.socket.send(message)
+            except Exception:
+                return
+            self.sent += 1
+            if read_time is not None:
+                self.latency_ms.append(1000.0 * (time.perf_counter() - read_time))
+
+    def _publish(self, message: bytes, read_time: float | None) -> None:
+        for client in self._clients:
+            if client.pending is not None:
+                self.dropped += 1
+            client.pending = (message, read_time)
+            client.wake.set()
+
+    def send_vertices(self, vertices, read_time: float | None = None) -> None:
+        """Send a posed mesh [V, 3] to every connected browser (thread-safe, newest-only per browser)."""
+        if self._loop is None or self._loop.is_closed():
+            return
+        self.sequence += 1
+        message = vertex_message(vertices, self.sequence)
+        self._loop.call_soon_threadsafe(self._publish, message, read_time)
+
+    def wait_for_client(self, timeout_s: float) -> bool:
+        """Wait until a browser is connected (tests, benchmarks); False on time-out."""
+        deadline = time.monotonic() + timeout_s
+        while not self._clients and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return bool(self._clients)
+
+    def stop(self) -> None:
+        if self._loop is not None and self._server is not None and not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._server.close)
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._edits.shutdown(wait=False, cancel_futures=True)
+
+
+__all__ = ["LiveServer", "LiveServerError", "vertex_message"]

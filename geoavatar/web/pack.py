@@ -1,0 +1,162 @@
+"""The web player's format: an avatar's local Gaussians with their face binding, and a clip of posed head meshes.
+
+A player folder (`geoavatar export RUN --format web`) holds
+
+    index.html, player.js   the page and its bundle (three.js + Spark + web/src), copied from static/
+    avatar.json             the manifest below
+    avatar.bin              float32 splat table [N, 24] (little-endian), then uint32 faces [F, 3]
+    clip.bin                uint16 posed vertices [T, V, 3]: v = offset + code * step per axis
+
+Splat table row (what web/src/generator.js reads as 6 RGBA texels):
+    local mean xyz (face-scale units), face index | local rotation x y z w (unit) | local scale (linear) xyz,
+    opacity | colour rgb (0.5 + C0 f_dc), F[2][2] | F[0][0..2], F[1][0] | F[1][1..2], F[2][0..1]
+F is the normal-shading matrix of model.normal_shading (colour += F n, n the world normal of the splat's face;
+zeros without it). The browser computes each face's frame from the clip's vertices (web/src/binding.js, the
+maths of avatar/binding.py) and places every splat as avatar/model.py does: mu = k R mu_l + C,
+q = q_face (x) q_l, s = k s_l, colour = max(colour + F n, 0).
+
+Only posed vertices and the triangle list leave Python: a FLAME avatar ships no FLAME model file or basis.
+
+avatar.json: {"format", "avatar": {splats, faces, vertices, shading, file}, "clip": {frames, fps, offset, step,
+timesteps, file, source}, "camera": {viewmat [4][4] OpenCV world-to-camera, K [3][3], width, height},
+"viewmats": per-frame viewmats when the clip's cameras differ, "orbit": {centre, yaw [lo, hi], pitch [lo, hi]}
+(degrees about the dataset camera; the turns the training video covered plus a margin), "background",
+"live" (absent, "view" or "drive"), "edit" (view's sliders)}.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from geoavatar.avatar.model import SH_C0
+from geoavatar.io.atomic import atomic_folder
+
+FORMAT_VERSION = 1
+MANIFEST = "avatar.json"
+AVATAR_FILE = "avatar.bin"
+CLIP_FILE = "clip.bin"
+PLAYER_FILES = ("index.html", "player.js")
+SPLAT_FLOATS = 24  # 6 RGBA32F texels per splat
+CODE_MAX = 65535  # uint16 codes of the clip
+
+
+def static_dir() -> Path:
+    """The built page and bundle inside the package (made by `make web`)."""
+    return Path(str(resources.files("geoavatar.web") / "static"))
+
+
+def splat_table(avatar) -> np.ndarray:
+    """[N, 24] float32: the avatar's local Gaussians in the row layout of the module docstring."""
+    p = {name: value.detach().to("cpu", torch.float64) for name, value in avatar.params.items()}  # any device
+    n = avatar.num_gaussians
+    table = torch.zeros(n, SPLAT_FLOATS, dtype=torch.float64)
+    quats = torch.nn.functional.normalize(p["quats"], dim=-1)  # [N, 4] w x y z
+    table[:, 0:3] = p["means"]
+    table[:, 3] = avatar.binding.to("cpu", torch.float64)
+    table[:, 4:7], table[:, 7] = quats[:, 1:4], quats[:, 0]  # x y z w (three.js order)
+    table[:, 8:11] = p["scales"].exp()
+    table[:, 11] = torch.sigmoid(p["opacities"])
+    table[:, 12:15] = SH_C0 * p["f_dc"] + 0.5
+    if avatar.normal_shading:
+        shading = p["f_normal"].reshape(n, 9)  # F row-major: [F00 F01 F02 F10 F11 F12 F20 F21 F22]
+        table[:, 15] = shading[:, 8]
+        table[:, 16:20] = shading[:, 0:4]
+        table[:, 20:24] = shading[:, 4:8]
+    return table.float().numpy()
+
+
+@dataclass
+class QuantisedClip:
+    codes: np.ndarray  # [T, V, 3] uint16
+    offset: np.ndarray  # [3] float64
+    step: np.ndarray  # [3] float64
+
+    def vertices(self) -> np.ndarray:
+        """[T, V, 3] float32: what the page decodes."""
+        return (self.offset + self.codes.astype(np.float64) * self.step).astype(np.float32)
+
+
+def quantise_clip(vertices: Tensor | np.ndarray) -> QuantisedClip:
+    """[T, V, 3] posed vertices -> uint16 codes over the clip's box per axis (a 30 cm box: 5 micrometre steps)."""
+    v = np.asarray(vertices.detach().cpu() if isinstance(vertices, Tensor) else vertices, dtype=np.float64)
+    if v.ndim != 3 or v.shape[-1] != 3 or v.shape[0] < 1:
+        raise ValueError(f"quantise_clip: vertices must be [T, V, 3] with T >= 1, got {v.shape}")
+    if not np.isfinite(v).all():
+        raise ValueError("quantise_clip: the posed vertices hold NaN or Inf")
+    low, high = v.min(axis=(0, 1)), v.max(axis=(0, 1))
+    step = np.maximum(high - low, 1e-9) / CODE_MAX
+    codes = np.clip(np.rint((v - low) / step), 0, CODE_MAX).astype("<u2")
+    return QuantisedClip(codes, low, step)
+
+
+@dataclass
+class PlayerAssets:
+    """Everything a player serves besides the page: the manifest and the two binary files."""
+
+    manifest: dict
+    avatar_bytes: bytes
+    clip_bytes: bytes
+    extra: dict = field(default_factory=dict)
+
+    def files(self) -> dict[str, bytes]:
+        """name -> contents of the data files (page and bundle not included)."""
+        return {MANIFEST: json.dumps(self.manifest, indent=1).encode(), AVATAR_FILE: self.avatar_bytes,
+                CLIP_FILE: self.clip_bytes}
+
+
+def _listed(matrix: Tensor | np.ndarray) -> list:
+    return np.asarray(matrix.detach().cpu() if isinstance(matrix, Tensor) else matrix, dtype=np.float64).tolist()
+
+
+def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, background, timesteps: list[int],
+                  source: str, viewmats: list | None = None, live: str | None = None,
+                  edit: dict | None = None) -> PlayerAssets:
+    """The manifest and binaries of `avatar` playing `clip` (see the module docstring); camera: render.camera.Camera."""
+    table = splat_table(avatar)
+    faces = avatar.faces.detach().cpu().numpy().astype("<u4")  # [F, 3]
+    frames, vertex_count, _ = clip.codes.shape
+    manifest = {
+        "format": FORMAT_VERSION,
+        "avatar": {"splats": int(table.shape[0]), "faces": int(faces.shape[0]), "vertices": int(vertex_count),
+                   "shading": bool(avatar.normal_shading), "file": AVATAR_FILE},
+        "clip": {"frames": int(frames), "fps": float(fps), "offset": clip.offset.tolist(), "step": clip.step.tolist(),
+                 "timesteps": [int(t) for t in timesteps], "source": source, "file": CLIP_FILE},
+        "camera": {"viewmat": _listed(camera.viewmat), "K": _listed(camera.K), "width": int(camera.width),
+                   "height": int(camera.height)},
+        "orbit": orbit,
+        "background": [float(c) for c in background],
+    }
+    if viewmats is not None:
+        manifest["viewmats"] = [_listed(v) for v in viewmats]
+    if live is not None:
+        manifest["live"] = live
+    if edit is not None:
+        manifest["edit"] = edit
+    avatar_bytes = table.astype("<f4").tobytes() + faces.tobytes()
+    return PlayerAssets(manifest, avatar_bytes, clip.codes.tobytes())
+
+
+def write_player_folder(out: str | Path, assets: PlayerAssets) -> Path:
+    """The page, its bundle and the assets into the folder `out`, which appears complete or not at all."""
+    static = static_dir()
+    missing = [name for name in PLAYER_FILES if not (static / name).is_file()]
+    if missing:
+        raise FileNotFoundError(f"the web player is not built ({', '.join(missing)} missing in {static}): run make web")
+    with atomic_folder(out) as folder:
+        for name in PLAYER_FILES:
+            shutil.copyfile(static / name, folder / name)
+        for name, data in assets.files().items():
+            (folder / name).write_bytes(data)
+    return Path(out)
+
+
+__all__ = ["AVATAR_FILE", "CLIP_FILE", "MANIFEST", "PLAYER_FILES", "PlayerAssets", "QuantisedClip", "player_assets",
+           "quantise_clip", "splat_table", "static_dir", "write_player_folder"]

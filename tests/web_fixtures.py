@@ -1,0 +1,47 @@
+"""Avatars for the web player's tests and benchmarks (benchmarks/web_player_bench.py imports this too)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def varied_avatar(avatar, count: int, seed: int = 0) -> None:
+    """Give `avatar` `count` Gaussians (in place) on random faces, with varied local means, rotations, scales,
+    opacities and normal shading, and the colours of the Gaussians already on those faces (a run's step-0 state:
+    the images' colours), so that every part of the player's GPU placement is exercised."""
+    g = torch.Generator().manual_seed(seed)
+    faces = torch.randint(0, avatar.num_gaussians, (count,), generator=g) if count > avatar.num_gaussians else \
+        torch.randperm(avatar.num_gaussians, generator=g)[:count].sort().values
+    p = avatar.params
+    quats = torch.nn.functional.normalize(torch.randn(count, 4, generator=g) * 0.3 + torch.tensor([1.0, 0, 0, 0]), dim=-1)
+    scales = torch.log(torch.rand(count, 3, generator=g) * 0.8 + 1.0) + torch.tensor([0.4, -1.0, 0.4])
+    new = {"means": torch.randn(count, 3, generator=g) * 0.15, "quats": quats, "scales": scales,
+           "f_dc": p["f_dc"].detach()[faces], "opacities": torch.logit(torch.rand(count, generator=g) * 0.4 + 0.55)}
+    if "f_normal" in p:
+        new["f_normal"] = torch.randn(count, 9, generator=g) * 0.08
+    for name, value in new.items():
+        p[name] = torch.nn.Parameter(value)
+    avatar.binding = avatar.binding[faces].clone()
+
+
+def cpu_and_truth(run, timestep: int) -> tuple[np.ndarray, np.ndarray]:
+    """The CPU renderer's frame of a run's timestep from its dataset camera and the ground truth (the photo on the
+    run's background), uint8 [H, W, 3], both at the run's resolution."""
+    from geoavatar.apps.common import RunFrames, record_camera, render_params, to_uint8
+    from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
+    from geoavatar.render import composite_target
+
+    params, t = RunFrames(run).params(timestep)
+    subject = open_subject(run.info.data_root)
+    cpu = to_uint8(render_params(run, params, record_camera(subject, timestep, run.info.resolution), t))
+    dataset = HeadAvatarDataset(subject, "all", DataConfig(resolution=run.info.resolution, cache="none"))
+    item = dataset[dataset.timesteps.index(timestep)]
+    background = torch.tensor(run.info.background, dtype=torch.float32)
+    return cpu, to_uint8(composite_target(item["image"], item["mask"], background))
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR in dB of two uint8 images."""
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return 10.0 * float(np.log10(255.0 ** 2 / max(mse, 1e-12)))

@@ -1,0 +1,257 @@
+// GeoAvatar's player: plays an exported clip (avatar.json + avatar.bin + clip.bin) or a live stream of posed
+// vertices (a websocket of `geoavatar view` / `geoavatar drive --view`), posing every splat on the GPU.
+//
+// Per frame the CPU only turns the posed mesh into face frames (binding.js) and uploads them; the splats are
+// placed, rotated, scaled and shaded by the generator (generator.js) and sorted by Spark.
+//
+// Deep link: index.html?frame=N&paused=1&view=dataset draws clip frame N from the dataset camera at the dataset
+// image size; document.body.dataset.drawnFrame = "N" once that frame is drawn with its splats sorted.
+// window.geoavatar.stats: counters for tests and benchmarks (docs/web_player.md).
+import * as THREE from "three";
+import { SparkRenderer } from "@sparkjsdev/spark";
+import { faceFrames, dequantiseFrame, FACE_STRIDE } from "./binding.js";
+import { avatarGenerator, floatTexture, FACE_TEXELS, SPLAT_TEXELS } from "./generator.js";
+import { clamp, fittedIntrinsics, orbitWorld, placeCamera, projectionFromIntrinsics, worldFromViewmat } from "./camera.js";
+import { LiveLink } from "./live.js";
+import { buildControls } from "./controls.js";
+
+const FREE_YAW = [-180, 180];
+const FREE_PITCH = [-89, 89];
+const COST_WINDOW = 120; // frames in the rolling mean of the per-frame cost
+
+async function fetchBytes(url) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
+  return response.arrayBuffer();
+}
+
+async function loadAvatar(base) {
+  const manifestResponse = await fetch(new URL("avatar.json", base));
+  if (!manifestResponse.ok) throw new Error(`avatar.json: HTTP ${manifestResponse.status}`);
+  const manifest = await manifestResponse.json();
+  const [avatarBytes, clipBytes] = await Promise.all([
+    fetchBytes(new URL(manifest.avatar.file, base)),
+    fetchBytes(new URL(manifest.clip.file, base)),
+  ]);
+  const { splats, faces, vertices } = manifest.avatar;
+  const table = new Float32Array(avatarBytes, 0, splats * SPLAT_TEXELS * 4);
+  const faceIds = new Uint32Array(avatarBytes, table.byteLength, faces * 3);
+  const clip = new Uint16Array(clipBytes);
+  if (clip.length !== manifest.clip.frames * vertices * 3) throw new Error("clip.bin: unexpected size");
+  return { manifest, table, faceIds, clip };
+}
+
+function readOptions() {
+  const query = new URLSearchParams(window.location.search);
+  const frame = query.get("frame");
+  return {
+    frame: frame === null ? null : Math.max(0, parseInt(frame, 10) || 0),
+    paused: query.get("paused") === "1",
+    datasetView: query.get("view") === "dataset",
+  };
+}
+
+class Player {
+  constructor({ manifest, table, faceIds, clip }, options) {
+    this.manifest = manifest;
+    this.options = options;
+    this.clip = clip;
+    this.faceIds = faceIds;
+    this.vertexCount = manifest.avatar.vertices;
+    this.frameCount = manifest.clip.frames;
+    this.vertices = new Float32Array(this.vertexCount * 3);
+    this.stats = { drawn: 0, received: 0, lastReceived: -1, frameCostMs: 0, costs: [], ready: false };
+    this.frame = Math.min(options.frame ?? 0, this.frameCount - 1);
+    this.playing = !options.paused && this.frameCount > 1;
+    this.orbit = { yaw: 0, pitch: 0, distance: 1, free: false };
+    this.liveVertices = null; // the newest streamed mesh, shown instead of the clip while set
+    this.needsDraw = true;
+    this.dirtyFrame = true;
+    this.setupRenderer();
+    this.setupSplats(table);
+  }
+
+  setupRenderer() {
+    this.renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
+    // the dataset view is pixel for pixel; elsewhere at most 2 device pixels a CSS pixel (phones report 3)
+    this.renderer.setPixelRatio(this.options.datasetView ? 1 : Math.min(window.devicePixelRatio, 2));
+    document.getElementById("stage").appendChild(this.renderer.domElement);
+    this.scene = new THREE.Scene();
+    this.camera = new THREE.PerspectiveCamera();
+    this.spark = new SparkRenderer({
+      renderer: this.renderer,
+      accumExtSplats: true, // float32 centres, half-float scales and colours: no visible quantisation
+      maxStdDev: 3.33, // the CPU renderer's +-3.33 sigma footprint
+      preBlurAmount: 0.3, // gsplat's 0.3 px dilation, without opacity compensation
+      blurAmount: 0.0,
+      minAlpha: 1 / 255,
+      sortRadial: false, // depth order along the view axis, as the CPU renderer
+      enableLod: false,
+      onDirty: () => { this.needsDraw = true; },
+    });
+    this.scene.add(this.spark);
+    this.setBackground(this.manifest.background);
+    this.resize();
+    window.addEventListener("resize", () => this.resize());
+  }
+
+  setupSplats(table) {
+    const { splats, faces, shading } = this.manifest.avatar;
+    this.tableTexture = floatTexture(splats * SPLAT_TEXELS);
+    this.tableTexture.image.data.set(table);
+    this.faceTexture = floatTexture(faces * FACE_TEXELS);
+    this.faceData = this.faceTexture.image.data.subarray(0, faces * FACE_STRIDE);
+    this.generator = avatarGenerator({ count: splats, table: this.tableTexture, faces: this.faceTexture, shading });
+    this.generator.frustumCulled = false;
+    this.scene.add(this.generator);
+  }
+
+  setBackground(rgb) {
+    this.background = rgb;
+    this.renderer.setClearColor(new THREE.Color().setRGB(rgb[0], rgb[1], rgb[2], THREE.SRGBColorSpace), 1);
+    this.needsDraw = true;
+  }
+
+  // The view: the dataset camera (deep link) or the orbit about the head centre.
+  resize() {
+    const { camera: cam } = this.manifest;
+    if (this.options.datasetView) {
+      this.renderer.setSize(cam.width, cam.height);
+      this.placeDatasetCamera();
+    } else {
+      const stage = document.getElementById("stage");
+      const width = stage.clientWidth || window.innerWidth;
+      const height = stage.clientHeight || window.innerHeight;
+      this.renderer.setSize(width, height);
+      this.viewSize = [width, height];
+      this.placeOrbit();
+    }
+    this.needsDraw = true;
+  }
+
+  // The dataset camera of the shown frame (a clip whose cameras move lists one per frame).
+  placeDatasetCamera() {
+    const { camera: cam, viewmats } = this.manifest;
+    const viewmat = viewmats ? viewmats[this.frame] : cam.viewmat;
+    placeCamera(this.camera, worldFromViewmat(viewmat), projectionFromIntrinsics(cam.K, cam.width, cam.height));
+    this.needsDraw = true;
+  }
+
+  orbitLimits() {
+    const limits = this.manifest.orbit;
+    return this.orbit.free ? { yaw: FREE_YAW, pitch: FREE_PITCH } : { yaw: limits.yaw, pitch: limits.pitch };
+  }
+
+  placeOrbit() {
+    if (this.options.datasetView) return;
+    const { camera: cam, orbit } = this.manifest;
+    const limits = this.orbitLimits();
+    this.orbit.yaw = clamp(this.orbit.yaw, limits.yaw);
+    this.orbit.pitch = clamp(this.orbit.pitch, limits.pitch);
+    const [width, height] = this.viewSize;
+    const K = fittedIntrinsics(cam.K, cam.height, width, height);
+    const c2w = orbitWorld(cam.viewmat, orbit.centre, this.orbit.yaw, this.orbit.pitch, this.orbit.distance);
+    placeCamera(this.camera, c2w, projectionFromIntrinsics(K, width, height));
+    this.needsDraw = true;
+  }
+
+  // Face frames of the shown mesh into the face texture (the per-frame CPU work the page measures).
+  uploadFrame() {
+    const started = performance.now();
+    const mesh = this.liveVertices ?? dequantiseFrame(this.clip, this.frame, this.vertexCount,
+      this.manifest.clip.offset, this.manifest.clip.step, this.vertices);
+    faceFrames(mesh, this.faceIds, this.faceData);
+    this.faceTexture.needsUpdate = true;
+    this.renderer.initTexture(this.faceTexture); // upload now, inside the measured span
+    this.generator.updateVersion();
+    const costs = this.stats.costs;
+    costs.push(performance.now() - started);
+    if (costs.length > COST_WINDOW) costs.shift();
+    this.stats.frameCostMs = costs.reduce((a, b) => a + b, 0) / costs.length;
+    this.dirtyFrame = false;
+    this.needsDraw = true;
+  }
+
+  showFrame(frame) {
+    this.frame = ((frame % this.frameCount) + this.frameCount) % this.frameCount;
+    this.dirtyFrame = true;
+    this.controls?.showFrame(this.frame);
+    if (this.options.datasetView && this.manifest.viewmats) this.placeDatasetCamera();
+    if (this.live?.editing) this.live.resendEdit(); // the edit follows the shown frame
+  }
+
+  showLive(vertices) {
+    this.liveVertices = vertices;
+    this.dirtyFrame = true;
+  }
+
+  // Draw once the generated splats are sorted: Spark's update() generates and awaits its sort.
+  async drawSettled() {
+    for (let i = 0; i < 8; i++) {
+      await this.spark.update({ scene: this.scene, camera: this.camera });
+      if (!this.spark.sorting && !this.spark.sortDirty) break;
+    }
+    this.renderer.render(this.scene, this.camera);
+    this.stats.drawn += 1;
+    this.needsDraw = false;
+  }
+
+  async start() {
+    this.uploadFrame();
+    await this.drawSettled();
+    document.body.dataset.drawnFrame = String(this.frame);
+    this.stats.ready = true;
+    this.controls = buildControls(this);
+    this.clockOrigin = performance.now() - (this.frame / this.manifest.clip.fps) * 1000;
+    requestAnimationFrame((t) => this.tick(t));
+  }
+
+  tick(now) {
+    requestAnimationFrame((t) => this.tick(t));
+    if (this.settling) return;
+    if (this.playing && !this.liveVertices) {
+      const frame = Math.floor(((now - this.clockOrigin) / 1000) * this.manifest.clip.fps) % this.frameCount;
+      if (frame !== this.frame) this.showFrame(frame);
+    }
+    if (!this.playing && this.dirtyFrame && !this.liveVertices) {
+      // a still frame (paused, scrubbed): drawn once its splats are sorted, then announced
+      this.settling = true;
+      this.uploadFrame();
+      this.drawSettled().then(() => {
+        document.body.dataset.drawnFrame = String(this.frame);
+        this.settling = false;
+      });
+      return;
+    }
+    if (this.dirtyFrame) this.uploadFrame();
+    if (this.needsDraw) {
+      this.needsDraw = false;
+      this.renderer.render(this.scene, this.camera);
+      this.stats.drawn += 1;
+    }
+  }
+
+  setPlaying(playing) {
+    this.playing = playing && this.frameCount > 1;
+    this.clockOrigin = performance.now() - (this.frame / this.manifest.clip.fps) * 1000;
+    this.controls?.showPlaying(this.playing);
+  }
+}
+
+async function main() {
+  const status = document.getElementById("status");
+  try {
+    const options = readOptions();
+    const player = new Player(await loadAvatar(window.location.href), options);
+    window.geoavatar = { player, stats: player.stats, faceFrames };
+    if (player.manifest.live) player.live = new LiveLink(player);
+    await player.start();
+    status.textContent = "";
+  } catch (error) {
+    status.textContent = `GeoAvatar player: ${error.message}`;
+    document.body.dataset.error = error.message;
+    throw error;
+  }
+}
+
+main();
