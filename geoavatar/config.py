@@ -91,7 +91,7 @@ class ModelConfig:
     # eyes), so wrinkles, folds and shapes the expression modes do not reach follow the expression. "face": only the
     # Gaussians of the face's skin (face, nose, eye region, lips, forehead) and the mouth interior; "all": every one;
     # "split": the face's skin follows the expression and the rest (hair, ears, neck) the head's rotation and neck.
-    expression_blendshapes: Literal["off", "face", "all", "split"] = "off"
+    expression_blendshapes: Literal["off", "face", "all", "split", "hair"] = "off"
     mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
     face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
     mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation

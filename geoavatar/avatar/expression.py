@@ -25,7 +25,7 @@ POSE_CODE_DIM = 9  # jaw 3 + eyes 6 (axis-angle): what moves with an expression 
 HEAD_CODE_DIM = 6  # head rotation 3 + neck 3 (axis-angle): how the head hangs in the world (hair under gravity)
 MAX_EXPRESSION_MODES = 50  # FLAME has 100; its leading 50 carry nearly all of a face's motion
 BLENDSHAPE_PARTS = ("face", "nose", "eye_region", "lips", "forehead")  # the face's skin (head.regions part names)
-BlendshapeMode = Literal["off", "face", "all", "split"]
+BlendshapeMode = Literal["off", "face", "all", "split", "hair"]
 
 
 def expression_code_dims(num_expr_modes: int) -> int:
@@ -39,12 +39,13 @@ def code_masks(mode: BlendshapeMode, dims: int) -> Tensor:
     face:  the face's skin follows the expression (modes, jaw, eyes); the hair, scalp, ears and neck follow nothing;
     all:   every Gaussian follows the expression;
     split: the face's skin follows the expression, the rest the head's rotation and neck (long hair hangs and swings
-           with how the head is turned, not with what the face does)."""
+           with how the head is turned, not with what the face does);
+    hair:  only the rest, by the head's rotation and neck; the face's skin follows nothing."""
     expression = torch.zeros(dims)
     expression[: dims - HEAD_CODE_DIM] = 1.0
     head = 1.0 - expression
-    rest = {"face": torch.zeros(dims), "all": expression, "split": head}[mode]
-    return torch.stack([expression, rest])
+    rest = {"face": torch.zeros(dims), "all": expression, "split": head, "hair": head}[mode]
+    return torch.stack([torch.zeros(dims) if mode == "hair" else expression, rest])
 
 
 def expression_groups(head) -> Tensor:
