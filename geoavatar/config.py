@@ -50,6 +50,11 @@ BackgroundMode = Literal["dataset", "random"]
 InitColour = Literal["grey", "images"]
 
 PAPER_STEPS = 200_000
+# The budget of a new CPU run given no --steps / --minutes (`train --schedule auto`): the steps and the
+# longer image side that, measured on our test videos, give held-out scores within a few tenths of a dB
+# of the best budget in about ten minutes of 2 cores for a 300-frame video (BENCHMARKS.md, training budget).
+CPU_STEPS = 1500
+CPU_RESOLUTION = 256
 # The fields of TrainConfig counted in steps (dotted names): TrainConfig.scaled_to scales them.
 STEP_FIELDS = ("aps_step", "densify.start", "densify.stop", "densify.every", "densify.reset_opacity_every",
                "lr.position_decay_steps")
