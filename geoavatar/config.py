@@ -91,12 +91,12 @@ class ModelConfig:
     # training frames, head-on views weighted most, unseen faces from the nearest seen one
     # (avatar/colour_init.py); or "grey" (GaussianAvatars, the paper; `--config.model.init-colour grey`).
     init_colour: InitColour = "images"
-    # Expression blendshapes of the Gaussians (ours, issue #27; avatar/expression.py): each Gaussian's colour and local
-    # mean move linearly with the frame's expression code (the head model's leading expression coefficients, jaw and
-    # eyes), so wrinkles, folds and shapes the expression modes do not reach follow the expression. "face": only the
-    # Gaussians of the face's skin (face, nose, eye region, lips, forehead) and the mouth interior; "all": every one;
-    # "split": the face's skin follows the expression and the rest (hair, ears, neck) the head's rotation and neck.
-    expression_blendshapes: Literal["off", "face", "all", "split", "hair"] = "off"
+    # Hair that follows the head's turn (ours, issue #27; avatar/hair_motion.py): each Gaussian off the face (hair,
+    # scalp, ears, neck) moves its local mean and colour linearly with the frame's head rotation and neck pose, so
+    # long hair that hangs and swings as the head turns is learned instead of blurred. For long hair: on d3.mp4
+    # (E, 1500 steps at 256 px) held-out PSNR 19.12 -> 20.13 dB, training frames 21.27 -> 24.09 (BENCHMARKS.md).
+    # The web player does not play it (it moves Gaussians with their triangles only).
+    hair_follows_head: bool = False
     mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
     face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
     mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation
@@ -211,10 +211,6 @@ class TrainConfig:
     # training with tiny learning rates (its default, not_finetune_flame_params=False); GeoAvatar
     # follows GaussianAvatars' settings, so it is on in every preset. Test frames are never refined.
     refine_tracking: bool = True
-    # How the refinement steps a frame's parameters: "adam" = torch's Adam over the whole [T, n] tensors, as
-    # GaussianAvatars (a frame drawn once every ~T steps moves on stale momentum in between); "per-frame" = Adam
-    # per row, one step per visit (train/frame_params.RowAdam), the rates then meaning a step per visit.
-    refine_optimizer: Literal["adam", "per-frame"] = "adam"
     # The colour behind the avatar in training, the target composited on the same colour (randomness.step_background):
     # "dataset" = the dataset's one background, as GaussianAvatars; "random" = a uniform random colour per
     # step, so that no Gaussian can lower the loss by showing the background colour (e.g. to carve the

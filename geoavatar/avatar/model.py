@@ -12,11 +12,12 @@ Parameters (a ParameterDict `params`, every entry [N, ...], names as in the stan
     f_normal   [N, 9]  only with normal_shading: colour += F n, F = f_normal as [3, 3] (RGB x xyz) and n the
                        world direction of the Gaussian's face normal (diffuse shading by lights fixed to the
                        world, i.e. to a fixed dataset camera while the head turns)
-    f_expr     [N, 3K] only with expression blendshapes (avatar/expression.py): colour += E c, E = f_expr as
-                       [3, K] and c [K] the frame's expression code (wrinkles, folds, shadows of an expression)
-    means_expr [N, 3K] only with expression blendshapes: local mean += M c, M = means_expr as [3, K], in the
-                       face-scale units of `means` (what the head model's expression modes do not reach)
-Buffers: binding [N] (face index, int64), faces [F, 3].
+    f_pose     [N, 18] only with hair_follows_head (avatar/hair_motion.py): colour += C c, C = f_pose as [3, 6]
+                       and c [6] the frame's head pose code (head rotation, neck), for Gaussians off the face
+    means_pose [N, 18] only with hair_follows_head: local mean += M c, M = means_pose as [3, 6], in the
+                       face-scale units of `means` (long hair swinging with the head's turn)
+Buffers: binding [N] (face index, int64), faces [F, 3]; with hair_follows_head moving [F] bool (the faces
+whose Gaussians take the pose code).
 """
 
 from __future__ import annotations
@@ -27,11 +28,12 @@ import torch
 from torch import Tensor, nn
 
 from geoavatar.avatar.binding import GlobalGaussians, face_frames, local_to_global, polar_coordinates
+from geoavatar.avatar.hair_motion import POSE_CODE_DIM
 
 SH_C0 = 0.28209479177387814  # Y_0^0
 GAUSSIAN_PARAM_NAMES = ("means", "quats", "scales", "f_dc", "opacities")
-# present only when the avatar has them: f_normal with normal_shading, f_expr / means_expr with expression blendshapes
-OPTIONAL_PARAM_NAMES = ("f_normal", "f_expr", "means_expr")
+# present only when the avatar has them: f_normal with normal_shading, f_pose / means_pose with hair_follows_head
+OPTIONAL_PARAM_NAMES = ("f_normal", "f_pose", "means_pose")
 
 
 def param_names(params) -> tuple[str, ...]:
@@ -68,7 +70,7 @@ class GaussianAvatar(nn.Module):
     """Gaussians rigged to the faces of a head model."""
 
     def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1, normal_shading: bool = False,
-                 expression_dims: int = 0, expression_groups: Tensor | None = None, code_masks: Tensor | None = None):
+                 moving: Tensor | None = None):
         super().__init__()
         faces = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces, dtype=torch.long)
         if faces.dim() != 2 or faces.shape[1] != 3:
@@ -77,28 +79,21 @@ class GaussianAvatar(nn.Module):
         init = initial_gaussian_params(faces.shape[0], init_opacity)
         if normal_shading:  # no shading at the start: the SH-0 colour alone
             init["f_normal"] = torch.zeros(faces.shape[0], 9)
-        if expression_dims > 0:  # zero blendshapes at the start: every expression looks like the neutral avatar
-            init["f_expr"] = torch.zeros(faces.shape[0], 3 * expression_dims)
-            init["means_expr"] = torch.zeros(faces.shape[0], 3 * expression_dims)
+        if moving is not None:  # zero at the start: every head pose shows the same hair
+            init["f_pose"] = torch.zeros(faces.shape[0], 3 * POSE_CODE_DIM)
+            init["means_pose"] = torch.zeros(faces.shape[0], 3 * POSE_CODE_DIM)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in init.items()})
         self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
-        # With blendshapes: each face's group [F] (0: the face's skin, 1: the rest) and which code entries drive each
-        # group [2, K] (avatar/expression.code_masks; None: every entry drives every Gaussian)
-        self.register_buffer("expression_groups", None if expression_groups is None
-                             else torch.as_tensor(expression_groups, dtype=torch.long).reshape(-1))
-        self.register_buffer("code_masks", None if code_masks is None else torch.as_tensor(code_masks).float())
+        # [F] bool: the faces whose Gaussians follow the head's turn (avatar/hair_motion.moving_faces); None: none
+        self.register_buffer("moving", None if moving is None else torch.as_tensor(moving, dtype=torch.bool).reshape(-1))
 
     @classmethod
     def for_model(cls, head, model) -> "GaussianAvatar":
         """The avatar a `config.ModelConfig` describes, bound to `head`'s faces (one Gaussian per face)."""
-        from geoavatar.avatar.expression import code_masks, expression_code_dims, expression_groups
+        from geoavatar.avatar.hair_motion import moving_faces
 
-        mode = model.expression_blendshapes
-        if mode == "off":
-            return cls(head.faces.cpu(), model.init_opacity, model.normal_shading)
-        dims = expression_code_dims(head.num_expr)
-        return cls(head.faces.cpu(), model.init_opacity, model.normal_shading, dims, expression_groups(head),
-                   code_masks(mode, dims))
+        moving = moving_faces(head) if model.hair_follows_head else None
+        return cls(head.faces.cpu(), model.init_opacity, model.normal_shading, moving)
 
     @property
     def num_faces(self) -> int:
@@ -115,14 +110,15 @@ class GaussianAvatar(nn.Module):
     def forward(self, vertices: Tensor, code: Tensor | None = None) -> GlobalGaussians:
         """vertices [V, 3] or [B, V, 3] posed head vertices -> Gaussians in the same space ([N,...] or [B,N,...]).
 
-        code [K]: the frame's expression code (avatar/expression.py), used by the expression blendshapes when the
-        avatar has them (None: the neutral code, no blendshape); one frame at a time (vertices [V, 3])."""
+        code [6]: the frame's head pose code (avatar/hair_motion.head_pose_code), which moves the Gaussians off the
+        face when the avatar follows the head's turn (None: the code 0, the hair as learned at the rest pose); one
+        frame at a time (vertices [V, 3])."""
         frames = face_frames(vertices, self.faces)
         p = self.params
         local_means, colour_offset = p["means"], None
-        if code is not None and "f_expr" in p:
-            local_means = p["means"] + self.grouped_blendshape(p["means_expr"], code)  # [N, 3]
-            colour_offset = self.grouped_blendshape(p["f_expr"], code)  # [N, 3]
+        if code is not None and self.follows_head:
+            local_means = p["means"] + self.pose_offset(p["means_pose"], code)  # [N, 3]
+            colour_offset = self.pose_offset(p["f_pose"], code)  # [N, 3]
         means, quats, scales = local_to_global(local_means, p["quats"], p["scales"], self.binding, frames)
         if "f_normal" in p:
             # The face normal in world axes (detached: shading must not pull the geometry or the tracking).
@@ -146,25 +142,17 @@ class GaussianAvatar(nn.Module):
         return "f_normal" in self.params
 
     @property
-    def expression_dims(self) -> int:
-        """K, the length of the expression code the blendshapes take (0: the avatar has none)."""
-        return int(self.params["f_expr"].shape[1]) // 3 if "f_expr" in self.params else 0
+    def follows_head(self) -> bool:
+        """Whether the Gaussians off the face move with the head pose code (model.hair_follows_head)."""
+        return "f_pose" in self.params
 
-    def grouped_blendshape(self, basis: Tensor, code: Tensor) -> Tensor:
-        """[N, 3]: each Gaussian's blendshape driven by the code entries its face's group takes (code_masks)."""
-        if self.code_masks is None:
-            return self.blendshape(basis, code)
-        group = self.expression_groups[self.binding][:, None]  # [N, 1]
-        face, rest = (self.blendshape(basis, code * mask) for mask in self.code_masks)  # [N, 3] each
-        return torch.where(group == 0, face, rest)
-
-    @staticmethod
-    def blendshape(basis: Tensor, code: Tensor) -> Tensor:
-        """basis [N, 3K], code [K] -> [N, 3]: sum_k code_k basis[:, :, k]."""
-        if code.dim() != 1 or basis.shape[1] != 3 * code.shape[0]:
-            raise ValueError(f"GaussianAvatar: the expression code must be [{basis.shape[1] // 3}] (one frame), got "
+    def pose_offset(self, basis: Tensor, code: Tensor) -> Tensor:
+        """basis [N, 18], code [6] -> [N, 3]: sum_k code_k basis[:, :, k] for the moving faces' Gaussians, 0 elsewhere."""
+        if code.shape != (POSE_CODE_DIM,):
+            raise ValueError(f"GaussianAvatar: the head pose code must be [{POSE_CODE_DIM}] (one frame), got "
                              f"{tuple(code.shape)}")
-        return basis.view(-1, 3, code.shape[0]) @ code.to(basis.dtype)
+        offset = basis.view(-1, 3, POSE_CODE_DIM) @ code.to(basis.dtype)  # [N, 3]
+        return offset * self.moving[self.binding][:, None]
 
     def polar(self, two_sided: bool = False) -> tuple[Tensor, Tensor]:
         """r [N], phi [N] of the local means (see binding.polar_coordinates)."""
@@ -206,8 +194,8 @@ def gaussian_param_groups(params: dict[str, Tensor] | nn.ParameterDict, lr, scen
         "f_dc": lr.features,
         "opacities": lr.opacity,
         "f_normal": lr.features,
-        "f_expr": lr.features,
-        "means_expr": lr.position * scene_extent,  # decays with "means" (the trainer sets both)
+        "f_pose": lr.features,
+        "means_pose": lr.position * scene_extent,  # decays with "means" (the trainer sets both)
     }
     return [{"params": [params[name]], "lr": rates[name], "name": name} for name in param_names(params)]
 

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from geoavatar.avatar.binding import GlobalGaussians
 from geoavatar.avatar.deform import MouthDeformer, posed_head
-from geoavatar.avatar.expression import expression_code
+from geoavatar.avatar.hair_motion import head_pose_code
 from geoavatar.avatar.model import GaussianAvatar
 from geoavatar.head.base import HeadModel
 from geoavatar.head.params import HeadParams
@@ -44,9 +44,9 @@ def pose_avatar(
     deformer: MouthDeformer | None = None,
 ) -> PosedAvatar:
     """Head posed by `params` (with the part-wise mouth offsets), then the avatar's local -> global (with the frame's
-    expression code when the avatar has expression blendshapes)."""
+    head pose code when the avatar's hair follows the head's turn)."""
     vertices = posed_head(head, params, deformer, timestep).vertices[0]  # [V, 3]
-    code = expression_code(params, avatar.expression_dims) if avatar.expression_dims else None  # [K]
+    code = head_pose_code(params) if avatar.follows_head else None  # [6]
     return PosedAvatar(avatar(vertices, code), vertices)
 
 

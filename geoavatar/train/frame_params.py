@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from typing import Mapping
 
-import torch
 from torch import Tensor, nn
 
 from geoavatar.head.params import HeadParams
@@ -79,48 +78,4 @@ class FrameParams(nn.Module):
         ]
 
 
-class RowAdam(torch.optim.Optimizer):
-    """Adam over the rows of [T, n] tensors, each row with its own moments and step count, updated only on the
-    steps whose gradient reaches it (a row of zeros is no visit).
-
-    Why not torch's Adam: the trainer draws one frame per step, so a frame's row gets a gradient once every
-    ~T steps and zeros in between. Dense Adam keeps moving a row on its stale momentum for the ~10 steps after
-    each visit and divides by a second moment averaged over the zeros, so a visit moves a row by ~30x the
-    learning rate in the direction of one noisy gradient. Here a visit is one Adam step of that row alone (the
-    first moves it by exactly the learning rate), so the rates mean "per visit", as in a per-frame fit
-    (train/avatar_tracking.py), and a row that was not drawn stays where it is."""
-
-    def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
-        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps})
-
-    @torch.no_grad()
-    def step(self, closure=None):
-        for group in self.param_groups:
-            beta1, beta2 = group["betas"]
-            for param in group["params"]:
-                if param.grad is None:
-                    continue
-                grad = param.grad.reshape(param.shape[0], -1)  # [T, n]
-                rows = grad.ne(0).any(dim=1).nonzero().squeeze(1)  # [R] visited rows
-                if rows.numel() == 0:
-                    continue
-                state = self.state[param]
-                if not state:
-                    state["exp_avg"] = torch.zeros_like(grad)
-                    state["exp_avg_sq"] = torch.zeros_like(grad)
-                    state["row_steps"] = torch.zeros(param.shape[0], dtype=grad.dtype, device=grad.device)
-                g = grad[rows]  # [R, n]
-                steps = state["row_steps"][rows] + 1  # [R]
-                state["row_steps"][rows] = steps
-                m = state["exp_avg"][rows].mul_(beta1).add_(g, alpha=1 - beta1)
-                v = state["exp_avg_sq"][rows].mul_(beta2).addcmul_(g, g, value=1 - beta2)
-                state["exp_avg"][rows], state["exp_avg_sq"][rows] = m, v
-                m_hat = m / (1 - beta1 ** steps)[:, None]
-                v_hat = v / (1 - beta2 ** steps)[:, None]
-                update = group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])  # [R, n]
-                flat = param.view(param.shape[0], -1)
-                flat[rows] -= update
-        return None
-
-
-__all__ = ["FrameParams", "REFINED_KEYS", "RowAdam"]
+__all__ = ["FrameParams", "REFINED_KEYS"]
