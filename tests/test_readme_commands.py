@@ -17,6 +17,7 @@ import re
 import shlex
 import shutil
 import warnings
+from dataclasses import replace
 from fractions import Fraction
 from pathlib import Path
 
@@ -24,6 +25,8 @@ import pytest
 
 from apps_fixtures import make_run, make_subject
 from geoavatar import cli
+from geoavatar.apps import train as train_app
+from geoavatar.config import CPU_STEPS
 from geoavatar.data.splits import ShortVideoWarning
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -154,6 +157,32 @@ def test_readme_line_parses(line, recorded, capsys):
     assert code == 0, f"README line: {line}"
     if argv[1:] and argv[1] not in ("--help", "-h"):
         assert len(recorded) == 1, f"README line ran no command: {line}"
+
+
+# The most a README `train` line may cost on a CPU, in steps at 256 px: twice the default budget (about
+# 10 minutes for a 300-frame video on 2 cores), so that none starts a job a user would not wait for. The
+# run test below shortens every train line; this checks the budget each line chooses as written.
+MOST_STEPS_AT_256 = 2 * CPU_STEPS
+MOST_MINUTES = 30
+
+
+def test_readme_train_lines_choose_a_budget_a_user_waits_for():
+    checked = 0
+    for line in COMMANDS:
+        argv = with_numbers(shlex.split(line))[1:]
+        if command_of(argv) != "train" or {"--resume", "--extend", "--help"} & set(argv):
+            continue
+        args = train_app.parse_args(argv[1:])
+        if args.minutes is not None:
+            assert args.minutes <= MOST_MINUTES, f"README line trains {args.minutes} minutes: {line}"
+        else:
+            options = replace(args.run, device="cpu")
+            steps = args.steps or train_app.default_schedule(args.schedule or "auto", options)[0]
+            side = min(options.resolution or 512, 512)  # our videos are stored at 512 px
+            cost = steps * (side / 256) ** 2
+            assert cost <= MOST_STEPS_AT_256, f"README line trains {steps} steps at {side} px on a CPU: {line}"
+        checked += 1
+    assert checked >= 2, "the README shows no train line"
 
 
 def test_prepare_takes_the_video_first(recorded):
