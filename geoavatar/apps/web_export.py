@@ -17,6 +17,7 @@ dataset camera sees the clip's head from; the page's "free orbit" lifts the limi
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import torch
@@ -26,7 +27,7 @@ from geoavatar.apps.common import (head_centre, posed_head_vertices, progress, r
                                    split_timesteps)
 from geoavatar.apps.expression_transfer import DEFAULT_TRANSFER, TransferMode, transfer_mode
 from geoavatar.apps.reenact import driven_clip, frame_of, track_driver
-from geoavatar.errors import OptionError
+from geoavatar.errors import GeoAvatarWarning, OptionError
 from geoavatar.eval.evaluate import trained_view_directions
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
@@ -96,6 +97,10 @@ def clip_cameras(run: LoadedRun, data: Path | None, timesteps: list[int]) -> tup
 def web_assets(run: LoadedRun, vertices: Tensor, first_params: HeadParams, timesteps: list[int], fps: float,
                source: str, data: Path | None, camera_timesteps: list[int]) -> PlayerAssets:
     """The player's manifest and binaries of a posed clip (vertices [T, V, 3])."""
+    if run.avatar.follows_head:
+        warnings.warn(GeoAvatarWarning(
+            "the web player moves every Gaussian with its triangle only: this avatar's hair follows the head's turn "
+            "(model.hair_follows_head) in Python's renderer, in the browser it stays as learned at the rest pose"))
     camera, viewmats = clip_cameras(run, data, camera_timesteps)
     orbit = orbit_limits(run, data, vertices, torch.stack(viewmats) if viewmats else camera.viewmat)
     orbit["centre"] = [float(c) for c in head_centre(run, first_params).cpu()]

@@ -122,7 +122,7 @@ def new_state(data: TrainingData, config: TrainConfig, seed: int) -> TrainingSta
     """A fresh avatar (one Gaussian per face), deformer, per-frame parameters and optimizers."""
     seed_everything(seed)
     device = data.device
-    avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity, config.model.normal_shading).to(device)
+    avatar = GaussianAvatar.for_model(data.head, config.model).to(device)
     deformer = None
     if config.model.mouth_deform.enabled:
         deformer = MouthDeformer.for_head(data.head, data.num_frames, config.model.mouth_deform).to(device)
