@@ -21,13 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geoavatar.apps.common import open_run
 from geoavatar.data import evenly_spaced
 from geoavatar.eval.evaluate import render_run_frames
 from geoavatar.head.regions import face_parts
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import dilate_mask, dilation_pixels, rasterize_mesh
-from geoavatar.train.checkpoint import open_run_dataset
+from geoavatar.train.checkpoint import open_run, open_run_dataset
 
 FACE_PARTS = ("eyeballs", "lips", "nose", "eye_region", "forehead", "face")
 REGIONS = ("face", "head", "edge", "back")

@@ -82,12 +82,12 @@ def test_a_run_with_the_option_trains_reloads_poses_and_the_web_export_says_what
 
     from apps_fixtures import make_subject
     from geoavatar import cli
-    from geoavatar.apps.common import RunFrames
     from geoavatar.apps.web_export import export_web
     from geoavatar.avatar.render import pose_avatar
     from geoavatar.data.splits import ShortVideoWarning
     from geoavatar.errors import GeoAvatarWarning
     from geoavatar.train.checkpoint import open_run
+    from geoavatar.train.run_frames import RunFrames
 
     data = make_subject(tmp_path / "data", frames=6, size=32)
     with warnings.catch_warnings():

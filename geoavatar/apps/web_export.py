@@ -23,17 +23,18 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (RunFrames, head_centre, posed_head_vertices, progress, record_camera, run_background,
+from geoavatar.apps.common import (head_centre, posed_head_vertices, progress, record_camera, run_background,
                                    split_timesteps)
 from geoavatar.apps.expression_transfer import DEFAULT_TRANSFER, TransferMode, transfer_mode
 from geoavatar.apps.reenact import driven_clip, frame_of, track_driver
 from geoavatar.errors import GeoAvatarWarning, OptionError
 from geoavatar.eval.evaluate import trained_view_directions
-from geoavatar.head.view_angles import view_directions, yaw_pitch
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
+from geoavatar.head.view_angles import view_directions, yaw_pitch
 from geoavatar.render.camera import Camera
 from geoavatar.train.checkpoint import LoadedRun, open_run_dataset
+from geoavatar.train.run_frames import RunFrames
 from geoavatar.web.pack import PlayerAssets, player_assets, quantise_clip, write_player_folder
 
 ORBIT_MARGIN = 10.0  # degrees beyond the trained head turns the default orbit allows

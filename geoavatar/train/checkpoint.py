@@ -320,6 +320,11 @@ class LoadedRun(NamedTuple):
     deformer: Any  # geoavatar.avatar.MouthDeformer | None
     info: RunInfo
 
+    @property
+    def device(self) -> torch.device:
+        """The device the run's modules were opened on (open_run's --device)."""
+        return self.avatar.binding.device
+
 
 def run_checkpoint_path(run_dir: str | os.PathLike, which: str = "last") -> Path:
     names = {"last": LAST_CHECKPOINT, "final": FINAL_CHECKPOINT}

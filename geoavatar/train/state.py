@@ -18,8 +18,8 @@ from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
 from geoavatar.data.splits import evenly_spaced
 from geoavatar.data.subject import Subject
+from geoavatar.geometry import camera_centre
 from geoavatar.head.regions import face_parts
-from geoavatar.render.camera import camera_centre
 from geoavatar.runtime import resolve_device
 from geoavatar.train.checkpoint import load_head_for
 from geoavatar.train.frame_params import FrameParams

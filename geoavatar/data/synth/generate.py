@@ -431,7 +431,8 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     the bare head model with the same parameters (shows the hair volume, ears, glasses, beard)."""
     from PIL import ImageDraw
 
-    from geoavatar.render.camera import camera_centre, intrinsics_from_fov, look_at
+    from geoavatar.geometry import camera_centre
+    from geoavatar.render.camera import intrinsics_from_fov, look_at
     from geoavatar.render.mesh import Lighting, render_mesh
 
     tiles: list[tuple[np.ndarray, str]] = []
