@@ -50,8 +50,8 @@ def main() -> None:
     setup_process()
     import torch
 
-    from geoavatar.apps.common import open_run
     from geoavatar.apps.drive import drive_avatar, open_video
+    from geoavatar.train.checkpoint import open_run
 
     print(f"load average before: {load()}; torch threads {torch.get_num_threads()}, "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', '-')}")

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from geoavatar.apps.common import open_run
 from geoavatar.apps.orbit import orbit_video
+from geoavatar.train.checkpoint import open_run
 
 VIEWS = [("yaw -60", -60.0, 0.0), ("yaw -30", -30.0, 0.0), ("front", 0.0, 0.0), ("yaw +30", 30.0, 0.0),
          ("yaw +60", 60.0, 0.0), ("pitch +20", 0.0, 20.0), ("pitch -20", 0.0, -20.0)]

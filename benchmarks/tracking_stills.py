@@ -1,11 +1,13 @@
-"""Test stills of two avatars of one video that differ only in their tracking: ground truth | avatar A | avatar B,
-with each avatar's error map under it, one row per video, from `geoavatar eval RUN --save-images` frames.
+"""Test stills of two avatars of one video (before | after): ground truth | avatar A | avatar B | error A | error B,
+one row per pair and frame, from `geoavatar eval RUN --save-images` frames.
 
     .venv/bin/python benchmarks/tracking_stills.py --out docs/images/tracking_test_stills.png \
-        --pair R/wojtek_lm R/wojtek_ph --pair R/duda_lm R/duda_ph [--at 0.75]
+        --pair R/wojtek_lm R/wojtek_ph --pair R/duda_lm R/duda_ph [--at 0.75 ...]
 
-Each row shows the test frame at fraction --at of the test split (the same frame for both runs of a pair). The
-panels of an eval frame are ground truth | render | error map | ...; each 256-px panel is kept as written.
+A RUN is a run folder (its eval/test frames) or one of its eval folders, e.g. R/d3/eval/test@d3_track for the
+frames `geoavatar eval R/d3 --data d3_track --save-images` wrote. Each pair gets a row per --at, the test frame at
+that fraction of the split (the same frame for both). The panels of an eval frame are ground truth | render | error
+map | ...; each panel is kept as written.
 """
 
 from __future__ import annotations
@@ -18,9 +20,10 @@ from PIL import Image
 
 
 def eval_frames(run: Path) -> list[Path]:
-    frames = sorted((run / "eval" / "test" / "frames").glob("*.png"))
+    folder = run if (run / "frames").is_dir() else run / "eval" / "test"
+    frames = sorted((folder / "frames").glob("*.png"))
     if not frames:
-        raise SystemExit(f"{run}: no eval/test/frames/*.png; run `geoavatar eval {run} --save-images` first")
+        raise SystemExit(f"{run}: no eval frames ({folder}/frames/*.png); run `geoavatar eval RUN --save-images` first")
     return frames
 
 
@@ -37,7 +40,7 @@ def pair_row(run_a: Path, run_b: Path, at: float) -> np.ndarray:
         raise SystemExit(f"{run_a} and {run_b}: their eval frames differ (not the same video's test split?)")
     index = min(len(frames_a) - 1, int(at * len(frames_a)))
     a, b = panels(frames_a[index]), panels(frames_b[index])
-    print(f"{frames_a[index].name}: {run_a.name} | {run_b.name}")
+    print(f"{frames_a[index].name}: {run_a} | {run_b}")
     # ground truth | A | B | error A | error B
     return np.concatenate([a[0], a[1], b[1], a[2], b[2]], axis=1)
 
@@ -46,9 +49,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pair", nargs=2, type=Path, action="append", required=True, metavar=("RUN_A", "RUN_B"))
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--at", type=float, default=0.75, help="fraction of the test split where the frame is taken")
+    parser.add_argument("--at", type=float, nargs="+", default=[0.75],
+                        help="fractions of the test split where frames are taken (a row each)")
     args = parser.parse_args()
-    rows = [pair_row(a, b, args.at) for a, b in args.pair]
+    rows = [pair_row(a, b, at) for a, b in args.pair for at in args.at]
     width = max(row.shape[1] for row in rows)
     rows = [np.pad(row, ((0, 0), (0, width - row.shape[1]), (0, 0)), constant_values=255) for row in rows]
     args.out.parent.mkdir(parents=True, exist_ok=True)

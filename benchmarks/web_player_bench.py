@@ -42,7 +42,7 @@ def synthetic_run(root: Path, gaussians: int | None, frames: int = 8):
     from apps_fixtures import make_subject, make_untrained_run
     from web_fixtures import varied_avatar
 
-    from geoavatar.apps.common import open_run
+    from geoavatar.train.checkpoint import open_run
 
     data = make_subject(root / "data", subject=0, frames=frames, size=64)
     run = open_run(make_untrained_run(data, root / "run"), "cpu")
@@ -53,8 +53,8 @@ def synthetic_run(root: Path, gaussians: int | None, frames: int = 8):
 
 def player_folder(run, out: Path, frames: int | None = None, split: str = "all") -> Path:
     """The run's player folder (a split); with `frames`, a clip of that many frames cycling through its timesteps."""
-    from geoavatar.apps.common import RunFrames
     from geoavatar.apps.web_export import export_web, split_vertices, web_assets
+    from geoavatar.train.run_frames import RunFrames
     from geoavatar.web.pack import write_player_folder
 
     if frames is None:
@@ -118,9 +118,9 @@ def page_cost(args) -> None:
 
 
 def live(args) -> None:
-    from geoavatar.apps.common import open_run
     from geoavatar.apps.drive import drive_avatar, open_video
     from geoavatar.apps.view import start_viewer
+    from geoavatar.train.checkpoint import open_run
     from geoavatar.web.browser import chromium_page
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -159,8 +159,8 @@ def fidelity(args) -> None:
     from PIL import Image
     from web_fixtures import cpu_and_truth, psnr
 
-    from geoavatar.apps.common import open_run
     from geoavatar.data import evenly_spaced
+    from geoavatar.train.checkpoint import open_run
     from geoavatar.web.browser import canvas_rgb, chromium_page, static_server, wait_drawn
 
     run = open_run(args.run, "cpu")
@@ -209,7 +209,7 @@ def gpu_fps(args) -> None:
 
 
 def open_run_or_synthetic(args, root: Path):
-    from geoavatar.apps.common import open_run
+    from geoavatar.train.checkpoint import open_run
 
     return open_run(args.run, "cpu") if args.run else synthetic_run(root, args.gaussians)
 

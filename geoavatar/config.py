@@ -50,6 +50,11 @@ BackgroundMode = Literal["dataset", "random"]
 InitColour = Literal["grey", "images"]
 
 PAPER_STEPS = 200_000
+# The budget of a new CPU run given no --steps / --minutes (`train --schedule auto`): the steps and the
+# longer image side that, measured on our test videos, give held-out scores within a few tenths of a dB
+# of the best budget in about ten minutes of 2 cores for a 300-frame video (BENCHMARKS.md, training budget).
+CPU_STEPS = 1500
+CPU_RESOLUTION = 256
 # The fields of TrainConfig counted in steps (dotted names): TrainConfig.scaled_to scales them.
 STEP_FIELDS = ("aps_step", "densify.start", "densify.stop", "densify.every", "densify.reset_opacity_every",
                "lr.position_decay_steps")
@@ -86,6 +91,12 @@ class ModelConfig:
     # training frames, head-on views weighted most, unseen faces from the nearest seen one
     # (avatar/colour_init.py); or "grey" (GaussianAvatars, the paper; `--config.model.init-colour grey`).
     init_colour: InitColour = "images"
+    # Hair that follows the head's turn (ours, issue #27; avatar/hair_motion.py): each Gaussian off the face (hair,
+    # scalp, ears, neck) moves its local mean and colour linearly with the frame's head rotation and neck pose, so
+    # long hair that hangs and swings as the head turns is learned instead of blurred. For long hair: on d3.mp4
+    # (E, 1500 steps at 256 px) held-out PSNR 19.12 -> 20.13 dB, training frames 21.27 -> 24.09 (BENCHMARKS.md).
+    # The web player does not play it (it moves Gaussians with their triangles only).
+    hair_follows_head: bool = False
     mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
     face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
     mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation

@@ -103,3 +103,9 @@ def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
     b2 = torch.nn.functional.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1)
     b3 = torch.linalg.cross(b1, b2)
     return torch.stack([b1, b2, b3], dim=-2)
+
+
+def camera_centre(viewmat: Tensor) -> Tensor:
+    """[..., 3] world position of the camera of each world-to-camera `viewmat` [..., 4, 4]: C = -R^T t."""
+    rot, trans = viewmat[..., :3, :3], viewmat[..., :3, 3:]
+    return -(rot.transpose(-1, -2) @ trans).squeeze(-1)

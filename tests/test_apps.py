@@ -26,16 +26,16 @@ from geoavatar.apps import orbit as orbit_app
 from geoavatar.apps import reenact as reenact_app
 from geoavatar.apps import render_video
 from geoavatar.apps import view as view_app
-from geoavatar.apps.common import (Camera, RunFrames, colormap_lut, error_map, open_run, open_run_dataset,
-                                   pose_gaussians, record_camera, render_params, torch_threads)
+from geoavatar.apps.common import colormap_lut, error_map, pose_gaussians, record_camera, render_params, torch_threads
 from geoavatar.apps.expression_transfer import TRANSFER_MODES
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
 from geoavatar.io.ply import PLY_PROPERTIES, read_gaussian_ply
 from geoavatar.io.video import Mp4Writer
 from geoavatar.render import composite_target
-from geoavatar.render.camera import project, rigid_inverse
-from geoavatar.train.checkpoint import RunError
+from geoavatar.render.camera import Camera, project, rigid_inverse
+from geoavatar.train.checkpoint import RunError, open_run, open_run_dataset
+from geoavatar.train.run_frames import RunFrames
 
 
 @pytest.fixture(scope="module")

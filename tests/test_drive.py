@@ -44,7 +44,7 @@ def run_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def run(run_dir):
-    from geoavatar.apps.common import open_run
+    from geoavatar.train.checkpoint import open_run
 
     return open_run(run_dir, "cpu")
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from geoavatar.geometry import camera_centre
 from geoavatar.render.camera import (
-    camera_centre, fov_from_intrinsics, intrinsics_from_fov, look_at, opengl_c2w_to_viewmat, project,
+    fov_from_intrinsics, intrinsics_from_fov, look_at, opengl_c2w_to_viewmat, project,
     viewmat_to_opengl_c2w, world_to_camera,
 )
 from geoavatar.render.mesh import (

@@ -84,6 +84,9 @@ def test_bad_combinations_are_one_line_errors(tmp_path, capsys):
          "--config.mesh-prior.lambda-behind was removed: measured and rejected"),
         (["--data", tmp_path, "--out", tmp_path / "r", "--config.warped-view.no-colours-only"],
          "--config.warped-view.no-colours-only was removed"),
+        (["--data", tmp_path, "--out", tmp_path / "r", "--schedule", "paper", "--steps", "10"],
+         "--schedule chooses the budget of a new run.*--steps"),
+        (["--out", tmp_path / "r", "--resume", "--schedule", "auto"], "--schedule chooses.*--resume"),
     ]:
         code, _, err = geoavatar_train(capsys, *words, "--no-progress")
         assert code == 2 and err.count("\n") == 1 and re.search(pattern, err), (words, err)
@@ -197,6 +200,29 @@ def test_minutes_picks_the_steps_and_the_run_equals_that_many_steps(subject, tmp
     code, _, err = geoavatar_train(capsys, "--data", subject, "--out", tmp_path / "short", "--minutes", "0.1", *QUIET)
     assert code == 2 and "--minutes 0.1 is too short: the warm-up took" in err
     assert not (tmp_path / "short" / "checkpoints").exists()
+
+
+def test_a_new_run_without_a_budget_gets_one_that_finishes():
+    """No --steps / --minutes: on CPU the short measured budget at 256 px (a size given stays), the paper's
+    schedule with --schedule paper; the choice is a sentence for the terminal and config.json."""
+    from geoavatar.config import CPU_RESOLUTION, CPU_STEPS, PAPER_STEPS
+    from geoavatar.train.options import RunOptions
+
+    cpu = RunOptions(out="r", device="cpu")
+    steps, chosen_by = train_app.default_schedule("auto", cpu)
+    assert (steps, cpu.resolution) == (CPU_STEPS, CPU_RESOLUTION) and "--schedule paper" in chosen_by
+    small = RunOptions(out="r", device="cpu", resolution=128)
+    assert train_app.default_schedule("auto", small)[0] == CPU_STEPS and small.resolution == 128
+    full = RunOptions(out="r", device="cpu")
+    assert train_app.default_schedule("paper", full)[0] == PAPER_STEPS and full.resolution is None
+
+
+def test_the_chosen_budget_is_printed_and_recorded(subject, tmp_path, capsys, monkeypatch):  # noqa: F811
+    monkeypatch.setattr(train_app, "CPU_STEPS", 2)  # the default's path, at a test's length
+    code, out, _ = geoavatar_train(capsys, "--data", subject, "--out", tmp_path / "r", "--device", "cpu", *QUIET)
+    assert code == 0 and "budget: --schedule auto on cpu: 2 steps at 256 px" in out
+    record = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert record["schedule"]["steps"] == 2 and record["schedule"]["chosen_by"].startswith("--schedule auto on cpu")
 
 
 def test_budget_model_accounts_for_the_growing_gaussian_count():

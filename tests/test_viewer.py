@@ -17,8 +17,10 @@ import torch
 from apps_fixtures import make_subject, make_untrained_run
 from geoavatar import cli
 from geoavatar.apps import view as view_app
-from geoavatar.apps.common import RunFrames, head_centre, open_run, posed_head_vertices
+from geoavatar.apps.common import head_centre, posed_head_vertices
 from geoavatar.geometry import axis_angle_to_matrix
+from geoavatar.train.checkpoint import open_run
+from geoavatar.train.run_frames import RunFrames
 from geoavatar.web.browser import browser_missing, chromium_page
 from geoavatar.web.live import KIND_VERTICES, LiveServerError, vertex_message
 

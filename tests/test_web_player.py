@@ -15,8 +15,8 @@ import pytest
 from apps_fixtures import make_subject, make_untrained_run
 from web_fixtures import cpu_and_truth, psnr, varied_avatar
 from geoavatar import cli
-from geoavatar.apps.common import open_run
 from geoavatar.apps.web_export import export_web
+from geoavatar.train.checkpoint import open_run
 from geoavatar.web import pack
 from geoavatar.web.browser import browser_missing, canvas_rgb, chromium_page, static_server, wait_drawn
 
@@ -133,8 +133,9 @@ def test_interrupted_export_leaves_nothing_that_looks_complete(run, tmp_path, mo
 
 
 def test_a_driver_clip_is_reenacts_motion_posed_once(run, tmp_path):
-    from geoavatar.apps.common import RunFrames, posed_head_vertices
+    from geoavatar.apps.common import posed_head_vertices
     from geoavatar.apps.reenact import driven_clip, frame_of
+    from geoavatar.train.run_frames import RunFrames
 
     driver = make_subject(tmp_path / "driver", subject=2, frames=5, size=32, seed=3)
     folder = export_web(run, tmp_path / "web", driver=driver, transfer="subspace", fps=12.5, show_progress=False)

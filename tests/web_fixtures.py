@@ -28,9 +28,11 @@ def varied_avatar(avatar, count: int, seed: int = 0) -> None:
 def cpu_and_truth(run, timestep: int) -> tuple[np.ndarray, np.ndarray]:
     """The CPU renderer's frame of a run's timestep from its dataset camera and the ground truth (the photo on the
     run's background), uint8 [H, W, 3], both at the run's resolution."""
-    from geoavatar.apps.common import RunFrames, record_camera, render_params, to_uint8
+    from geoavatar.apps.common import record_camera, render_params
     from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
+    from geoavatar.imaging import to_uint8
     from geoavatar.render import composite_target
+    from geoavatar.train.run_frames import RunFrames
 
     params, t = RunFrames(run).params(timestep)
     subject = open_subject(run.info.data_root)

@@ -23,13 +23,14 @@ from typing import Literal, Optional
 
 import torch
 
-from geoavatar.apps.common import (Camera, RunFrames, RunPath, head_centre, open_run, posed_head_vertices,
-                                   rasterize_gaussians, record_camera, run_background, run_device, synchronize)
+from geoavatar.apps.common import RunPath, head_centre, posed_head_vertices, record_camera, run_background, synchronize
+from geoavatar.avatar import rasterize_gaussians
 from geoavatar.data import DatasetError, open_subject
 from geoavatar.errors import OptionError
 from geoavatar.io.atomic import atomic_write_json
-from geoavatar.render.camera import intrinsics_from_fov, look_at
-from geoavatar.train.checkpoint import LoadedRun
+from geoavatar.render.camera import Camera, intrinsics_from_fov, look_at
+from geoavatar.train.checkpoint import LoadedRun, open_run
+from geoavatar.train.run_frames import RunFrames
 
 STAGES = ("head + mouth deformer", "local -> global", "rasterize", "full animation path")
 
@@ -72,7 +73,7 @@ def run_bench(run: LoadedRun, resolution: int = 512, iterations: int = 20, warmu
     if resolution <= 0 or iterations <= 0 or warmup < 0:
         raise OptionError(f"--resolution and --iterations must be positive and --warmup >= 0, got "
                          f"{resolution}, {iterations}, {warmup}")
-    device = run_device(run)
+    device = run.device
     frames = RunFrames(run)
     all_params = [frames.params(t)[0] for t in frames.timesteps]
     camera = bench_camera(run, frames, resolution).to(device)

@@ -1,16 +1,15 @@
 """Shared pieces of the commands that use a trained run: render, reenact, orbit, export, view, bench.
 
-    run = open_run(run_dir, device)                 # LoadedRun; RunError names the folder
-    frames = RunFrames(run)                          # per-timestep parameters + the dataset's cameras
+    run = open_run(run_dir, device)                 # train/checkpoint.py: LoadedRun; RunError names the folder
+    frames = RunFrames(run)                          # train/run_frames.py: per-timestep parameters and the T rule
     params, T = frames.params(timestep)              # HeadParams of a frame and its T (avatar.frame_timestep)
     rgb = render_params(run, params, camera, T)      # avatar.render_avatar on the run's background, clamped
     with Mp4Writer(path, fps=25) as video: video.write(frame_uint8)   # geoavatar.io.video: the one mp4 writer
 
-The T rule (the mouth deformer's time input gamma(T), `avatar.frame_timestep`, which `geoavatar eval`
-uses too): a training
-timestep renders with its own T and the run's refined parameters, which reproduces what training
-saw; any other timestep (test frames, a driver's frames, edited parameters) renders with T = 0, the
-paper's inference setting, and the parameters as tracked (the trainer never refines test rows).
+The T rule (the mouth deformer's time input gamma(T)) lives with RunFrames in train/run_frames.py, which
+`geoavatar eval` uses too: a training timestep renders with its own T and the run's refined parameters, which
+reproduces what training saw; any other timestep (test frames, a driver's frames, edited parameters) renders with
+T = 0, the paper's inference setting, and the parameters as tracked (the trainer never refines test rows).
 
 Errors: what the user can cause raises a GeoAvatarError (geoavatar/errors.py): RunError (bad run,
 dataset gone or changed), DatasetError, OptionError (a bad option value), DiskFullError. The command
@@ -33,16 +32,15 @@ import torch
 import tyro
 from torch import Tensor
 
-from geoavatar.avatar import GlobalGaussians, frame_timestep, pose_avatar, posed_head, rasterize_gaussians, render_avatar
-from geoavatar.data import DatasetError, evenly_spaced
+from geoavatar.avatar import GlobalGaussians, pose_avatar, posed_head, render_avatar
+from geoavatar.data import DatasetError
 from geoavatar.data.subject import Subject
 from geoavatar.errors import OptionError
-from geoavatar.head.params import SUBJECT_KEYS, HeadParams
+from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_centre
-from geoavatar.imaging import fit_height, to_uint8  # the commands' image helpers, kept importable from here
 from geoavatar.render.camera import Camera
 from geoavatar.runtime import num_threads
-from geoavatar.train.checkpoint import LoadedRun, RunError, open_run, open_run_dataset
+from geoavatar.train.checkpoint import LoadedRun
 
 # The RUN folder: the first, positional argument of every command (`geoavatar render RUN`).
 RunPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
@@ -61,10 +59,6 @@ def synchronize(device: torch.device | str) -> None:
         torch.cuda.synchronize(device)
     elif device.type == "mps":
         torch.mps.synchronize()
-
-
-def run_device(run: LoadedRun) -> torch.device:
-    return run.avatar.binding.device
 
 
 RENDER_THREADS = 1  # default --threads of the video commands (render, reenact, orbit), as `geoavatar drive`
@@ -111,42 +105,6 @@ def split_timesteps(run: LoadedRun, split: str) -> list[int]:
     if split not in run.info.timesteps:
         raise OptionError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
     return list(run.info.timesteps[split])
-
-
-class RunFrames:
-    """The per-timestep head parameters of a run (refined for training frames) and the T rule."""
-
-    def __init__(self, run: LoadedRun):
-        self.run = run
-        self.device = run_device(run)
-        self.timesteps: list[int] = list(run.info.timesteps["all"])
-        self._row = {t: i for i, t in enumerate(self.timesteps)}
-        self._train = set(run.info.timesteps.get("train", []))
-        self.values = HeadParams.from_npz(run.info.frame_params).to(self.device)  # [T, ...]; shape [S]
-        rows = self.values.batch
-        if rows != len(self.timesteps):
-            raise RunError(f"{run.info.checkpoint}: parameters of {rows} frames for {len(self.timesteps)} timesteps")
-
-    def __len__(self) -> int:
-        return len(self.timesteps)
-
-    def resolve(self, timestep: int | None) -> int:
-        """`timestep` (None: the first one) checked against the run's timesteps."""
-        if timestep is None:
-            return self.timesteps[0]
-        if timestep not in self._row:
-            lo, hi = self.timesteps[0], self.timesteps[-1]
-            raise OptionError(f"--frame {timestep}: not a timestep of the run's dataset ({len(self)} frames, {lo}..{hi})")
-        return int(timestep)
-
-    def params(self, timestep: int) -> tuple[HeadParams, int | None]:
-        """(HeadParams of a timestep, per-frame keys [1, ...]; its T, None = T = 0, by avatar.frame_timestep)."""
-        timestep = self.resolve(timestep)
-        return self.values.frame(self._row[timestep]), frame_timestep(timestep, self._train)
-
-    def identity(self) -> dict[str, Tensor]:
-        """The subject keys (shape [S], static_offset [1, V, 3] when present): the avatar's identity."""
-        return {k: v for k, v in self.values.to_npz().items() if k in SUBJECT_KEYS}
 
 
 # --- the animation path ----------------------------------------------------------------------------
@@ -252,9 +210,8 @@ class Timer:
 
 
 __all__ = [
-    "Camera", "EXPORT_DIR", "check_threads", "RunFrames", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut",
-    "default_output", "error_map", "evenly_spaced", "fit_height", "head_centre", "open_run", "open_run_dataset",
-    "pose_gaussians", "posed_head_vertices", "progress", "rasterize_gaussians", "record_camera", "render_params",
-    "RENDER_THREADS", "run_background", "run_device",
-    "side_by_side", "split_timesteps", "synchronize", "to_uint8", "torch_threads",
+    "EXPORT_DIR", "check_threads", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut", "default_output", "error_map",
+    "head_centre", "pose_gaussians", "posed_head_vertices", "progress", "record_camera", "render_params",
+    "RENDER_THREADS", "run_background", "side_by_side", "split_timesteps", "synchronize",
+    "torch_threads",
 ]

@@ -38,6 +38,7 @@ rendering run on --device (auto: CUDA when there).
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 import time
@@ -48,9 +49,9 @@ from typing import Callable, Iterator, Literal, Optional
 
 import numpy as np
 import torch
+from torch import Tensor
 
-from geoavatar.apps.common import (RunFrames, RunPath, fit_height, open_run, posed_head_vertices, record_camera,
-                                   run_background, side_by_side, to_uint8)
+from geoavatar.apps.common import RunPath, posed_head_vertices, record_camera, run_background, side_by_side
 from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, avatar_expressions,
                                                 expression_statistics, resolve_transfer)
 from geoavatar.apps.reenact import TRANSFERRED_KEYS, driven_params, reference_frame
@@ -58,9 +59,12 @@ from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.data import DatasetError, open_subject
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.head.params import HeadParams
+from geoavatar.imaging import fit_height, to_uint8
 from geoavatar.io.video import Mp4Writer
 from geoavatar.prep.errors import PrepareError
-from geoavatar.train.checkpoint import LoadedRun, RunError
+from geoavatar.render.camera import Camera
+from geoavatar.train.checkpoint import LoadedRun, RunError, open_run
+from geoavatar.train.run_frames import RunFrames
 
 STAGES = ("landmarks", "fit", "pose", "render")
 # Items a stage's mailbox holds (the newest; a new one drops the oldest when full). 2, not 1: with 1 a single slow
@@ -414,6 +418,176 @@ class _Status:
         print(("\r" + line) if self.tty else line, end="" if self.tty else "\n", file=sys.stderr, flush=True)
 
 
+@dataclass
+class _LiveAvatar:
+    """The avatar side of `drive`: what the output stage poses, renders and transfers the driver onto."""
+
+    run: LoadedRun
+    camera: Camera  # the avatar's dataset camera at --size, on the run's device
+    background: Tensor  # [3]
+    reference: dict[str, Tensor]  # the avatar's first frame, per-frame keys [1, ...] (relative transfer)
+    learned: tuple  # avatar_expressions: the expressions the avatar was trained on (statistics / subspace transfer)
+    identity: dict[str, Tensor]  # the avatar's subject keys
+
+    @property
+    def device(self) -> torch.device:
+        return self.background.device
+
+
+def _live_avatar(run: LoadedRun, size: int, data: Path | None) -> _LiveAvatar:
+    """The run's camera (from its dataset, or --data when it moved), background and transfer references."""
+    frames = RunFrames(run)
+    avatar_root = Path(data) if data is not None else run.info.data_root
+    try:
+        camera = record_camera(open_subject(avatar_root), frames.timesteps[0], None).resized(size).to(frames.device)
+    except (DatasetError, OSError) as err:
+        raise RunError(f"{run.info.run_dir}: the camera comes from its dataset {avatar_root}, which cannot be read "
+                       f"({err}); pass --data DIR") from err
+    reference = reference_frame(frames.values.to_npz(), frames.timesteps, "first")
+    return _LiveAvatar(run, camera, run_background(run).to(frames.device), reference, avatar_expressions(frames),
+                       frames.identity())
+
+
+def _recorded_params(params: HeadParams) -> dict[str, np.ndarray]:
+    """The driver's fitted keys a recorded frame keeps (record=True): expr, jaw_pose, rotation of its one frame."""
+    return {key: getattr(params, key)[0].numpy().copy() for key in ("expr", "jaw_pose", "rotation")}
+
+
+class _OutputStage:
+    """The third stage: a fitted driver frame -> the avatar's parameters -> posed, then rendered and written (--out)
+    and / or streamed to the browser player (--view); counts what it did into `stats`."""
+
+    def __init__(self, avatar: _LiveAvatar, tracker: DriverTracker, transfer: TransferMode | bool, backend: str,
+                 render: bool, viewer, writer: Mp4Writer | None, stats: DriveStats, record: bool,
+                 dropped: Callable[[], int]):
+        self.avatar, self.tracker, self.transfer, self.backend = avatar, tracker, transfer, backend
+        self.render, self.viewer, self.writer, self.stats, self.record = render, viewer, writer, stats, record
+        self.dropped = dropped  # frames dropped so far (the viewer's caption)
+        self.last_timestep, self.last_picture = -1, None
+        self.started: float | None = None  # perf_counter() at the end of the first online frame
+
+    def __call__(self, timestep: int, driver: DriverFrame, timings: dict, available: float) -> None:
+        t0 = time.perf_counter()
+        params = self._avatar_params(driver)
+        run = self.avatar.run
+        # the browser places the Gaussians itself: without a render only the head is posed
+        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer) if self.render else None
+        if self.viewer is not None:
+            vertices = posed.vertices if posed is not None else posed_head_vertices(run, params, None)
+            self.viewer.show_live(vertices, f"live: frame {timestep}, {self.stats.fps:.1f} fps, "
+                                            f"dropped {self.dropped()}", available)
+        t1 = time.perf_counter()
+        timings["pose"] = t1 - t0
+        if self.render:
+            rgb = rasterize_gaussians(posed.gaussians, self.avatar.camera, self.avatar.background, self.backend,
+                                      check_values=False).rgb
+            picture = to_uint8(rgb.clamp(0.0, 1.0))  # the read-back synchronises the device
+            timings["render"] = time.perf_counter() - t1
+            if self.writer is not None:
+                self._write(timestep, side_by_side(fit_height(driver.crop, picture.shape[0]), picture))
+        self.last_timestep = timestep
+        self._count(timestep, driver, timings, available)
+
+    def _avatar_params(self, driver: DriverFrame) -> HeadParams:
+        """The driver's fitted frame transferred onto the avatar (reenact's driven_params, the --transfer mode)."""
+        device = self.avatar.device
+        driver_now = {k: getattr(driver.params, k).to(device) for k in TRANSFERRED_KEYS}
+        driver_ref = {k: v.to(device) for k, v in self.tracker.neutral.items()}
+        learned = TransferStatistics(*self.avatar.learned, self.tracker.statistics)
+        return HeadParams.from_npz(driven_params(self.avatar.identity, self.avatar.reference, driver_now, driver_ref,
+                                                 self.transfer, learned=learned))
+
+    def _write(self, timestep: int, picture: np.ndarray) -> None:
+        """Write driver | avatar; the frames dropped since the last one repeat it, so the video keeps real time."""
+        repeats = timestep - self.last_timestep - 1 if self.last_picture is not None else 0
+        for _ in range(repeats):
+            self.writer.write(self.last_picture)
+        self.writer.write(picture)
+        self.last_picture = picture
+
+    def _count(self, timestep: int, driver: DriverFrame, timings: dict, available: float) -> None:
+        stats, done = self.stats, time.perf_counter()
+        if self.started is None:
+            self.started = done  # the first online frame: FPS counts from its end
+        else:
+            stats.frames += 1
+            stats.seconds = done - self.started
+        for stage, seconds in timings.items():
+            stats.stage_ms[stage].append(1000.0 * seconds)
+        stats.latency_ms.append(1000.0 * (done - available))
+        if self.record:
+            stats.records.append({"index": timestep, "error": driver.error, "found": driver.found,
+                                  **_recorded_params(driver.params)})
+
+
+def _fit_stage(tracker: DriverTracker, source: NewestFrame, fitted: NewestFrame, stats: DriveStats, lossless: bool,
+               record: bool) -> threading.Thread:
+    """The second stage as a thread: source frames -> tracker.push -> (timestep, DriverFrame, timings, available)
+    into `fitted`; the identity stage's frames are counted and recorded, never shown live."""
+    identity_timesteps: list[int] = []  # source timesteps of the identity stage's frames
+
+    def identity_done(frames: list[DriverFrame]) -> None:
+        stats.init_frames, stats.init_seconds = len(frames), tracker.init_seconds
+        source.set_lossless(lossless)  # a file played in real time from here
+        if record:
+            stats.records.extend({"index": identity_timesteps[k], "init": True, "error": frame.error,
+                                  **_recorded_params(frame.params)} for k, frame in enumerate(frames))
+
+    def fit_one(timestep: int, available: float, rgb: np.ndarray) -> None:
+        stats.processed += 1
+        if tracker.online is None:
+            identity_timesteps.append(timestep)
+        t0 = time.perf_counter()
+        result = tracker.push(rgb)
+        if result is None:
+            return
+        if isinstance(result, list):
+            identity_done(result)
+            return
+        now = time.perf_counter()
+        timings = ({"landmarks": tracker.landmarks_done - t0, "fit": now - tracker.landmarks_done}
+                   if result.found else {"landmarks": now - t0})
+        stats.no_face += 0 if result.found else 1
+        fitted.put((timestep, result, timings, available))
+
+    def fit_frames() -> None:
+        error = None
+        try:
+            while (item := source.get()) is not None:
+                fit_one(*item)
+        except BaseException as err:  # handed to the output stage, which raises it
+            error = err
+        finally:
+            fitted.close(error)
+
+    return threading.Thread(target=fit_frames, name="geoavatar-drive-fit", daemon=True)
+
+
+def _check_drive_options(size: int, iterations: int | None, init_seconds: float, threads: int) -> None:
+    if size < 16:
+        raise OptionError(f"--size must be >= 16, got {size}")
+    if iterations is not None and iterations < 1:
+        raise OptionError(f"--iterations must be >= 1, got {iterations}")
+    if init_seconds <= 0:
+        raise OptionError(f"--init-seconds must be positive, got {init_seconds}")
+    if threads < 1:
+        raise OptionError(f"--threads must be >= 1, got {threads}")
+
+
+def _show_outputs(fitted: NewestFrame, output: _OutputStage, show: _Status) -> None:
+    """The output stage's loop on this thread until the fit stage ends; Ctrl-C ends a live source, what was
+    written is kept."""
+    while True:
+        try:
+            item = fitted.get()
+        except KeyboardInterrupt:
+            item = None
+        if item is None:
+            return
+        output(*item)
+        show(output.stats)
+
+
 @torch.no_grad()
 def drive_avatar(
     run: LoadedRun,
@@ -436,30 +610,16 @@ def drive_avatar(
     init_steps: tuple[int, int] = (100, 300),
     threads: int = 1,
 ) -> DriveStats:
-    """Run the live pipeline until the source ends; returns the measurements (see the module docstring)."""
-    if size < 16:
-        raise OptionError(f"--size must be >= 16, got {size}")
-    if iterations is not None and iterations < 1:
-        raise OptionError(f"--iterations must be >= 1, got {iterations}")
-    if init_seconds <= 0:
-        raise OptionError(f"--init-seconds must be positive, got {init_seconds}")
-    frames = RunFrames(run)
-    device = frames.device
-    avatar_root = Path(data) if data is not None else run.info.data_root
-    try:
-        camera = record_camera(open_subject(avatar_root), frames.timesteps[0], None).resized(size).to(device)
-    except (DatasetError, OSError) as err:
-        raise RunError(f"{run.info.run_dir}: the camera comes from its dataset {avatar_root}, which cannot be read "
-                       f"({err}); pass --data DIR") from err
-    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, "first")
-    avatar_learned = avatar_expressions(frames)
-    identity = frames.identity()
-    background = run_background(run).to(device)
-    render = (out is not None or viewer is None) if render is None else render
+    """Run the live pipeline until the source ends; returns the measurements (see the module docstring).
 
+    Three stages, each keeping only the newest MAILBOX_DEPTH items of the one before: the reader thread, the fit
+    thread (landmarks + online fit) and the output stage on this thread. The fit of frame t+1 runs while frame t is posed
+    and rendered (torch ops and the native rasterizer release the GIL), so the frame rate is bounded by the slower
+    stage, not by their sum."""
+    _check_drive_options(size, iterations, init_seconds, threads)
+    avatar = _live_avatar(run, size, data)
+    render = (out is not None or viewer is None) if render is None else render
     init_count = max(2, round(init_seconds * source.fps))
-    if threads < 1:
-        raise OptionError(f"--threads must be >= 1, got {threads}")
     process_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
     tracker = DriverTracker(run.info.head_model, init_count, source.fps, 256, iterations, solver, flame_dir, init_steps)
@@ -467,128 +627,33 @@ def drive_avatar(
     show = _Status(status)
     # A file waits (nothing dropped) while the identity stage collects and fits its first second, then plays
     # in real time from there; a camera's frames are dropped during it, as at any time the fit stage is busy.
-    mailbox = NewestFrame(lossless or not source.live, MAILBOX_DEPTH)
-    stop = threading.Event()
-    reader = start_reader(source, mailbox, max_frames, stop)
-    writer = Mp4Writer(out, fps=source.fps) if out is not None else None
-    last_index, last_picture = -1, None
-    init_indices: list[int] = []  # source indices of the identity stage's frames
-    started = None
-
-    def output(index: int, driver: DriverFrame, timings: dict, available: float) -> None:
-        nonlocal last_index, last_picture, started
-        t0 = time.perf_counter()
-        driver_now = {k: getattr(driver.params, k).to(device) for k in TRANSFERRED_KEYS}
-        driver_ref = {k: v.to(device) for k, v in tracker.neutral.items()}
-        learned = TransferStatistics(*avatar_learned, tracker.statistics)
-        params = HeadParams.from_npz(driven_params(identity, avatar_ref, driver_now, driver_ref, transfer,
-                                                   learned=learned))
-        # the browser places the Gaussians itself: without a render only the head is posed
-        posed = pose_avatar(run.avatar, run.head, params, None, run.deformer) if render else None
-        if viewer is not None:
-            vertices = posed.vertices if posed is not None else posed_head_vertices(run, params, None)
-            viewer.show_live(vertices, f"live: frame {index}, {stats.fps:.1f} fps, "
-                                       f"dropped {mailbox.dropped + fitted.dropped}", available)
-        t1 = time.perf_counter()
-        timings["pose"] = t1 - t0
-        if render:
-            rgb = rasterize_gaussians(posed.gaussians, camera, background, backend, check_values=False).rgb
-            picture = to_uint8(rgb.clamp(0.0, 1.0))  # the read-back synchronises the device
-            timings["render"] = time.perf_counter() - t1
-            if writer is not None:
-                picture = side_by_side(fit_height(driver.crop, picture.shape[0]), picture)
-                for _ in range(index - last_index - 1 if last_picture is not None else 0):
-                    writer.write(last_picture)  # dropped frames: the video keeps real time
-                writer.write(picture)
-                last_picture = picture
-        last_index = index
-        done = time.perf_counter()
-        if started is None:
-            started = done  # the first online frame: FPS counts from its end
-        else:
-            stats.frames += 1
-            stats.seconds = done - started
-        for stage, seconds in timings.items():
-            stats.stage_ms[stage].append(1000.0 * seconds)
-        stats.latency_ms.append(1000.0 * (done - available))
-        if record:
-            stats.records.append({"index": index, "error": driver.error, "found": driver.found,
-                                  **{k: getattr(driver.params, k)[0].numpy().copy() for k in ("expr", "jaw_pose", "rotation")}})
-
-    # Two stages in two threads, each keeping only the newest items of the one before: the fit (landmarks +
-    # online fit) of frame t+1 runs while frame t is posed and rendered (torch ops and the native
-    # rasterizer release the GIL), so the frame rate is bounded by the slower stage, not by their sum.
+    frames = NewestFrame(lossless or not source.live, MAILBOX_DEPTH)
     fitted = NewestFrame(lossless, MAILBOX_DEPTH)
-
-    def fit_frames() -> None:
-        error = None
-        try:
-            while True:
-                item = mailbox.get()
-                if item is None:
-                    break
-                index, available, rgb = item
-                stats.processed += 1
-                if tracker.online is None:
-                    init_indices.append(index)
-                t0 = time.perf_counter()
-                result = tracker.push(rgb)
-                if result is None:
-                    continue
-                if isinstance(result, list):  # the identity stage finished: its frames are not shown live
-                    stats.init_frames, stats.init_seconds = len(result), tracker.init_seconds
-                    mailbox.set_lossless(lossless)
-                    if record:
-                        stats.records.extend({"index": init_indices[k], "init": True, "error": f.error,
-                                              **{key: getattr(f.params, key)[0].numpy().copy()
-                                                 for key in ("expr", "jaw_pose", "rotation")}} for k, f in enumerate(result))
-                    continue
-                now = time.perf_counter()
-                timings = ({"landmarks": tracker.landmarks_done - t0, "fit": now - tracker.landmarks_done}
-                           if result.found else {"landmarks": now - t0})
-                stats.no_face += 0 if result.found else 1
-                fitted.put((index, result, timings, available))
-        except BaseException as err:  # handed to the output stage, which raises it
-            error = err
-        finally:
-            fitted.close(error)
-
-    fitter = threading.Thread(target=fit_frames, name="geoavatar-drive-fit", daemon=True)
+    stop = threading.Event()
+    reader = start_reader(source, frames, max_frames, stop)
+    writer = Mp4Writer(out, fps=source.fps) if out is not None else None
+    output = _OutputStage(avatar, tracker, transfer, backend, render, viewer, writer, stats, record,
+                          dropped=lambda: frames.dropped + fitted.dropped)
+    fitter = _fit_stage(tracker, frames, fitted, stats, lossless, record)
     try:
-        if writer is not None:
-            writer.__enter__()
-        fitter.start()
-        while True:
-            try:
-                item = fitted.get()
-            except KeyboardInterrupt:  # Ctrl-C ends a live source; what was written is kept
-                item = None
-            if item is None:
-                break
-            output(*item)
-            show(stats)
-        if writer is not None:
-            writer.__exit__(None, None, None)
-            writer = None
-    except BaseException as err:
-        if writer is not None:
-            writer.__exit__(type(err), err, err.__traceback__)
-        raise
+        with writer if writer is not None else contextlib.nullcontext():
+            fitter.start()
+            _show_outputs(fitted, output, show)
     finally:
         stop.set()
-        mailbox.close()
+        frames.close()
         reader.join(timeout=5.0)
         if fitter.is_alive():
             fitter.join(timeout=5.0)
         tracker.close()
         torch.set_num_threads(process_threads)
         # a frame is dropped when the fit never took it or when the render stage never took its fit
-        stats.dropped, stats.delivered = mailbox.dropped + fitted.dropped, mailbox.delivered
+        stats.dropped, stats.delivered = frames.dropped + fitted.dropped, frames.delivered
         show(stats, force=True)
         if status and sys.stderr.isatty():
             print(file=sys.stderr)
     if stats.init_frames == 0:
-        raise DriveError(f"{source.name}: the source ended after {mailbox.delivered} frame(s), before the identity "
+        raise DriveError(f"{source.name}: the source ended after {frames.delivered} frame(s), before the identity "
                          f"stage's {init_count} frames (--init-seconds {init_seconds})")
     return stats
 

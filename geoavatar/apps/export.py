@@ -26,15 +26,15 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from geoavatar.apps.common import (EXPORT_DIR, RunFrames, RunPath, default_output, open_run, pose_gaussians, progress,
-                                   split_timesteps)
+from geoavatar.apps.common import EXPORT_DIR, RunPath, default_output, pose_gaussians, progress, split_timesteps
 from geoavatar.apps.expression_transfer import TransferMode, resolve_transfer
 from geoavatar.avatar import GlobalGaussians
 from geoavatar.avatar.model import rgb_to_sh_dc
 from geoavatar.errors import OptionError
 from geoavatar.io.atomic import atomic_folder, atomic_write_npz
 from geoavatar.io.ply import GaussianPly, write_gaussian_ply
-from geoavatar.train.checkpoint import LoadedRun
+from geoavatar.train.checkpoint import LoadedRun, open_run
+from geoavatar.train.run_frames import RunFrames
 
 FRAME_FILE = "frame_{:05d}.ply"
 

@@ -45,7 +45,7 @@ from torch import Tensor
 from geoavatar.errors import OptionError
 
 if TYPE_CHECKING:
-    from geoavatar.apps.common import RunFrames
+    from geoavatar.train.run_frames import RunFrames
 
 TransferMode = Literal["absolute", "relative", "statistics", "subspace"]
 TRANSFER_MODES: tuple[str, ...] = get_args(TransferMode)

@@ -25,17 +25,18 @@ from typing import Literal, NamedTuple, Optional
 
 import torch
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, default_output, head_centre,
-                                   open_run, progress, rasterize_gaussians, record_camera, run_background,
-                                   side_by_side, to_uint8, torch_threads)
-from geoavatar.avatar import pose_avatar
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, default_output, head_centre, progress,
+                                   record_camera, run_background, side_by_side, torch_threads)
+from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
 from geoavatar.eval.floaters import DEFAULT_DILATE, FloaterConfig, head_silhouette, outside_share
+from geoavatar.imaging import to_uint8
 from geoavatar.io.atomic import atomic_write_png
 from geoavatar.io.video import Mp4Writer
 from geoavatar.render.camera import orbit_cameras
-from geoavatar.train.checkpoint import RunError
+from geoavatar.train.checkpoint import RunError, open_run
+from geoavatar.train.run_frames import RunFrames
 
 
 def sweep_angles(frames: int, yaw_max: float, pitch_max: float) -> list[tuple[float, float]]:

@@ -67,23 +67,24 @@ from typing import Iterator, Literal, Optional, Sequence
 import torch
 from torch import Tensor
 
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, check_threads, default_output, progress,
+                                   record_camera, render_params, run_background, side_by_side, torch_threads)
 from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, resolve_transfer,
                                                 statistics_transfer, subspace_projection, transfer_mode,
                                                 transfer_statistics)
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, check_threads,
-                                   default_output, evenly_spaced, fit_height, open_run, progress, record_camera, render_params,
-                                   run_background, side_by_side, to_uint8, torch_threads)
-from geoavatar.data import DataConfig, HeadAvatarDataset, open_subject
+from geoavatar.data import DataConfig, HeadAvatarDataset, evenly_spaced, open_subject
 from geoavatar.data.dataset import item_camera
 from geoavatar.data.subject import Subject
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.eval.cross import DrivenPicture
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
-from geoavatar.io.video import Mp4Writer
 from geoavatar.head.params import SUBJECT_KEYS, HeadParams
+from geoavatar.imaging import fit_height, to_uint8
+from geoavatar.io.video import Mp4Writer
 from geoavatar.prep.errors import PrepareError
 from geoavatar.render import composite_target
-from geoavatar.train.checkpoint import LoadedRun, RunError
+from geoavatar.train.checkpoint import LoadedRun, RunError, open_run
+from geoavatar.train.run_frames import RunFrames
 
 ROTATION_KEYS = ("rotation", "neck_pose", "jaw_pose", "eyes_pose")  # axis-angle, 3 numbers per joint
 TRANSFERRED_KEYS = ("expr", *ROTATION_KEYS, "translation")

@@ -14,14 +14,16 @@ from typing import Literal, Optional
 
 import torch
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, default_output, error_map,
-                                   evenly_spaced, open_run, open_run_dataset, progress, render_params, side_by_side,
-                                   to_uint8, torch_threads)
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, default_output, error_map, progress,
+                                   render_params, side_by_side, torch_threads)
+from geoavatar.data import evenly_spaced
 from geoavatar.data.dataset import item_camera
 from geoavatar.errors import OptionError
+from geoavatar.imaging import to_uint8
 from geoavatar.io.video import Mp4Writer
 from geoavatar.render import composite_target
-from geoavatar.train.checkpoint import LoadedRun
+from geoavatar.train.checkpoint import LoadedRun, open_run, open_run_dataset
+from geoavatar.train.run_frames import RunFrames
 
 Split = Literal["test", "val", "train", "all"]
 

@@ -84,7 +84,8 @@ def track_subject(subject, config=None, flame_dir: Path | None = None, progress:
     """Fit every frame of `subject`; returns the PhotometricResult (params rows = subject.timesteps)."""
     from tqdm import tqdm
 
-    from geoavatar.prep.photometric import PhotometricTargets, crop_boxes, fit_photometric, total_steps, weighted_vertex_ids
+    from geoavatar.prep.photometric import (PhotometricTargets, crop_boxes, fit_photometric, total_steps,
+                                            weighted_vertex_ids)
 
     config = config or PhotometricConfig()
     head = tracking_head(subject, flame_dir)
@@ -106,10 +107,10 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
     came from the run, which were fitted, their L1 before and after)."""
     from tqdm import tqdm
 
-    from geoavatar.apps.common import open_run
     from geoavatar.data.dataset import DataConfig, HeadAvatarDataset
     from geoavatar.prep.photometric import residual_report
     from geoavatar.train.avatar_tracking import track_frames
+    from geoavatar.train.checkpoint import open_run
 
     run = open_run(run_dir, device, flame_dir=flame_dir)
     if subject.head_model != run.info.head_model:
@@ -166,12 +167,11 @@ def _start_rows(subject, run, trained: set[int]) -> dict:
 
 def _avatar_frames(dataset, indices: list[int], run):
     """AvatarFrames of the dataset's items `indices` on the run's device (decoded one at a time)."""
-    from geoavatar.apps.common import run_device
     from geoavatar.data.dataset import item_camera, item_to
     from geoavatar.train.avatar_tracking import AvatarFrame
 
     for index in indices:
-        item = item_to(dataset[index], run_device(run))
+        item = item_to(dataset[index], run.device)
         yield AvatarFrame(HeadParams.from_npz(item["params"]), item_camera(item), item["image"], item["mask"],
                           item["background"])
 

@@ -27,11 +27,12 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import RunFrames, RunPath, head_centre, open_run, posed_head_vertices
+from geoavatar.apps.common import RunPath, head_centre, posed_head_vertices
 from geoavatar.errors import OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from geoavatar.head.params import HeadParams
-from geoavatar.train.checkpoint import LoadedRun
+from geoavatar.train.checkpoint import LoadedRun, open_run
+from geoavatar.train.run_frames import RunFrames
 from geoavatar.web.live import LiveServer
 
 EXPR_RANGE = 3.0  # expression offsets in units of the basis (FLAME's coefficients are ~N(0, 1))

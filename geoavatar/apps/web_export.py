@@ -17,22 +17,24 @@ dataset camera sees the clip's head from; the page's "free orbit" lifts the limi
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (RunFrames, head_centre, posed_head_vertices, progress, record_camera, run_background,
+from geoavatar.apps.common import (head_centre, posed_head_vertices, progress, record_camera, run_background,
                                    split_timesteps)
 from geoavatar.apps.expression_transfer import DEFAULT_TRANSFER, TransferMode, transfer_mode
 from geoavatar.apps.reenact import driven_clip, frame_of, track_driver
-from geoavatar.errors import OptionError
+from geoavatar.errors import GeoAvatarWarning, OptionError
 from geoavatar.eval.evaluate import trained_view_directions
-from geoavatar.head.view_angles import view_directions, yaw_pitch
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
+from geoavatar.head.view_angles import view_directions, yaw_pitch
 from geoavatar.render.camera import Camera
 from geoavatar.train.checkpoint import LoadedRun, open_run_dataset
+from geoavatar.train.run_frames import RunFrames
 from geoavatar.web.pack import PlayerAssets, player_assets, quantise_clip, write_player_folder
 
 ORBIT_MARGIN = 10.0  # degrees beyond the trained head turns the default orbit allows
@@ -95,6 +97,10 @@ def clip_cameras(run: LoadedRun, data: Path | None, timesteps: list[int]) -> tup
 def web_assets(run: LoadedRun, vertices: Tensor, first_params: HeadParams, timesteps: list[int], fps: float,
                source: str, data: Path | None, camera_timesteps: list[int]) -> PlayerAssets:
     """The player's manifest and binaries of a posed clip (vertices [T, V, 3])."""
+    if run.avatar.follows_head:
+        warnings.warn(GeoAvatarWarning(
+            "the web player moves every Gaussian with its triangle only: this avatar's hair follows the head's turn "
+            "(model.hair_follows_head) in Python's renderer, in the browser it stays as learned at the rest pose"))
     camera, viewmats = clip_cameras(run, data, camera_timesteps)
     orbit = orbit_limits(run, data, vertices, torch.stack(viewmats) if viewmats else camera.viewmat)
     orbit["centre"] = [float(c) for c in head_centre(run, first_params).cpu()]

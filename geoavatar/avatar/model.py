@@ -12,7 +12,12 @@ Parameters (a ParameterDict `params`, every entry [N, ...], names as in the stan
     f_normal   [N, 9]  only with normal_shading: colour += F n, F = f_normal as [3, 3] (RGB x xyz) and n the
                        world direction of the Gaussian's face normal (diffuse shading by lights fixed to the
                        world, i.e. to a fixed dataset camera while the head turns)
-Buffers: binding [N] (face index, int64), faces [F, 3].
+    f_pose     [N, 18] only with hair_follows_head (avatar/hair_motion.py): colour += C c, C = f_pose as [3, 6]
+                       and c [6] the frame's head pose code (head rotation, neck), for Gaussians off the face
+    means_pose [N, 18] only with hair_follows_head: local mean += M c, M = means_pose as [3, 6], in the
+                       face-scale units of `means` (long hair swinging with the head's turn)
+Buffers: binding [N] (face index, int64), faces [F, 3]; with hair_follows_head moving [F] bool (the faces
+whose Gaussians take the pose code).
 """
 
 from __future__ import annotations
@@ -23,10 +28,12 @@ import torch
 from torch import Tensor, nn
 
 from geoavatar.avatar.binding import GlobalGaussians, face_frames, local_to_global, polar_coordinates
+from geoavatar.avatar.hair_motion import POSE_CODE_DIM
 
 SH_C0 = 0.28209479177387814  # Y_0^0
 GAUSSIAN_PARAM_NAMES = ("means", "quats", "scales", "f_dc", "opacities")
-OPTIONAL_PARAM_NAMES = ("f_normal",)  # present only when the avatar has them (normal_shading)
+# present only when the avatar has them: f_normal with normal_shading, f_pose / means_pose with hair_follows_head
+OPTIONAL_PARAM_NAMES = ("f_normal", "f_pose", "means_pose")
 
 
 def param_names(params) -> tuple[str, ...]:
@@ -62,7 +69,8 @@ def initial_gaussian_params(num_faces: int, init_opacity: float = 0.1, device=No
 class GaussianAvatar(nn.Module):
     """Gaussians rigged to the faces of a head model."""
 
-    def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1, normal_shading: bool = False):
+    def __init__(self, faces: Tensor | np.ndarray, init_opacity: float = 0.1, normal_shading: bool = False,
+                 moving: Tensor | None = None):
         super().__init__()
         faces = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces, dtype=torch.long)
         if faces.dim() != 2 or faces.shape[1] != 3:
@@ -71,8 +79,21 @@ class GaussianAvatar(nn.Module):
         init = initial_gaussian_params(faces.shape[0], init_opacity)
         if normal_shading:  # no shading at the start: the SH-0 colour alone
             init["f_normal"] = torch.zeros(faces.shape[0], 9)
+        if moving is not None:  # zero at the start: every head pose shows the same hair
+            init["f_pose"] = torch.zeros(faces.shape[0], 3 * POSE_CODE_DIM)
+            init["means_pose"] = torch.zeros(faces.shape[0], 3 * POSE_CODE_DIM)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in init.items()})
         self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
+        # [F] bool: the faces whose Gaussians follow the head's turn (avatar/hair_motion.moving_faces); None: none
+        self.register_buffer("moving", None if moving is None else torch.as_tensor(moving, dtype=torch.bool).reshape(-1))
+
+    @classmethod
+    def for_model(cls, head, model) -> "GaussianAvatar":
+        """The avatar a `config.ModelConfig` describes, bound to `head`'s faces (one Gaussian per face)."""
+        from geoavatar.avatar.hair_motion import moving_faces
+
+        moving = moving_faces(head) if model.hair_follows_head else None
+        return cls(head.faces.cpu(), model.init_opacity, model.normal_shading, moving)
 
     @property
     def num_faces(self) -> int:
@@ -86,18 +107,27 @@ class GaussianAvatar(nn.Module):
         """[F] number of Gaussians bound to each face."""
         return torch.bincount(self.binding, minlength=self.num_faces)
 
-    def forward(self, vertices: Tensor) -> GlobalGaussians:
-        """vertices [V, 3] or [B, V, 3] posed head vertices -> Gaussians in the same space ([N,...] or [B,N,...])."""
+    def forward(self, vertices: Tensor, code: Tensor | None = None) -> GlobalGaussians:
+        """vertices [V, 3] or [B, V, 3] posed head vertices -> Gaussians in the same space ([N,...] or [B,N,...]).
+
+        code [6]: the frame's head pose code (avatar/hair_motion.head_pose_code), which moves the Gaussians off the
+        face when the avatar follows the head's turn (None: the code 0, the hair as learned at the rest pose); one
+        frame at a time (vertices [V, 3])."""
         frames = face_frames(vertices, self.faces)
         p = self.params
-        means, quats, scales = local_to_global(p["means"], p["quats"], p["scales"], self.binding, frames)
+        local_means, colour_offset = p["means"], None
+        if code is not None and self.follows_head:
+            local_means = p["means"] + self.pose_offset(p["means_pose"], code)  # [N, 3]
+            colour_offset = self.pose_offset(p["f_pose"], code)  # [N, 3]
+        means, quats, scales = local_to_global(local_means, p["quats"], p["scales"], self.binding, frames)
         if "f_normal" in p:
             # The face normal in world axes (detached: shading must not pull the geometry or the tracking).
             normal = frames.rotation[..., self.binding, :, 1].detach()  # [(B,) N, 3]
             shading = (p["f_normal"].view(-1, 3, 3) * normal[..., None, :]).sum(-1)  # [(B,) N, 3]
-            colors = (SH_C0 * p["f_dc"] + 0.5 + shading).clamp_min(0.0)
+            colors = SH_C0 * p["f_dc"] + 0.5 + shading
         else:
-            colors = sh_dc_to_rgb(p["f_dc"])
+            colors = SH_C0 * p["f_dc"] + 0.5
+        colors = (colors if colour_offset is None else colors + colour_offset).clamp_min(0.0)
         return GlobalGaussians(
             means=means,
             quats=quats,
@@ -110,6 +140,19 @@ class GaussianAvatar(nn.Module):
     @property
     def normal_shading(self) -> bool:
         return "f_normal" in self.params
+
+    @property
+    def follows_head(self) -> bool:
+        """Whether the Gaussians off the face move with the head pose code (model.hair_follows_head)."""
+        return "f_pose" in self.params
+
+    def pose_offset(self, basis: Tensor, code: Tensor) -> Tensor:
+        """basis [N, 18], code [6] -> [N, 3]: sum_k code_k basis[:, :, k] for the moving faces' Gaussians, 0 elsewhere."""
+        if code.shape != (POSE_CODE_DIM,):
+            raise ValueError(f"GaussianAvatar: the head pose code must be [{POSE_CODE_DIM}] (one frame), got "
+                             f"{tuple(code.shape)}")
+        offset = basis.view(-1, 3, POSE_CODE_DIM) @ code.to(basis.dtype)  # [N, 3]
+        return offset * self.moving[self.binding][:, None]
 
     def polar(self, two_sided: bool = False) -> tuple[Tensor, Tensor]:
         """r [N], phi [N] of the local means (see binding.polar_coordinates)."""
@@ -151,6 +194,8 @@ def gaussian_param_groups(params: dict[str, Tensor] | nn.ParameterDict, lr, scen
         "f_dc": lr.features,
         "opacities": lr.opacity,
         "f_normal": lr.features,
+        "f_pose": lr.features,
+        "means_pose": lr.position * scene_extent,  # decays with "means" (the trainer sets both)
     }
     return [{"params": [params[name]], "lr": rates[name], "name": name} for name in param_names(params)]
 

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from geoavatar.avatar.binding import GlobalGaussians
 from geoavatar.avatar.deform import MouthDeformer, posed_head
+from geoavatar.avatar.hair_motion import head_pose_code
 from geoavatar.avatar.model import GaussianAvatar
 from geoavatar.head.base import HeadModel
 from geoavatar.head.params import HeadParams
@@ -42,9 +43,11 @@ def pose_avatar(
     timestep: int | None = None,  # T of the mouth deformer; None = T = 0 (see frame_timestep)
     deformer: MouthDeformer | None = None,
 ) -> PosedAvatar:
-    """Head posed by `params` (with the part-wise mouth offsets), then the avatar's local -> global."""
+    """Head posed by `params` (with the part-wise mouth offsets), then the avatar's local -> global (with the frame's
+    head pose code when the avatar's hair follows the head's turn)."""
     vertices = posed_head(head, params, deformer, timestep).vertices[0]  # [V, 3]
-    return PosedAvatar(avatar(vertices), vertices)
+    code = head_pose_code(params) if avatar.follows_head else None  # [6]
+    return PosedAvatar(avatar(vertices, code), vertices)
 
 
 def rasterize_gaussians(

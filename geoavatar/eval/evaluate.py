@@ -50,7 +50,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geoavatar.avatar import TimestepMode, frame_timestep, render_avatar
+from geoavatar.avatar import TimestepMode, render_avatar
 from geoavatar.data import HeadAvatarDataset, evenly_spaced
 from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.errors import OptionError
@@ -64,7 +64,7 @@ from geoavatar.imaging import to_uint8
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import dilation_pixels, rasterize_mesh
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
-from geoavatar.train.frame_params import FrameParams
+from geoavatar.train.run_frames import RunFrames
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
 from geoavatar.render import composite_target
@@ -183,9 +183,6 @@ class RenderedFrame(NamedTuple):
     T: int | None  # the deformer's time input (None: T = 0)
 
 
-# --- opening the data of a run -------------------------------------------------------------------
-
-
 # --- rendering the frames of a run ---------------------------------------------------------------
 
 
@@ -197,18 +194,15 @@ def render_run_frames(
     timestep_mode: TimestepMode = "auto",
     backend: str = "auto",
 ) -> Iterator[RenderedFrame]:
-    """Render frames of `dataset` with the run's avatar (see the module docstring for the rules).
+    """Render frames of `dataset` with the run's avatar: each frame's parameters and T by RunFrames (the rule in the
+    module docstring), a frame outside training with the dataset's own tracked parameters.
 
-    Yields RenderedFrame(index, item, pred, target, vertices) on the device of the run's modules.
+    Yields RenderedFrame(index, item, pred, target, vertices, alpha, params, T) on the device of the run's modules.
     """
-    device = next(run.avatar.parameters()).device
-    train_timesteps = set(run.info.timesteps.get("train", []))
-    refined = FrameParams(run.info.frame_params, refine=False).to(device)
+    frames = RunFrames(run)
     for index in (range(len(dataset)) if indices is None else indices):
-        item = item_to(dataset[index], device)
-        seen = item["timestep"] in train_timesteps
-        params = refined(item["row"]) if seen else HeadParams.from_npz(item["params"])
-        timestep = frame_timestep(item["timestep"], train_timesteps, timestep_mode)
+        item = item_to(dataset[index], frames.device)
+        params, timestep = frames.params(item["timestep"], HeadParams.from_npz(item["params"]), timestep_mode)
         frame = render_avatar(run.avatar, run.head, params, item_camera(item), timestep, run.deformer,
                               item["background"], backend)
         pred = frame.result.rgb.clamp(0.0, 1.0)
@@ -291,6 +285,157 @@ def run_label(run: LoadedRun) -> tuple[str, str | None, str]:
     return (f"{preset} · {subject}" if preset else f"{run.info.run_dir.name} · {subject}"), preset, subject
 
 
+def image_metrics(frame: RenderedFrame, config: EvalConfig) -> FrameMetrics:
+    """A frame's record with its whole-image MSE, PSNR, SSIM and LPIPS (render vs composited ground truth)."""
+    pred, target, item = frame.pred, frame.target, frame.item
+    mse = metrics.mse(pred, target)
+    return FrameMetrics(
+        index=frame.index, timestep=int(item["timestep"]), camera=int(item["camera"]), mse=mse,
+        psnr=metrics.psnr_from_mse(mse), ssim=metrics.ssim(pred, target),
+        lpips=float(metrics.lpips(pred, target, config.lpips_net, config.lpips_unit_inputs)[0]),
+    )
+
+
+def measure_mouth(record: FrameMetrics, frame: RenderedFrame, head, mouth_faces: Tensor, config: EvalConfig) -> Tensor:
+    """The mouth numbers of a frame (module docstring) onto its record; returns the mouth mask [H, W] bool."""
+    pred, target, item = frame.pred, frame.target, frame.item
+    dilate = dilation_pixels(config.mouth_dilate, item["width"], item["height"])
+    mask = mouth_mask(frame.vertices, head.faces, mouth_faces, item["viewmat"], item["K"], item["width"],
+                      item["height"], dilate)
+    box = crop_box(mask, config.mouth_min_crop)
+    if box is None:
+        return mask
+    y0, y1, x0, x1 = box
+    record.mouth_pixels = int(mask.sum())
+    record.mouth_share = record.mouth_pixels / float(item["width"] * item["height"])
+    record.mouth_psnr = metrics.masked_psnr(pred, target, mask)
+    record.mouth_box = box
+    if min(y1 - y0, x1 - x0) >= MIN_SIZE[config.lpips_net]:  # else the image itself is too small
+        record.mouth_lpips = float(metrics.lpips(pred[y0:y1, x0:x1], target[y0:y1, x0:x1], config.lpips_net,
+                                                 config.lpips_unit_inputs)[0])
+    return mask
+
+
+class _Evaluation:
+    """What evaluate_run measures of each rendered frame (`measure`), what it gathers, and the result it makes."""
+
+    def __init__(self, run: LoadedRun, config: EvalConfig, dataset: HeadAvatarDataset, indices: list[int],
+                 data: str | Path | None, flame_dir: str | Path | None):
+        self.run, self.config, self.dataset, self.indices = run, config, dataset, indices
+        self.mouth_faces = mouth_face_mask(run.head) if config.mouth else None  # [F] bool
+        self.floater_config = FloaterConfig(dilate=config.floater_dilate)
+        wants_turned = config.floaters and config.split != "novel" and config.floater_frames > 0
+        # the dataset indices of the frames whose floaters are measured at turned views too
+        self.turned_at = set(indices[i] for i in evenly_spaced(len(indices), config.floater_frames)) \
+            if wants_turned else set()
+        self.turned_shares: dict[str, list[float]] = {}  # turned view -> the outside share of each such frame
+        self.skull = skull_vertex_ids(run.head)
+        self.rest, self.trained = trained_view_directions(run, dataset)  # [S, 3], [N, 3]
+        self.scorer = face_scorer(run, data, flame_dir) if config.faces else None
+        self.frames: list[FrameMetrics] = []
+        self.images: list[dict[str, Tensor]] = []
+        self.face_frames: list[FaceScores] = []
+
+    def measure(self, frame: RenderedFrame) -> FrameMetrics:
+        """Every number of one rendered frame, kept (with its images when config.keep_images); its record."""
+        config = self.config
+        record = image_metrics(frame, config)
+        mask = measure_mouth(record, frame, self.run.head, self.mouth_faces, config) \
+            if self.mouth_faces is not None else None
+        record.view = self.dataset.frames[frame.index].view
+        self._view_angles(record, frame)
+        if config.floaters:
+            self._floaters(record, frame)
+        if self.scorer is not None:
+            self.face_frames.append(score_face(self.scorer, frame.pred, frame.target, record))
+        self.frames.append(record)
+        if config.keep_images:
+            self.images.append({"pred": frame.pred.cpu(), "gt": frame.target.cpu(),
+                                "mouth": mask.cpu() if mask is not None else None})
+        return record
+
+    def _view_angles(self, record: FrameMetrics, frame: RenderedFrame) -> None:
+        """Where the frame's camera sees the face from (head axes), and whether a training frame saw it so."""
+        skull = frame.vertices[self.skull.to(frame.vertices.device)][None].cpu()  # [1, S, 3]
+        direction = view_directions(self.rest, skull, frame.item["viewmat"][None].cpu())  # [1, 3]
+        yaw, pitch = yaw_pitch(direction)
+        record.view_yaw, record.view_pitch = round(float(yaw), 2), round(float(pitch), 2)
+        record.trained_view = bool(within_trained_views(direction, self.trained, TRAINED_VIEW_TOLERANCE)[0])
+
+    def _floaters(self, record: FrameMetrics, frame: RenderedFrame) -> None:
+        """The outside shares of the render and of the ground-truth mask; at turned views for the chosen frames."""
+        item, camera = frame.item, item_camera(frame.item)
+        silhouette = head_silhouette(frame.vertices, self.run.head.faces, camera,
+                                     self.floater_config.dilate_px(item["width"], item["height"]))
+        record.outside = outside_share(frame.alpha, silhouette)
+        record.gt_outside = outside_share(item["mask"], silhouette)
+        if frame.index in self.turned_at:
+            for name, share in side_view_shares(self.run, frame.params, frame.T, camera, self.floater_config,
+                                                self.config.backend).items():
+                self.turned_shares.setdefault(name, []).append(share)
+
+    def close(self) -> None:
+        """Release the face scorer's models (called once the frames are done, also after an error)."""
+        if self.scorer is not None:
+            self.scorer.close()
+
+    def result(self, seconds: float) -> EvalResult:
+        """The EvalResult of the frames measured: per frame, the summary, per view, turned views, face scores."""
+        run, frames = self.run, self.frames
+        label, preset, subject = run_label(run)
+        views = list(dict.fromkeys(f.view for f in frames if f.view is not None))
+        return EvalResult(
+            run_dir=run.info.run_dir, label=label, preset=preset, subject=subject, split=self.config.split,
+            step=run.info.step, checkpoint=str(run.info.checkpoint), frames=frames, summary=summarize(frames),
+            settings=self.settings(), seconds=seconds, images=self.images,
+            by_view={view: summarize([f for f in frames if f.view == view]) for view in views},
+            by_view_range={view: summarize_by_trained_view([f for f in frames if f.view == view]) for view in views},
+            side_views={name: float(np.mean(values)) for name, values in self.turned_shares.items()},
+            faces=face_summary(self.face_frames) if self.scorer is not None else None,
+        )
+
+    def settings(self) -> dict:
+        """What an evaluation measured and how (metrics.json's settings)."""
+        config, dataset, run = self.config, self.dataset, self.run
+        return {
+            "split": config.split,
+            "frames_in_split": len(dataset),
+            "frames_evaluated": len(self.indices),
+            "max_frames": config.max_frames,
+            "data_root": str(dataset.subject.root),
+            "resolution": run.info.resolution,
+            "background": [float(c) for c in dataset.background],
+            "lpips_net": config.lpips_net,
+            "lpips_inputs": ("[0,1] unscaled (3DGS scripts)" if config.lpips_unit_inputs
+                             else "[-1,1] (LPIPS definition)"),
+            "ssim": "Gaussian window 11x11, sigma 1.5, K1 0.01, K2 0.03, zero padding (3DGS ssim)",
+            "composite": "pred: render on the dataset background; gt: image * mask + background * (1 - mask)",
+            "timestep_mode": config.timestep_mode,
+            "params": "refined per-frame parameters for training timesteps, the dataset's tracking otherwise",
+            "mouth": ({"faces": "mouth structure (F_m) + lips faces, z-buffered",
+                       "dilate_fraction": config.mouth_dilate, "min_crop": config.mouth_min_crop}
+                      if config.mouth else None),
+            "std": "population (ddof 0) over frames",
+            "view_angles": {"measure": "view_yaw / view_pitch: degrees from the head's centre to the camera in the "
+                                       "head's own axes (rest skin -> posed skin, least squares); trained_view: a "
+                                       "training frame saw the face from within tolerance_deg",
+                            "tolerance_deg": TRAINED_VIEW_TOLERANCE, "training_frames": int(self.trained.shape[0])},
+            "backend": config.backend,
+            "floaters": self._floater_settings() if config.floaters else None,
+            "faces": face_settings(self.scorer) if self.scorer is not None else None,
+        }
+
+    def _floater_settings(self) -> dict:
+        """metrics.json's settings of the floater shares."""
+        views = self.floater_config.views
+        return {"measure": "share of rendered opacity outside the head-mesh silhouette (with the mouth structure) "
+                           "dilated by dilate_fraction of the longer image side; gt_outside: the same share of the "
+                           "ground-truth mask",
+                "dilate_fraction": self.config.floater_dilate,
+                "side_views": {name: [yaw, pitch] for name, yaw, pitch in views} if self.turned_shares else None,
+                "side_view_frames": sorted(int(self.dataset.frames[i].timestep) for i in self.turned_at)}
+
+
 def evaluate_run(
     run: LoadedRun,
     config: EvalConfig | None = None,
@@ -298,123 +443,28 @@ def evaluate_run(
     progress: bool = True,
     flame_dir: str | Path | None = None,
 ) -> EvalResult:
-    """Per-frame MSE / PSNR / SSIM / LPIPS (+ mouth PSNR / LPIPS) of a loaded run on config.split."""
+    """Per-frame MSE / PSNR / SSIM / LPIPS (+ mouth PSNR / LPIPS, view angles, floaters, face scores) of a loaded run
+    on config.split."""
+    from tqdm.auto import tqdm
+
     config = (config or EvalConfig()).validate()
     started = time.perf_counter()
     dataset = open_run_dataset(run, config.split, data, flame_dir)
     if len(dataset) == 0:
         raise RunError(f"{run.info.run_dir}: the '{config.split}' split of {dataset.subject.root} is empty")
     indices = evenly_spaced(len(dataset), config.max_frames)
-    selected = mouth_face_mask(run.head) if config.mouth else None
-    from tqdm.auto import tqdm
-
-    label, preset, subject = run_label(run)
-    frames: list[FrameMetrics] = []
-    images: list[dict[str, Tensor]] = []
-    floater_config = FloaterConfig(dilate=config.floater_dilate)
-    side_at = set(indices[i] for i in evenly_spaced(len(indices), config.floater_frames)) \
-        if config.floaters and config.split != "novel" and config.floater_frames > 0 else set()
-    side: dict[str, list[float]] = {}
-    skull = skull_vertex_ids(run.head)
-    rest, trained = trained_view_directions(run, dataset)  # [S, 3], [N, 3]
-    scorer = face_scorer(run, data, flame_dir) if config.faces else None
-    face_frames = []
-    bar = tqdm(total=len(indices), disable=not progress, dynamic_ncols=True, unit="frame", desc=f"eval {label}")
+    evaluation = _Evaluation(run, config, dataset, indices, data, flame_dir)
+    bar = tqdm(total=len(indices), disable=not progress, dynamic_ncols=True, unit="frame",
+               desc=f"eval {run_label(run)[0]}")
     try:
         for frame in render_run_frames(run, dataset, indices, config.timestep_mode, config.backend):
-            pred, target, item = frame.pred, frame.target, frame.item
-            mse = metrics.mse(pred, target)
-            record = FrameMetrics(
-                index=frame.index, timestep=int(item["timestep"]), camera=int(item["camera"]), mse=mse,
-                psnr=metrics.psnr_from_mse(mse), ssim=metrics.ssim(pred, target),
-                lpips=float(metrics.lpips(pred, target, config.lpips_net, config.lpips_unit_inputs)[0]),
-            )
-            mask = None
-            if selected is not None:
-                dilate = dilation_pixels(config.mouth_dilate, item["width"], item["height"])
-                mask = mouth_mask(frame.vertices, run.head.faces, selected, item["viewmat"], item["K"],
-                                  item["width"], item["height"], dilate)
-                box = crop_box(mask, config.mouth_min_crop)
-                if box is not None:
-                    y0, y1, x0, x1 = box
-                    record.mouth_pixels = int(mask.sum())
-                    record.mouth_share = record.mouth_pixels / float(item["width"] * item["height"])
-                    record.mouth_psnr = metrics.masked_psnr(pred, target, mask)
-                    record.mouth_box = box
-                    if min(y1 - y0, x1 - x0) >= MIN_SIZE[config.lpips_net]:  # else the image itself is too small
-                        record.mouth_lpips = float(metrics.lpips(pred[y0:y1, x0:x1], target[y0:y1, x0:x1],
-                                                                 config.lpips_net, config.lpips_unit_inputs)[0])
-            record.view = dataset.frames[frame.index].view
-            direction = view_directions(rest, frame.vertices[skull.to(frame.vertices.device)][None].cpu(),
-                                        item["viewmat"][None].cpu())  # [1, 3]
-            yaw, pitch = yaw_pitch(direction)
-            record.view_yaw, record.view_pitch = round(float(yaw), 2), round(float(pitch), 2)
-            record.trained_view = bool(within_trained_views(direction, trained, TRAINED_VIEW_TOLERANCE)[0])
-            if config.floaters:
-                camera = item_camera(item)
-                silhouette = head_silhouette(frame.vertices, run.head.faces, camera,
-                                             floater_config.dilate_px(item["width"], item["height"]))
-                record.outside = outside_share(frame.alpha, silhouette)
-                record.gt_outside = outside_share(item["mask"], silhouette)
-                if frame.index in side_at:
-                    for name, share in side_view_shares(run, frame.params, frame.T, camera, floater_config,
-                                                        config.backend).items():
-                        side.setdefault(name, []).append(share)
-            if scorer is not None:
-                face_frames.append(score_face(scorer, pred, target, record))
-            frames.append(record)
-            if config.keep_images:
-                images.append({"pred": pred.cpu(), "gt": target.cpu(),
-                               "mouth": mask.cpu() if mask is not None else None})
+            record = evaluation.measure(frame)
             bar.update(1)
             bar.set_postfix(psnr=f"{record.psnr:.2f}", refresh=False)
     finally:
         bar.close()
-        if scorer is not None:
-            scorer.close()
-    settings = {
-        "split": config.split,
-        "frames_in_split": len(dataset),
-        "frames_evaluated": len(indices),
-        "max_frames": config.max_frames,
-        "data_root": str(dataset.subject.root),
-        "resolution": run.info.resolution,
-        "background": [float(c) for c in dataset.background],
-        "lpips_net": config.lpips_net,
-        "lpips_inputs": "[0,1] unscaled (3DGS scripts)" if config.lpips_unit_inputs else "[-1,1] (LPIPS definition)",
-        "ssim": "Gaussian window 11x11, sigma 1.5, K1 0.01, K2 0.03, zero padding (3DGS ssim)",
-        "composite": "pred: render on the dataset background; gt: image * mask + background * (1 - mask)",
-        "timestep_mode": config.timestep_mode,
-        "params": "refined per-frame parameters for training timesteps, the dataset's tracking otherwise",
-        "mouth": ({"faces": "mouth structure (F_m) + lips faces, z-buffered", "dilate_fraction": config.mouth_dilate,
-                   "min_crop": config.mouth_min_crop} if config.mouth else None),
-        "std": "population (ddof 0) over frames",
-        "view_angles": {"measure": "view_yaw / view_pitch: degrees from the head's centre to the camera in the head's "
-                                   "own axes (rest skin -> posed skin, least squares); trained_view: a training frame "
-                                   "saw the face from within tolerance_deg", "tolerance_deg": TRAINED_VIEW_TOLERANCE,
-                        "training_frames": int(trained.shape[0])},
-        "backend": config.backend,
-        "floaters": ({"measure": "share of rendered opacity outside the head-mesh silhouette (with the mouth "
-                                 "structure) dilated by dilate_fraction of the longer image side; gt_outside: "
-                                 "the same share of the ground-truth mask",
-                      "dilate_fraction": config.floater_dilate,
-                      "side_views": {name: [yaw, pitch] for name, yaw, pitch in floater_config.views} if side else None,
-                      "side_view_frames": sorted(int(dataset.frames[i].timestep) for i in side_at)}
-                     if config.floaters else None),
-        "faces": face_settings(scorer) if scorer is not None else None,
-    }
-    views = [f.view for f in frames if f.view is not None]
-    by_view = {view: summarize([f for f in frames if f.view == view]) for view in dict.fromkeys(views)}
-    by_view_range = {view: summarize_by_trained_view([f for f in frames if f.view == view])
-                     for view in dict.fromkeys(views)}
-    return EvalResult(
-        run_dir=run.info.run_dir, label=label, preset=preset, subject=subject, split=config.split,
-        step=run.info.step, checkpoint=str(run.info.checkpoint), frames=frames, summary=summarize(frames),
-        settings=settings, seconds=time.perf_counter() - started, images=images, by_view=by_view,
-        by_view_range=by_view_range,
-        side_views={name: float(np.mean(values)) for name, values in side.items()},
-        faces=face_summary(face_frames) if scorer is not None else None,
-    )
+        evaluation.close()
+    return evaluation.result(time.perf_counter() - started)
 
 
 def face_scorer(run: LoadedRun, data: str | Path | None = None, flame_dir: str | Path | None = None) -> FaceScorer:
@@ -456,21 +506,18 @@ def summarize_by_trained_view(frames: Sequence[FrameMetrics]) -> dict[str, dict]
 def trained_view_directions(run: LoadedRun, dataset: HeadAvatarDataset) -> tuple[Tensor, Tensor]:
     """(rest skull [S, 3], [N, 3] the directions the training frames saw the face from, head axes) with the
     run's refined parameters and the training frames' cameras (no image is read)."""
-    device = next(run.avatar.parameters()).device
-    params = FrameParams(run.info.frame_params, refine=False)
-    rest = rest_skull(run.head, params(0).to(device)).cpu()  # [S, 3]
+    values = RunFrames(run).values  # [T, ...] on the run's device
+    rest = rest_skull(run.head, values.frame(0)).cpu()  # [S, 3]
     records = dataset.subject.frames_of(dataset.split.timesteps("train"))
     if not records:
         return rest, torch.zeros(0, 3, dtype=torch.float64)
-    skull = skull_vertex_ids(run.head).to(device)
+    skull = skull_vertex_ids(run.head).to(values.device)
     viewmats = torch.as_tensor(np.stack([r.viewmat for r in records]))  # [N, 4, 4]
     directions = []
     for start in range(0, len(records), 256):  # a long video's posed meshes at once would take gigabytes
-        rows = torch.as_tensor([r.row for r in records[start:start + 256]])
-        chunk = HeadParams(shape=params.shape, static_offset=params.static_offset,
-                           **{k: v.detach()[rows] for k, v in params.values.items()})
+        rows = torch.as_tensor([r.row for r in records[start:start + 256]], device=values.device)
         with torch.no_grad():
-            posed = run.head.forward_params(chunk.to(device)).vertices[:, skull]  # [B, S, 3]
+            posed = run.head.forward_params(values.rows(rows)).vertices[:, skull]  # [B, S, 3]
         directions.append(view_directions(rest, posed.cpu(), viewmats[start:start + 256]))
     return rest, torch.cat(directions)
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from geoavatar.errors import OptionError
 from geoavatar.eval.evaluate import TRAINED_VIEW_TOLERANCE, EvalResult, frame_dicts
+from geoavatar.imaging import to_uint8
 from geoavatar.io.atomic import atomic_write_json, atomic_write_png, atomic_write_text
 
 REPORT_FORMAT = "geoavatar-eval"
@@ -254,7 +255,7 @@ def write_frame_images(result: EvalResult, folder: Path) -> list[Path]:
         panels = [gt, pred, error]
         if images.get("mouth") is not None:
             panels.append(images["mouth"].float()[..., None].expand_as(gt))
-        row = (np.concatenate([p.numpy() for p in panels], axis=1) * 255.0 + 0.5).astype(np.uint8)
+        row = to_uint8(np.concatenate([p.numpy() for p in panels], axis=1))
         path = folder / f"{frame.timestep:05d}_{frame.camera:02d}.png"
         paths.append(atomic_write_png(path, row))
     return paths

@@ -22,6 +22,7 @@ import math
 import torch
 from torch import Tensor
 
+from geoavatar.geometry import camera_centre
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
 
@@ -50,7 +51,7 @@ def view_directions(rest: Tensor, posed: Tensor, viewmat: Tensor) -> Tensor:
     rest [S, 3], posed [B, S, 3] (the same vertices), viewmat [B, 4, 4] world-to-camera."""
     rotation = face_rotation(rest, posed)  # [B, 3, 3] head -> world
     view = viewmat.double()
-    camera = -(view[:, :3, :3].transpose(1, 2) @ view[:, :3, 3:]).squeeze(-1)  # [B, 3] camera centres
+    camera = camera_centre(view)  # [B, 3]
     towards = camera - posed.double().mean(1)  # [B, 3] world
     local = (rotation.transpose(1, 2) @ towards[..., None]).squeeze(-1)  # [B, 3] head axes
     return local / local.norm(dim=-1, keepdim=True)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from geoavatar.head import landmarks_mediapipe as mpids
+from geoavatar.imaging import to_uint8
 from geoavatar.prep.landmarks import _mediapipe, _quiet_native_logs
 
 HAIR_SCALE = 1.9
@@ -112,7 +113,7 @@ def head_region(points: np.ndarray, width: int, height: int) -> np.ndarray:
 def foreground_mask(person: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Final mask [H, W] uint8: person mask x head region (soft product, 0..255)."""
     region = head_region(points, person.shape[1], person.shape[0])
-    return np.clip(np.round(person * region * 255.0), 0, 255).astype(np.uint8)
+    return to_uint8(person * region)
 
 
 __all__ = ["MASK_BACKENDS", "PersonSegmenter", "head_region_polygons", "head_region", "foreground_mask"]

@@ -15,8 +15,10 @@ from typing import Iterable
 import numpy as np
 import torch
 
+from geoavatar.imaging import to_uint8
 from geoavatar.io.video import write_mp4
-from geoavatar.render.mesh import render_mesh, scale_intrinsics
+from geoavatar.render.camera import scale_intrinsics
+from geoavatar.render.mesh import render_mesh
 
 MESH_ALPHA = 0.45
 DETECTED = (60, 230, 60)
@@ -45,13 +47,13 @@ def overlay_frame(
     mw, mh = max(1, round(width * factor)), max(1, round(height * factor))
     picture = render_mesh(vertices, faces, viewmat, scale_intrinsics(K.to(vertices), factor), mw, mh, ssaa=1,
                           background=(0.0, 0.0, 0.0))
-    shaded = (picture.image.numpy() * 255.0).astype(np.float32)
+    shaded = picture.image.numpy().astype(np.float32)  # [mh, mw, 3] in [0, 1]
     coverage = picture.mask.numpy().astype(np.float32)
     if (mw, mh) != (width, height):
         shaded = cv2.resize(shaded, (width, height), interpolation=cv2.INTER_LINEAR)
         coverage = cv2.resize(coverage, (width, height), interpolation=cv2.INTER_LINEAR)
     alpha = MESH_ALPHA * coverage[..., None]
-    out = np.clip(image.astype(np.float32) * (1 - alpha) + shaded * alpha, 0, 255).astype(np.uint8)
+    out = to_uint8(image.astype(np.float32) / 255.0 * (1 - alpha) + shaded * alpha)
     radius = max(1, round(width / 256))
     for points, colour in ((detected, DETECTED), (projected, PROJECTED)):
         for x, y in points:

@@ -429,6 +429,188 @@ class _Chunk:
             group["lr"] = self.base_lr[group["key"]] * factor
 
 
+def _start_appearance(appearance: SurfaceAppearance, head: HeadModel, init: HeadParams, finest: PhotometricTargets,
+                      config: PhotometricConfig, appearance_start: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """The albedo projected from the frames (_init_albedo), or an earlier fit's (albedo [F, 3], light [9, 3])."""
+    if appearance_start is None:
+        _init_albedo(appearance, head, init, finest, config.chunk)
+        return
+    for parameter, value in zip((appearance.albedo, appearance.light), appearance_start):
+        if tuple(value.shape) != tuple(parameter.shape):
+            raise ValueError(f"photometric: a start appearance of shape {tuple(value.shape)}, the model has "
+                             f"{tuple(parameter.shape)}")
+        parameter.data.copy_(torch.as_tensor(value, dtype=torch.float32))
+
+
+def _shared_optimizer(appearance: SurfaceAppearance, shape: Tensor, config: PhotometricConfig) -> torch.optim.Adam:
+    """Adam over what every frame shares: albedo, lighting (and the identity shape with fit_shape). Each group's
+    "base" is its rate (appearance-only epochs, epochs that move the pose)."""
+    shared = [{"params": [appearance.albedo], "lr": config.lr_albedo, "base": (config.lr_albedo, config.lr_albedo_pose)},
+              {"params": [appearance.light], "lr": config.lr_light, "base": (config.lr_light, config.lr_light)}]
+    if config.fit_shape:
+        shared.append({"params": [shape], "lr": config.lr_shape, "base": (0.0, config.lr_shape)})
+    return torch.optim.Adam(shared)
+
+
+def _schedule(config: PhotometricConfig, appearance_start: bool) -> list[tuple[int, int, bool]]:
+    """(size, epochs, appearance_only) of every stage: the appearance-only epochs at the first level (none when
+    the fit starts from a given appearance), then each pyramid level's epochs that move the pose."""
+    schedule = [(config.sizes[0], 0 if appearance_start else config.appearance_epochs, True)]
+    return schedule + [(size, epochs, False) for size, epochs in zip(config.sizes, config.epochs)]
+
+
+class _PhotometricFit:
+    """One fit's unknowns and optimisers: the appearance and shape shared by all frames, the per-frame keys in
+    chunks (_Chunk); `run_stage` runs the epochs of one stage of the schedule, `result` reads the fit out."""
+
+    def __init__(self, head: HeadModel, init: HeadParams, targets: PhotometricTargets, config: PhotometricConfig,
+                 landmarks: LandmarkTargets | None, appearance_start: tuple[np.ndarray, np.ndarray] | None):
+        self.head, self.init, self.targets, self.config, self.landmarks = head, init, targets, config, landmarks
+        weighted = weighted_faces(head)
+        self.appearance = SurfaceAppearance(head, grow_faces(head, weighted, config.render_rings), config,
+                                            weighted=weighted)
+        self.finest = targets.level(max(config.sizes))
+        _start_appearance(self.appearance, head, init, self.finest, config, appearance_start)
+        self.shape = torch.nn.Parameter(init.shape.clone())
+        self.shared_optimizer = _shared_optimizer(self.appearance, self.shape, config)
+        T = targets.frames
+        self.chunks = [_Chunk(init, s, min(s + config.chunk, T), config) for s in range(0, T, config.chunk)]
+        self.log: list[str] = []
+
+    def frame_params(self, chunk: _Chunk, frozen: bool = False) -> HeadParams:
+        values = {k: (v.detach() if frozen else v) for k, v in chunk.values.items()}
+        return HeadParams(shape=self.shape.detach() if frozen else self.shape, static_offset=self.init.static_offset,
+                          **values)
+
+    def window(self, index: int) -> HeadParams:
+        """The chunk's frames with the last frame of the chunk before and the first after (fixed)."""
+        chunks = self.chunks
+        parts = {k: [v] for k, v in chunks[index].values.items()}
+        if index > 0:
+            for k, v in chunks[index - 1].values.items():
+                parts[k].insert(0, v[-1:].detach())
+        if index + 1 < len(chunks):
+            for k, v in chunks[index + 1].values.items():
+                parts[k].append(v[:1].detach())
+        return HeadParams(shape=self.shape, static_offset=self.init.static_offset,
+                          **{k: torch.cat(v) for k, v in parts.items()})
+
+    def photo_term(self, params: HeadParams, chunk: _Chunk, level: PhotometricTargets, weights: Tensor,
+                   has_pixels: list[bool], factor: int) -> Tensor:
+        """The image term: the mean photometric_loss over the chunk's frames that have pixels to compare."""
+        vertices = self.head.forward_params(params, vertex_ids=self.appearance.vertex_ids).vertices  # [B, K, 3]
+        H, W = level.images.shape[1:3]
+        photo, seen = vertices.new_zeros(()), 0
+        for i, row in enumerate(range(chunk.start, chunk.stop)):
+            if not has_pixels[row]:  # no face in this frame: nothing to compare, no render
+                continue
+            rgb, _ = render_at(self.appearance, vertices[i], level.viewmat[row], level.K[row], W, H, factor)
+            photo = photo + photometric_loss(rgb, level.images[row], weights[row])
+            seen += 1
+        return photo / max(seen, 1)
+
+    def pose_terms(self, index: int, params: HeadParams, level: PhotometricTargets) -> dict[str, Tensor]:
+        """The terms of epochs that move the pose: landmarks, priors, temporal smoothness over the chunk's window."""
+        config, landmarks, prior_config = self.config, self.landmarks, self.config.tracking
+        chunk = self.chunks[index]
+        rows = torch.arange(chunk.start, chunk.stop)
+        terms = {}
+        if landmarks is not None and config.landmark_weight > 0:
+            terms["landmark"] = config.landmark_weight * _data_term(
+                self.head, params, level.viewmat[rows], level.K_source[rows], landmarks.points[rows],
+                landmarks.size[rows], landmarks.weights, landmarks.confidence[rows], prior_config.huber)
+        around = self.window(index)
+        priors = _frame_priors(params, prior_config)
+        priors["smooth"] = _motion_smoothness(around, prior_config)
+        terms["prior"] = config.prior_weight * sum(priors.values())
+        terms["pose_smooth"] = config.pose_smooth_weight * sum(_pose_smoothness(around, prior_config).values())
+        return terms
+
+    def chunk_loss(self, index: int, level: PhotometricTargets, weights: Tensor, has_pixels: list[bool],
+                   appearance_only: bool, factor: int) -> tuple[Tensor, dict[str, float]]:
+        chunk = self.chunks[index]
+        params = self.frame_params(chunk, frozen=appearance_only)
+        terms = {"photo": self.photo_term(params, chunk, level, weights, has_pixels, factor)}
+        if not appearance_only:
+            terms.update(self.pose_terms(index, params, level))
+        total = sum(terms.values())
+        return total, {k: float(v.detach()) for k, v in terms.items()}
+
+    def step(self, index: int, level: PhotometricTargets, weights: Tensor, has_pixels: list[bool],
+             appearance_only: bool, factor: int, lr_factor: float) -> dict[str, float]:
+        """One Adam step of chunk `index` (and of the shared unknowns); returns its terms."""
+        chunk = self.chunks[index]
+        chunk.set_lr(lr_factor)
+        for group in self.shared_optimizer.param_groups:
+            group["lr"] = group["base"][0 if appearance_only else 1] * lr_factor
+        chunk.optimizer.zero_grad(set_to_none=True)
+        self.shared_optimizer.zero_grad(set_to_none=True)
+        total, terms = self.chunk_loss(index, level, weights, has_pixels, appearance_only, factor)
+        if total.requires_grad:  # not so for an appearance step over frames that all lack a face
+            total.backward()
+            if not appearance_only:
+                chunk.optimizer.step()
+            self.shared_optimizer.step()
+        with torch.no_grad():
+            self.appearance.albedo.clamp_(0.0, 1.0)
+        return terms
+
+    def run_stage(self, size: int, epochs: int, appearance_only: bool, progress) -> None:
+        """`epochs` passes over the chunks at pyramid level `size`, the rate decaying over the stage; logs the
+        last epoch's mean terms."""
+        config, chunks = self.config, self.chunks
+        level = self.targets.level(size)
+        factor = level_factor(config, size)
+        weights = region_weights(self.appearance, self.head, self.init, level, config.chunk, factor)
+        has_pixels = (weights.flatten(1).sum(1) > 0).tolist()  # [T] frames with an image term at this level
+        steps, done = epochs * len(chunks), 0
+        sums: dict[str, float] = {}
+        for epoch in range(epochs):
+            for index in range(len(chunks)):
+                lr_factor = config.lr_decay ** (done / max(steps - 1, 1))
+                terms = self.step(index, level, weights, has_pixels, appearance_only, factor, lr_factor)
+                done += 1
+                if epoch == epochs - 1:
+                    for k, v in terms.items():
+                        sums[k] = sums.get(k, 0.0) + v / len(chunks)
+                if progress is not None:
+                    progress(chunks[index].stop - chunks[index].start)
+        stage = "appearance" if appearance_only else "pose"
+        self.log.append(f"{stage} {size}px: {epochs} epoch(s), last epoch "
+                        + ", ".join(f"{k} {v:.4g}" for k, v in sums.items()))
+
+    def residuals(self, params_of, weights: Tensor) -> np.ndarray:
+        """[T] photometric_loss per frame at the finest level with the parameters `params_of(chunk)`."""
+        finest = self.finest
+        out = np.full(finest.frames, np.nan)  # NaN: a frame without pixels to compare
+        H, W = finest.images.shape[1:3]
+        with torch.no_grad():
+            for chunk in self.chunks:
+                vertices = self.head.forward_params(params_of(chunk), vertex_ids=self.appearance.vertex_ids).vertices
+                for i, row in enumerate(range(chunk.start, chunk.stop)):
+                    if not bool(weights[row].sum() > 0):
+                        continue
+                    result = self.appearance.render(vertices[i], finest.viewmat[row], finest.K[row], W, H)
+                    out[row] = float(photometric_loss(result.rgb, finest.images[row], weights[row]))
+        return out
+
+    def result(self) -> PhotometricResult:
+        """The fitted parameters with the residuals before and after (on the initial parameters' face region)."""
+        config, init, appearance = self.config, self.init, self.appearance
+        weights = region_weights(appearance, self.head, init, self.finest, config.chunk)
+        before = self.residuals(lambda c: init.rows(slice(c.start, c.stop)), weights)
+        after = self.residuals(lambda c: self.frame_params(c, frozen=True), weights)
+        fitted = HeadParams(shape=self.shape.detach().clone(), static_offset=init.static_offset,
+                            **{k: torch.cat([c.values[k].detach() for c in self.chunks]) for k in FRAME_KEYS})
+        blank = int(np.isnan(after).sum())
+        self.log.append(f"residual (masked L1, {max(config.sizes)}px): {_nanmean(before):.4f} -> {_nanmean(after):.4f}"
+                        + (f" ({blank} frame(s) without pixels to compare: no image term)" if blank else ""))
+        return PhotometricResult(params=fitted, residual=after, residual_before=before,
+                                 albedo=appearance.albedo.detach().numpy().copy(),
+                                 light=appearance.light.detach().numpy().copy(), face_ids=appearance.face_ids,
+                                 log=self.log)
+
+
 def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTargets,
                     config: PhotometricConfig = PhotometricConfig(), landmarks: LandmarkTargets | None = None,
                     progress=None, appearance_start: tuple[np.ndarray, np.ndarray] | None = None) -> PhotometricResult:
@@ -437,137 +619,13 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
     progress: callable(frames_done) after each chunk step, or None (total = frames x all epochs).
     appearance_start: (albedo [F, 3], light [9, 3]) of an earlier fit to start from (a long video's segments share the
     appearance fitted on a sample of all its frames): no albedo initialisation and no appearance-only epochs."""
-    T = targets.frames
-    if init.batch != T:
-        raise ValueError(f"photometric: {init.batch} frames of parameters but {T} images")
-    init = init.detach().map(lambda x: x.float())
-    weighted = weighted_faces(head)
-    appearance = SurfaceAppearance(head, grow_faces(head, weighted, config.render_rings), config, weighted=weighted)
-    finest = targets.level(max(config.sizes))
-    if appearance_start is None:
-        _init_albedo(appearance, head, init, finest, config.chunk)
-    else:
-        for parameter, value in zip((appearance.albedo, appearance.light), appearance_start):
-            if tuple(value.shape) != tuple(parameter.shape):
-                raise ValueError(f"photometric: a start appearance of shape {tuple(value.shape)}, the model has "
-                                 f"{tuple(parameter.shape)}")
-            parameter.data.copy_(torch.as_tensor(value, dtype=torch.float32))
-    shape = torch.nn.Parameter(init.shape.clone())
-    shared = [{"params": [appearance.albedo], "lr": config.lr_albedo, "base": (config.lr_albedo, config.lr_albedo_pose)},
-              {"params": [appearance.light], "lr": config.lr_light, "base": (config.lr_light, config.lr_light)}]
-    if config.fit_shape:
-        shared.append({"params": [shape], "lr": config.lr_shape, "base": (0.0, config.lr_shape)})
-    shared_optimizer = torch.optim.Adam(shared)
-    chunks = [_Chunk(init, s, min(s + config.chunk, T), config) for s in range(0, T, config.chunk)]
-    prior_config = config.tracking
-    log: list[str] = []
-
-    def frame_params(chunk: _Chunk, frozen: bool = False) -> HeadParams:
-        values = {k: (v.detach() if frozen else v) for k, v in chunk.values.items()}
-        return HeadParams(shape=shape.detach() if frozen else shape, static_offset=init.static_offset, **values)
-
-    def window(index: int) -> HeadParams:
-        """The chunk's frames with the last frame of the chunk before and the first after (fixed)."""
-        chunk = chunks[index]
-        parts = {k: [v] for k, v in chunk.values.items()}
-        if index > 0:
-            for k, v in chunks[index - 1].values.items():
-                parts[k].insert(0, v[-1:].detach())
-        if index + 1 < len(chunks):
-            for k, v in chunks[index + 1].values.items():
-                parts[k].append(v[:1].detach())
-        return HeadParams(shape=shape, static_offset=init.static_offset, **{k: torch.cat(v) for k, v in parts.items()})
-
-    def chunk_loss(index: int, level: PhotometricTargets, weights: Tensor, appearance_only: bool,
-                   factor: int) -> tuple[Tensor, dict[str, float]]:
-        chunk = chunks[index]
-        rows = torch.arange(chunk.start, chunk.stop)
-        params = frame_params(chunk, frozen=appearance_only)
-        vertices = head.forward_params(params, vertex_ids=appearance.vertex_ids).vertices  # [B, K, 3]
-        H, W = level.images.shape[1:3]
-        photo, seen = vertices.new_zeros(()), 0
-        for i, row in enumerate(rows.tolist()):
-            if not has_pixels[row]:  # no face in this frame: nothing to compare, no render
-                continue
-            rgb, _ = render_at(appearance, vertices[i], level.viewmat[row], level.K[row], W, H, factor)
-            photo = photo + photometric_loss(rgb, level.images[row], weights[row])
-            seen += 1
-        terms = {"photo": photo / max(seen, 1)}
-        if not appearance_only:
-            if landmarks is not None and config.landmark_weight > 0:
-                terms["landmark"] = config.landmark_weight * _data_term(
-                    head, params, level.viewmat[rows], level.K_source[rows], landmarks.points[rows], landmarks.size[rows],
-                    landmarks.weights, landmarks.confidence[rows], prior_config.huber)
-            around = window(index)
-            priors = _frame_priors(params, prior_config)
-            priors["smooth"] = _motion_smoothness(around, prior_config)
-            terms["prior"] = config.prior_weight * sum(priors.values())
-            terms["pose_smooth"] = config.pose_smooth_weight * sum(_pose_smoothness(around, prior_config).values())
-        total = sum(terms.values())
-        return total, {k: float(v.detach()) for k, v in terms.items()}
-
-    def residuals(params_of, weights: Tensor) -> np.ndarray:
-        out = np.full(T, np.nan)  # NaN: a frame without pixels to compare
-        H, W = finest.images.shape[1:3]
-        with torch.no_grad():
-            for chunk in chunks:
-                params = params_of(chunk)
-                vertices = head.forward_params(params, vertex_ids=appearance.vertex_ids).vertices
-                for i, row in enumerate(range(chunk.start, chunk.stop)):
-                    if not bool(weights[row].sum() > 0):
-                        continue
-                    result = appearance.render(vertices[i], finest.viewmat[row], finest.K[row], W, H)
-                    out[row] = float(photometric_loss(result.rgb, finest.images[row], weights[row]))
-        return out
-
-    schedule = [(config.sizes[0], config.appearance_epochs if appearance_start is None else 0, True)]
-    schedule += [(size, epochs, False) for size, epochs in zip(config.sizes, config.epochs)]
-    for size, epochs, appearance_only in schedule:
-        if epochs <= 0:
-            continue
-        level = targets.level(size)
-        factor = level_factor(config, size)
-        weights = region_weights(appearance, head, init, level, config.chunk, factor)
-        has_pixels = (weights.flatten(1).sum(1) > 0).tolist()  # [T] frames with an image term at this level
-        steps, done = epochs * len(chunks), 0
-        sums: dict[str, float] = {}
-        for epoch in range(epochs):
-            for index in range(len(chunks)):
-                lr_factor = config.lr_decay ** (done / max(steps - 1, 1))
-                chunk = chunks[index]
-                chunk.set_lr(lr_factor)
-                for group in shared_optimizer.param_groups:
-                    group["lr"] = group["base"][0 if appearance_only else 1] * lr_factor
-                chunk.optimizer.zero_grad(set_to_none=True)
-                shared_optimizer.zero_grad(set_to_none=True)
-                total, terms = chunk_loss(index, level, weights, appearance_only, factor)
-                if total.requires_grad:  # not so for an appearance step over frames that all lack a face
-                    total.backward()
-                    if not appearance_only:
-                        chunk.optimizer.step()
-                    shared_optimizer.step()
-                with torch.no_grad():
-                    appearance.albedo.clamp_(0.0, 1.0)
-                done += 1
-                if epoch == epochs - 1:
-                    for k, v in terms.items():
-                        sums[k] = sums.get(k, 0.0) + v / len(chunks)
-                if progress is not None:
-                    progress(chunk.stop - chunk.start)
-        stage = "appearance" if appearance_only else "pose"
-        log.append(f"{stage} {size}px: {epochs} epoch(s), last epoch " + ", ".join(f"{k} {v:.4g}" for k, v in sums.items()))
-
-    weights = region_weights(appearance, head, init, finest, config.chunk)
-    before = residuals(lambda c: init.rows(slice(c.start, c.stop)), weights)
-    after = residuals(lambda c: frame_params(c, frozen=True), weights)
-    fitted = HeadParams(shape=shape.detach().clone(), static_offset=init.static_offset,
-                        **{k: torch.cat([c.values[k].detach() for c in chunks]) for k in FRAME_KEYS})
-    blank = int(np.isnan(after).sum())
-    log.append(f"residual (masked L1, {max(config.sizes)}px): {_nanmean(before):.4f} -> {_nanmean(after):.4f}"
-               + (f" ({blank} frame(s) without pixels to compare: no image term)" if blank else ""))
-    return PhotometricResult(params=fitted, residual=after, residual_before=before,
-                             albedo=appearance.albedo.detach().numpy().copy(), light=appearance.light.detach().numpy().copy(),
-                             face_ids=appearance.face_ids, log=log)
+    if init.batch != targets.frames:
+        raise ValueError(f"photometric: {init.batch} frames of parameters but {targets.frames} images")
+    fit = _PhotometricFit(head, init.detach().map(lambda x: x.float()), targets, config, landmarks, appearance_start)
+    for size, epochs, appearance_only in _schedule(config, appearance_start is not None):
+        if epochs > 0:
+            fit.run_stage(size, epochs, appearance_only, progress)
+    return fit.result()
 
 
 def _nanmean(values: np.ndarray) -> float:

@@ -44,7 +44,7 @@ from geoavatar.head.base import HeadModel, HeadModelData
 from geoavatar.head.params import HeadParams
 from geoavatar.head.smooth_offset import SmoothOffset
 from geoavatar.prep.workers import split_range
-from geoavatar.render.camera import project
+from geoavatar.render.camera import focal_length, project
 
 # Landmark groups: weight in the data term, and whether the rigid stage uses them.
 GROUP_WEIGHTS = {
@@ -296,13 +296,149 @@ def track_crops(
 
     principal = np.array([crop_principal_point(box, frame_size, crop_size) for box in boxes])  # [T, 2]
     scale = crop_intrinsics(boxes[-1], crop_size)[0]
-    focal = scale * 0.5 * max(frame_size) / math.tan(math.radians(config.fov_deg) / 2)
+    focal = focal_length(math.radians(config.fov_deg), scale * max(frame_size))
     offset_map = None
     if config.fit_static_offset:
         offset_map = smooth_offset(data, model.data.metadata["vertex_ids"], decay=config.offset_decay)
     with torch.enable_grad():
         return track(model, landmarks, confidence, principal, crop_size, config, focal_init=focal, progress=progress,
                      offset_map=offset_map)
+
+
+@dataclass
+class _LandmarkData:
+    """What `track` fits to, as tensors: the embedded landmarks' detections and their weights."""
+
+    ids: np.ndarray  # [L] MediaPipe ids of the model's embedded landmarks
+    target: Tensor  # [T, L, 2] detected pixels (crop)
+    size: Tensor  # [T] face size in pixels (forehead to chin), >= 1
+    confidence: Tensor  # [T] in [0.05, 1]: a low weight, never zero
+    weights: Tensor  # [L] per landmark group (GROUP_WEIGHTS)
+    rigid_mask: Tensor  # [L] 1 for the groups the rigid stage uses (RIGID_GROUPS)
+
+    @classmethod
+    def of(cls, model: HeadModel, landmarks: np.ndarray, confidence: np.ndarray) -> "_LandmarkData":
+        ids = model.landmark_ids.cpu().numpy()  # [L]
+        target = torch.as_tensor(landmarks[:, ids, :2], dtype=torch.float32)
+        size = torch.as_tensor(np.linalg.norm(landmarks[:, 10, :2] - landmarks[:, 152, :2], axis=-1), dtype=torch.float32)
+        groups = [GROUP_OF.get(int(i), "face_oval_lower") for i in ids]
+        return cls(ids, target, size.clamp_min(1.0), torch.as_tensor(confidence, dtype=torch.float32).clamp(0.05, 1.0),
+                   torch.tensor([GROUP_WEIGHTS[g] for g in groups], dtype=torch.float32),
+                   torch.tensor([g in RIGID_GROUPS for g in groups], dtype=torch.float32))
+
+
+def _initial_translation(model: HeadModel, target: Tensor, principal: Tensor, focal: float) -> tuple[Tensor, float]:
+    """(translation [T, 3], camera distance): the neutral head placed under each frame's landmarks, its depth from
+    the ratio of the model's and the image's landmark spread; the camera at the median depth."""
+    with torch.no_grad():
+        neutral = model.template_output().landmarks[0]  # [L, 3] (unbatched call gives [1, L, 3])
+        neutral = neutral.reshape(-1, 3)
+        model_xy = neutral[:, :2] - neutral[:, :2].mean(0)
+        model_spread = model_xy.norm(dim=-1).mean()
+        image_centroid = target.mean(1)  # [T, 2]
+        image_spread = (target - image_centroid[:, None]).norm(dim=-1).mean(1)  # [T]
+        depth = focal * model_spread / image_spread  # [T] camera distance of the head
+        distance = float(depth.median())
+        xy = (image_centroid - principal) * depth[:, None] / focal  # camera-frame x, y (y down)
+        centre = neutral.mean(0)
+        translation = torch.stack([xy[:, 0] - centre[0], -xy[:, 1] - centre[1], distance - depth - centre[2]], -1)
+    return translation, distance
+
+
+@dataclass
+class _TrackingEnergy:
+    """`track`'s energy over the unknowns `fit` (see the module docstring) and the Adam stages that lower it."""
+
+    model: HeadModel
+    fit: _Fit
+    data: _LandmarkData
+    principal: Tensor  # [T, 2]
+    viewmat: Tensor  # [4, 4]
+    focal_init: float
+    config: TrackingConfig
+    chunks: list[slice]  # the frames whose data term is differentiated at once (DATA_CHUNK)
+    log: list[str] = field(default_factory=list)
+
+    def data_term(self, stage: str, rows: slice) -> Tensor:
+        """The data term's share of the frames `rows`: their confidence-weighted sum over all frames' confidence."""
+        data, config = self.data, self.config
+        p = self.fit.params().rows(rows)
+        posed = _rigid_only(p) if stage == "rigid" else p
+        K = _intrinsics(self.fit.log_focal.exp(), self.principal[rows])
+        w = data.weights * (data.rigid_mask if stage == "rigid" else 1.0)
+        share = data.confidence[rows].sum() / data.confidence.sum()
+        return _data_term(self.model, posed, self.viewmat, K, data.target[rows], data.size[rows], w,
+                          data.confidence[rows], config.huber) * share
+
+    def loss_terms(self, stage: str, data: bool = True) -> dict[str, Tensor]:
+        fit, config = self.fit, self.config
+        p = fit.params()
+        terms = {"data": self.data_term(stage, slice(None))} if data else {}
+        terms.update(_pose_smoothness(p, config))
+        if stage == "rigid":
+            return terms
+        terms.update({
+            "shape": config.w_shape * (p.shape ** 2).sum(),
+            **_frame_priors(p, config),
+            "focal": config.focal_prior * (fit.log_focal - math.log(self.focal_init)) ** 2,
+            "static_offset": config.w_static_offset * (fit.offset_theta ** 2).sum(-1).mean()
+            + config.w_static_smooth * (fit.offset_theta * (fit.offset_energy @ fit.offset_theta)).sum()
+            if fit.offset_theta is not None else torch.zeros(()),
+            "smooth": _motion_smoothness(p, config),
+        })
+        return terms
+
+    def backward(self, stage: str) -> dict[str, Tensor]:
+        """The energy's gradient into the unknowns; returns its terms."""
+        if len(self.chunks) == 1:
+            terms = self.loss_terms(stage)
+            sum(terms.values()).backward()
+            return terms
+        # the data term's graph chunk by chunk: over a long video's frames at once it would take gigabytes
+        data = torch.zeros(())
+        for rows in self.chunks:
+            term = self.data_term(stage, rows)
+            term.backward()
+            data = data + term.detach()
+        terms = self.loss_terms(stage, data=False)
+        sum(terms.values()).backward()
+        return {"data": data, **terms}
+
+    def run(self, stage: str, steps: int, parameters: list[Tensor], lr: float, progress) -> None:
+        """`steps` Adam steps on `parameters`, the rate decaying to a tenth; logs the last step's terms."""
+        if steps <= 0:
+            return
+        optimizer = torch.optim.Adam(parameters, lr=lr)
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: 0.1 ** (s / steps))
+        for _ in range(steps):
+            optimizer.zero_grad(set_to_none=True)
+            terms = self.backward(stage)
+            optimizer.step()
+            schedule.step()
+            if progress is not None:
+                progress(1, stage)
+        self.log.append(f"{stage}: {steps} steps, " + ", ".join(f"{k} {float(v.detach()):.3e}" for k, v in terms.items()))
+
+
+def _tracking_result(energy: _TrackingEnergy, landmarks: np.ndarray, offset_map: SmoothOffset | None) -> TrackingResult:
+    """The fit read out: parameters (the static offset on the full mesh), camera, reprojected landmarks, errors."""
+    fit, model, data = energy.fit, energy.model, energy.data
+    with torch.no_grad():
+        params = fit.params()
+        K = _intrinsics(fit.log_focal.exp(), energy.principal)
+        posed = model.forward_params(params, vertex_ids=model.landmark_vertex_ids).landmarks
+        pixels, _ = project(posed, energy.viewmat, K)  # [T, L, 2]
+        width = np.linalg.norm(landmarks[:, 234, :2] - landmarks[:, 454, :2], axis=-1)  # [T] cheek to cheek
+        err = (pixels - data.target).norm(dim=-1).numpy()  # [T, L]
+        errors = np.median(err, axis=1) / np.maximum(width, 1e-6)
+    model_static_offset = None if params.static_offset is None else params.static_offset[0].detach().numpy().copy()
+    values = {k: v.detach().numpy().copy() for k, v in params.to_npz().items()}
+    if fit.offset_theta is not None:
+        values["static_offset"] = offset_map.extend(0.01 * fit.offset_theta.detach().numpy()).astype(np.float32)  # [V, 3]
+    return TrackingResult(params=values, focal=float(fit.log_focal.detach().exp()),
+                          viewmat=energy.viewmat.numpy().astype(np.float64), K=K.numpy().astype(np.float64),
+                          projected=pixels.numpy(), landmark_ids=data.ids, errors=errors, log=energy.log,
+                          model_static_offset=model_static_offset)
 
 
 def track(
@@ -320,125 +456,28 @@ def track(
     T = landmarks.shape[0]
     if T == 0:
         raise ValueError("track: no frames")
-    ids = model.landmark_ids.cpu().numpy()  # [L]
-    target = torch.as_tensor(landmarks[:, ids, :2], dtype=torch.float32)  # [T, L, 2]
-    size = torch.as_tensor(np.linalg.norm(landmarks[:, 10, :2] - landmarks[:, 152, :2], axis=-1), dtype=torch.float32)
-    size = size.clamp_min(1.0)  # [T]
-    conf = torch.as_tensor(confidence, dtype=torch.float32).clamp(0.05, 1.0)  # [T] a low weight, never zero
-    groups = [GROUP_OF.get(int(i), "face_oval_lower") for i in ids]
-    weights = torch.tensor([GROUP_WEIGHTS[g] for g in groups], dtype=torch.float32)  # [L]
-    rigid_mask = torch.tensor([g in RIGID_GROUPS for g in groups], dtype=torch.float32)  # [L]
+    data = _LandmarkData.of(model, landmarks, confidence)
     principal_t = torch.as_tensor(principal, dtype=torch.float32)  # [T, 2]
-    f0 = focal_init or 0.5 * image_size / math.tan(math.radians(config.fov_deg) / 2)
-    num_shape = min(model.num_shape, config.num_shape or 100)
-    num_expr = min(model.num_expr, config.num_expr or 100)
-    log: list[str] = []
-
-    # --- initial translation from the neutral head: scale from the landmarks' spread -------------
-    with torch.no_grad():
-        neutral = model.template_output().landmarks[0]  # [L, 3] (unbatched call gives [1, L, 3])
-        neutral = neutral.reshape(-1, 3)
-        model_xy = neutral[:, :2] - neutral[:, :2].mean(0)
-        model_spread = model_xy.norm(dim=-1).mean()
-        image_centroid = target.mean(1)  # [T, 2]
-        image_spread = (target - image_centroid[:, None]).norm(dim=-1).mean(1)  # [T]
-        depth = f0 * model_spread / image_spread  # [T] camera distance of the head
-        distance = float(depth.median())
-        xy = (image_centroid - principal_t) * depth[:, None] / f0  # camera-frame x, y (y down)
-        centre = neutral.mean(0)
-        translation = torch.stack([xy[:, 0] - centre[0], -xy[:, 1] - centre[1], distance - depth - centre[2]], -1)
-    viewmat = torch.as_tensor(camera_viewmat(distance), dtype=torch.float32)
+    f0 = focal_init or focal_length(math.radians(config.fov_deg), image_size)
+    translation, distance = _initial_translation(model, data.target, principal_t, f0)
     rows = energy = None
     if config.fit_static_offset and offset_map is not None:
         rows = torch.as_tensor(offset_rows(offset_map, model), dtype=torch.float32)
         energy = torch.as_tensor(offset_map.energy, dtype=torch.float32)
-    fit = _Fit(T, num_shape, num_expr, f0, translation, rows, energy)
-
-    landmark_vertices = model.landmark_vertex_ids  # [K]: the subset of vertices posed in every step
+    fit = _Fit(T, min(model.num_shape, config.num_shape or 100), min(model.num_expr, config.num_expr or 100), f0,
+               translation, rows, energy)
     chunks = [slice(a, b) for a, b in split_range(T, math.ceil(T / DATA_CHUNK))]
-
-    def data_term(stage: str, rows: slice) -> Tensor:
-        """The data term's share of the frames `rows`: their confidence-weighted sum over all frames' confidence."""
-        p = fit.params().rows(rows)
-        posed = _rigid_only(p) if stage == "rigid" else p
-        K = _intrinsics(fit.log_focal.exp(), principal_t[rows])
-        w = weights * (rigid_mask if stage == "rigid" else 1.0)
-        share = conf[rows].sum() / conf.sum()
-        return _data_term(model, posed, viewmat, K, target[rows], size[rows], w, conf[rows], config.huber) * share
-
-    def loss_terms(stage: str, data: bool = True) -> dict[str, Tensor]:
-        p = fit.params()
-        terms = {"data": data_term(stage, slice(None))} if data else {}
-        terms.update(_pose_smoothness(p, config))
-        if stage == "rigid":
-            return terms
-        terms.update({
-            "shape": config.w_shape * (p.shape ** 2).sum(),
-            **_frame_priors(p, config),
-            "focal": config.focal_prior * (fit.log_focal - math.log(f0)) ** 2,
-            "static_offset": config.w_static_offset * (fit.offset_theta ** 2).sum(-1).mean()
-            + config.w_static_smooth * (fit.offset_theta * (fit.offset_energy @ fit.offset_theta)).sum()
-            if fit.offset_theta is not None else torch.zeros(()),
-            "smooth": _motion_smoothness(p, config),
-        })
-        return terms
-
-    def run(stage: str, steps: int, parameters: list[Tensor], lr: float) -> None:
-        if steps <= 0:
-            return
-        optimizer = torch.optim.Adam(parameters, lr=lr)
-        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: 0.1 ** (s / steps))
-        for step in range(steps):
-            optimizer.zero_grad(set_to_none=True)
-            if len(chunks) == 1:
-                terms = loss_terms(stage)
-                sum(terms.values()).backward()
-            else:  # the data term's graph chunk by chunk: over a long video's frames at once it would take gigabytes
-                data = torch.zeros(())
-                for rows in chunks:
-                    term = data_term(stage, rows)
-                    term.backward()
-                    data = data + term.detach()
-                terms = loss_terms(stage, data=False)
-                sum(terms.values()).backward()
-                terms = {"data": data, **terms}
-            optimizer.step()
-            schedule.step()
-            if progress is not None:
-                progress(1, stage)
-        log.append(f"{stage}: {steps} steps, " + ", ".join(f"{k} {float(v.detach()):.3e}" for k, v in terms.items()))
-
+    viewmat = torch.as_tensor(camera_viewmat(distance), dtype=torch.float32)
+    problem = _TrackingEnergy(model, fit, data, principal_t, viewmat, f0, config, chunks)
     # Translation steps are ~1 cm per unit lr at lr 0.02: scale translation by head size via its lr.
-    run("rigid", config.rigid_steps, [fit.rotation, fit.translation], config.rigid_lr)
+    problem.run("rigid", config.rigid_steps, [fit.rotation, fit.translation], config.rigid_lr, progress)
     full = [fit.shape, fit.expr, fit.rotation, fit.neck_pose, fit.jaw_pose, fit.eyes_pose, fit.translation]
     if config.fit_focal:
         full.append(fit.log_focal)
     if fit.offset_theta is not None:
         full.append(fit.offset_theta)
-    run("full", config.full_steps, full, config.lr)
-
-    with torch.no_grad():
-        params = fit.params()
-        K = _intrinsics(fit.log_focal.exp(), principal_t)
-        pixels, _ = project(model.forward_params(params, vertex_ids=landmark_vertices).landmarks, viewmat, K)  # [T, L, 2]
-        width = np.linalg.norm(landmarks[:, 234, :2] - landmarks[:, 454, :2], axis=-1)  # [T] cheek to cheek
-        err = (pixels - target).norm(dim=-1).numpy()  # [T, L]
-        errors = np.median(err, axis=1) / np.maximum(width, 1e-6)
-    model_static_offset = None if params.static_offset is None else params.static_offset[0].detach().numpy().copy()
-    params = {k: v.detach().numpy().copy() for k, v in params.to_npz().items()}
-    if fit.offset_theta is not None:
-        params["static_offset"] = offset_map.extend(0.01 * fit.offset_theta.detach().numpy()).astype(np.float32)  # [V, 3]
-    return TrackingResult(
-        params=params,
-        focal=float(fit.log_focal.detach().exp()),
-        viewmat=viewmat.numpy().astype(np.float64),
-        K=K.numpy().astype(np.float64),
-        projected=pixels.numpy(),
-        landmark_ids=ids,
-        errors=errors,
-        log=log,
-        model_static_offset=model_static_offset,
-    )
+    problem.run("full", config.full_steps, full, config.lr, progress)
+    return _tracking_result(problem, landmarks, offset_map)
 
 
 # Solvers of OnlineFit and their default iterations per frame (about the same time per frame; see OnlineFit).
@@ -460,8 +499,8 @@ class OnlineFit:
       head model: one pass), its gradient and Gauss-Newton curvature with the pseudo-Huber's IRLS weights, the
       exact gradient and Hessian of the priors and temporal terms (no head-model pass); a step is kept only when
       the energy drops. The Jacobian is taken once per frame, at the warm start, and kept for the frame's later
-      iterations (a chord method; `refresh_jacobian=True` retakes it at each: on wojtek.mp4 the same landmark
-      error for 25 % more time, #28). The unknowns are few and the residuals many: 2 iterations land closer to
+      iterations (a chord method; `refresh_jacobian=True` retakes it at each: on wojtek.mp4's live landmarks the
+      same landmark error for a third more time, #28). The unknowns are few and the residuals many: 2 iterations land closer to
       the offline fit than 8 of L-BFGS, in less time (benchmarks/online_fit_bench.py).
     - "lbfgs": L-BFGS with a strong-Wolfe line search, curvature pairs carried over from frame to frame.
 

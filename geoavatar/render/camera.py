@@ -193,12 +193,6 @@ def rigid_inverse(matrix: Tensor) -> Tensor:
     return out
 
 
-def camera_centre(viewmat: Tensor) -> Tensor:
-    """[..., 3] world position of the camera of each world-to-camera `viewmat` [..., 4, 4]: C = -R^T t."""
-    rot, trans = viewmat[..., :3, :3], viewmat[..., :3, 3:]
-    return -(rot.transpose(-1, -2) @ trans).squeeze(-1)
-
-
 def orbit_viewmat(
     viewmat: Tensor,  # [4, 4] world-to-camera, OpenCV axes
     centre: Tensor,  # [3] the point the camera turns about (and then looks at)
@@ -243,6 +237,6 @@ def _homogeneous(matrix: Tensor, name: str) -> Tensor:
 __all__ = [
     "Camera", "look_at", "intrinsics_from_fov", "centred_intrinsics", "field_of_view", "focal_length",
     "fov_from_intrinsics", "world_to_camera", "project",
-    "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "camera_centre", "scale_intrinsics",
+    "opengl_c2w_to_viewmat", "viewmat_to_opengl_c2w", "rigid_inverse", "scale_intrinsics",
     "orbit_viewmat", "orbit_cameras",
 ]

@@ -249,7 +249,7 @@ def restore_state(payload: dict, data: "TrainingData", config: TrainConfig, wher
 
     device = data.device
     try:
-        avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity, config.model.normal_shading)
+        avatar = GaussianAvatar.for_model(data.head, config.model)
         avatar.load_state_dict(payload["avatar"])
         avatar = avatar.to(device)
         deformer = None
@@ -320,6 +320,11 @@ class LoadedRun(NamedTuple):
     deformer: Any  # geoavatar.avatar.MouthDeformer | None
     info: RunInfo
 
+    @property
+    def device(self) -> torch.device:
+        """The device the run's modules were opened on (open_run's --device)."""
+        return self.avatar.binding.device
+
 
 def run_checkpoint_path(run_dir: str | os.PathLike, which: str = "last") -> Path:
     names = {"last": LAST_CHECKPOINT, "final": FINAL_CHECKPOINT}
@@ -369,7 +374,7 @@ def load_run(
                 f"{path}: the avatar is bound to a mesh with {faces.shape[0]} faces, but the head model "
                 f"'{dataset['head_model']}' (mouth '{config.model.mouth}') here has {head.num_faces} different ones"
             )
-        avatar = GaussianAvatar(head.faces, config.model.init_opacity, config.model.normal_shading)
+        avatar = GaussianAvatar.for_model(head, config.model)
         avatar.load_state_dict(ckpt["avatar"])
         deformer = None
         if ckpt.get("deformer") is not None:

@@ -18,8 +18,8 @@ from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
 from geoavatar.data.splits import evenly_spaced
 from geoavatar.data.subject import Subject
+from geoavatar.geometry import camera_centre
 from geoavatar.head.regions import face_parts
-from geoavatar.render.camera import camera_centre
 from geoavatar.runtime import resolve_device
 from geoavatar.train.checkpoint import load_head_for
 from geoavatar.train.frame_params import FrameParams
@@ -122,7 +122,7 @@ def new_state(data: TrainingData, config: TrainConfig, seed: int) -> TrainingSta
     """A fresh avatar (one Gaussian per face), deformer, per-frame parameters and optimizers."""
     seed_everything(seed)
     device = data.device
-    avatar = GaussianAvatar(data.head.faces.cpu(), config.model.init_opacity, config.model.normal_shading).to(device)
+    avatar = GaussianAvatar.for_model(data.head, config.model).to(device)
     deformer = None
     if config.model.mouth_deform.enabled:
         deformer = MouthDeformer.for_head(data.head, data.num_frames, config.model.mouth_deform).to(device)

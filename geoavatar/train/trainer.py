@@ -162,7 +162,7 @@ def optimizer_step(data: TrainingData, state: TrainingState, config: TrainConfig
             opt.zero_grad(set_to_none=True)
     total.backward()
     for group in state.optimizers["gaussians"].param_groups:
-        if group["name"] == "means":
+        if group["name"] in ("means", "means_pose"):
             group["lr"] = position_lr(step, config.lr, data.extent)
     for opt in state.optimizers.values():
         if opt is not None:

@@ -30,8 +30,9 @@ from torch import Tensor
 from geoavatar.avatar.binding import GlobalGaussians
 from geoavatar.avatar.render import rasterize_gaussians
 from geoavatar.config import WarpedViewConfig
+from geoavatar.geometry import camera_centre
 from geoavatar.head.regions import skull_centre
-from geoavatar.render.camera import Camera, camera_centre, orbit_cameras, world_to_camera
+from geoavatar.render.camera import Camera, orbit_cameras, world_to_camera
 from geoavatar.render.mesh import behind_surface, interpolate, rasterize_mesh
 from geoavatar.train.randomness import turned_angles
 

@@ -78,6 +78,13 @@ CHANNEL_NAMES: dict[str, tuple[str, ...]] = {
     "nose_wrinkle": ("nose_wrinkle", "sneer", "disgust"),
     "upper_lip_raise": ("upper_lip_raise", "upper_lip_up", "lip_raise_upper"),
     "lip_funnel": ("lip_funnel", "funnel", "pucker"),
+    "mouth_left": ("mouth_left", "mouth_pull_left"),
+    "mouth_right": ("mouth_right", "mouth_pull_right"),
+    "smile_left": ("smile_left", "mouth_smile_left"),
+    "smile_right": ("smile_right", "mouth_smile_right"),
+    "cheek_puff": ("cheek_puff", "puff"),
+    "lip_press": ("lip_press", "lips_press", "mouth_press"),
+    "brow_inner_raise": ("brow_inner_raise", "brow_inner_up"),
     "blink_left": ("blink_left", "eye_close_left", "left_blink"),
     "blink_right": ("blink_right", "eye_close_right", "right_blink"),
 }
@@ -424,7 +431,8 @@ def contact_sheet(actor: Actor, renderer: ActorRenderer, motion: Motion, params:
     the bare head model with the same parameters (shows the hair volume, ears, glasses, beard)."""
     from PIL import ImageDraw
 
-    from geoavatar.render.camera import camera_centre, intrinsics_from_fov, look_at
+    from geoavatar.geometry import camera_centre
+    from geoavatar.render.camera import intrinsics_from_fov, look_at
     from geoavatar.render.mesh import Lighting, render_mesh
 
     tiles: list[tuple[np.ndarray, str]] = []

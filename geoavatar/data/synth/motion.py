@@ -6,13 +6,17 @@ expression/pose combinations never occur in the training part:
 
     training part (first `num_frames - test_frames` frames)
       30 %  talking: jaw 0-0.35 rad at syllable rate, lip shapes, small head motion
-      70 %  held strong expressions (smile, surprise, pucker, frown, wide smile with teeth, ...)
-            while the head sweeps yaw in [-22, +30] deg and pitch in [-12, +15] deg, roll +-3 deg
+      70 %  held strong expressions, symmetric (smile, surprise, pucker, frown, grin, disgust, puffed
+            cheeks, fear with wide eyes) and asymmetric (the mouth pulled hard to the left / right
+            with a one-sided smile, a smirk) while the head sweeps yaw in [-22, +30] deg and pitch in
+            [-12, +15] deg, roll +-3 deg
     test part (last `test_frames` frames)
             open-mouth speech with the teeth showing, in expression combinations the training part
             never has, at head poses inside the training ranges: talking while grinning (smile +
-            mouth stretch, jaw never below 0.1 rad) turned to yaw -15 deg, then talking with raised
-            brows and a wink turned to yaw +18 deg. The jaw stays within the training range
+            mouth stretch, jaw never below 0.1 rad) turned to yaw -15 deg, then talking with the
+            mouth pulled to the right under lowered brows (a pull and a frown, each seen in training,
+            never together), then talking with raised brows and a wink turned to yaw +18 deg. The jaw
+            stays within the training range
             (<= JAW_MAX), so what the test measures is the mouth and the expressions, not
             extrapolation to unseen head angles (an earlier script turned the test head beyond the
             training range; half of its frames were then equally wrong for every model).
@@ -40,6 +44,13 @@ TRAIN_EXPRESSIONS: tuple[tuple[str, dict[str, float], float], ...] = (
     ("frown", {"brow_lower": 1.0, "mouth_frown": 0.8}, 0.0),
     ("grin", {"smile": 0.8, "mouth_stretch": 0.6}, 0.12),
     ("disgust", {"nose_wrinkle": 1.0, "upper_lip_raise": 0.8, "brow_lower": 0.4}, 0.05),
+    # Asymmetric and strong shapes (issue #27: the expressive videos the paper is about pull the lips sideways,
+    # puff the cheeks and widen the eyes): a hard sideways pull with a one-sided smile, each way; a smirk.
+    ("pull_left", {"mouth_left": 1.0, "smile_left": 0.6}, 0.04),
+    ("pull_right", {"mouth_right": 1.0, "smile_right": 0.6}, 0.04),
+    ("puff", {"cheek_puff": 1.0, "lip_press": 0.6}, 0.0),
+    ("fear", {"eyes_wide": 1.0, "brow_inner_raise": 1.0, "mouth_stretch": 0.5}, 0.15),
+    ("smirk", {"smile_right": 1.0, "brow_raise": 0.4}, 0.0),
 )
 
 # Lip shapes mixed into talking (weights drawn per syllable).
@@ -238,8 +249,9 @@ def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0, still_head:
     # Ease in from the training part over at most 8 frames (short videos: straight to the pose).
     ease_frames = min(8.0, 0.1 * test_frames)
     ease_in = _smoothstep((frame - train_frames + 1) / max(ease_frames, 1.0))
-    first = _hold_envelope(w, -1.0, 0.55, ramp_w) * ease_in * in_test  # grinning, turned right
-    second = _hold_envelope(w, 0.45, 2.0, ramp_w) * in_test  # raised brows, turned left
+    first = _hold_envelope(w, -1.0, 0.4, ramp_w) * ease_in * in_test  # grinning, turned right
+    pulled = _hold_envelope(w, 0.3, 0.65, ramp_w) * in_test  # mouth pulled right under lowered brows, head front
+    second = _hold_envelope(w, 0.55, 2.0, ramp_w) * in_test  # raised brows, turned left
     speech = ease_in * in_test  # talking through the whole test part
     test_talk_jaw, test_talk_shapes = _talking(rng, times, speech)
     # Syllables on top of an open mouth, scaled so that the jaw stays within the training range.
@@ -248,11 +260,13 @@ def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0, still_head:
         add(name, 0.5 * values)  # lighter lip shapes: the grin / brows carry the expression
     add("smile", first * 0.9)
     add("mouth_stretch", first * 0.6)
+    add("mouth_right", pulled * 0.9)
+    add("brow_lower", pulled * 0.8)
     add("brow_raise", second * 0.8)
     yaw += first * np.radians(TEST_YAW[0]) + second * np.radians(TEST_YAW[1])
     pitch += first * np.radians(TEST_PITCH[0]) + second * np.radians(TEST_PITCH[1])
     roll += np.radians(TRAIN_ROLL_MAX) * np.sin(2 * np.pi * w) * in_test
-    wink = _hold_envelope(w, 0.65, 0.85, 0.08) * in_test
+    wink = _hold_envelope(w, 0.75, 0.92, 0.06) * in_test
 
     # --- through both parts: blinks, gaze, a little translation sway --------------------------
     blink = _blink_track(rng, times)

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from geoavatar.data.synth.actor import Actor
 from geoavatar.data.synth.appearance import MATERIAL_INDEX, Appearance
-from geoavatar.render.camera import intrinsics_from_fov, look_at, orbit_viewmat, scale_intrinsics, world_to_camera
+from geoavatar.render.camera import focal_length, intrinsics_from_fov, look_at, orbit_viewmat, scale_intrinsics, world_to_camera
 from geoavatar.render.mesh import box_downsample, face_normals, rasterize_mesh, vertex_normals
 
 _MOUTH_MATERIALS = [MATERIAL_INDEX[m] for m in ("teeth", "gums", "tongue")]
@@ -45,7 +45,7 @@ def frontal_camera(actor: Actor, size: int, fov_deg: float = 30.0, fill: float =
     centre_y = 0.5 * (top_y + chin_y)
     extent = top_y - chin_y
     visible = extent / fill
-    distance = 0.5 * visible / math.tan(math.radians(fov_deg) / 2.0)
+    distance = focal_length(math.radians(fov_deg), visible)  # where `visible` metres span the field of view
     eye = (0.0, centre_y, distance)  # the head model's origin is near the middle of the skull
     viewmat = look_at(torch.tensor(eye, dtype=torch.float64), torch.tensor((0.0, centre_y, 0.0), dtype=torch.float64))
     K = intrinsics_from_fov(fov_deg, size, size, axis="y", dtype=torch.float64)
