@@ -25,8 +25,8 @@ from typing import Literal, NamedTuple, Optional
 
 import torch
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, default_output, head_centre,
-                                   open_run, progress, rasterize_gaussians, record_camera, run_background,
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunFrames, RunPath, check_resolution, default_output,
+                                   head_centre, open_run, progress, rasterize_gaussians, record_camera, run_background,
                                    side_by_side, to_uint8, torch_threads)
 from geoavatar.avatar import pose_avatar
 from geoavatar.data import open_subject
@@ -158,8 +158,7 @@ def orbit(
             and on a busy 2-core machine 2 threads made each frame several times slower (OpenMP threads waiting
             for each other); more may pay on a quiet machine.
     """
-    if resolution is not None and resolution <= 0:
-        raise OptionError(f"--resolution must be positive, got {resolution}")
+    check_resolution(resolution)
     loaded = open_run(run, device, flame_dir)
     timestep = RunFrames(loaded).resolve(frame)
     target = out or default_output(loaded, VIDEO_DIR, f"orbit_{timestep:05d}.mp4")
