@@ -67,11 +67,11 @@ def errors(head, params: dict, truth: dict) -> dict[str, np.ndarray]:
 
 def skull_orientation_error(head, params: dict, a: torch.Tensor, truth: dict, b: torch.Tensor) -> np.ndarray:
     """[T] degrees between the skull's orientations of the posed vertices a and b [T, V, 3] (in one frame of axes):
-    the rotation from each identity's rest skull to its posed skull (eval.view_angles), so the head's and the neck's
+    the rotation from each identity's rest skull to its posed skull (head.view_angles), so the head's and the neck's
     rotation count together, however a fit splits them."""
     from scipy.spatial.transform import Rotation
 
-    from geoavatar.eval.view_angles import face_rotation, rest_skull
+    from geoavatar.head.view_angles import face_rotation, rest_skull
     from geoavatar.head.params import HeadParams
     from geoavatar.head.regions import skull_vertex_ids
 

@@ -44,18 +44,20 @@ def apply_malloc_settings() -> bool:
     return ok_mmap and ok_trim
 
 
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask on Linux)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
 def configure_threads() -> int:
     """Use every core the process may run on, unless GEOAVATAR_THREADS or OMP_NUM_THREADS says otherwise."""
     import torch
 
     env = os.environ.get("GEOAVATAR_THREADS") or os.environ.get("OMP_NUM_THREADS")
-    if env:
-        threads = max(1, int(env))
-    else:
-        try:
-            threads = len(os.sched_getaffinity(0))
-        except AttributeError:  # not Linux
-            threads = os.cpu_count() or 1
+    threads = max(1, int(env)) if env else available_cores()
     torch.set_num_threads(threads)
     return threads
 

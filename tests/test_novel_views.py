@@ -154,7 +154,7 @@ def test_eval_novel_split_reports_every_view(novel_run, capsys):
 
 
 def test_head_relative_view_undoes_the_head_turn():
-    from geoavatar.eval.view_angles import view_directions, within_trained_views, yaw_pitch
+    from geoavatar.head.view_angles import view_directions, within_trained_views, yaw_pitch
     from geoavatar.geometry import axis_angle_to_matrix
 
     g = torch.Generator().manual_seed(0)

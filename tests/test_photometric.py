@@ -243,7 +243,7 @@ def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path, monkeypat
 
     messages: list[str] = []
     options = dict(video=WOJTEK, size=128, max_frames=5, tracking_steps=(30, 40), progress=False, overlay=False,
-                   photometric_epochs=(1, 1), log=messages.append)
+                   photometric_epochs=(1, 1), workers=1, log=messages.append)  # inline: the recorder above sees the fit
     plain = run_prepare(PrepareConfig(out=tmp_path / "plain", photometric=False, **options))
     work = tmp_path / "plain" / ".prepare"
     assert not (work / "photometric.npz").exists()
@@ -270,6 +270,35 @@ def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path, monkeypat
     run_prepare(PrepareConfig(out=tmp_path / "plain", photometric=True, **options))
     assert any("stage 'photometric' is complete, skipped" in m for m in messages)
     assert any("stage 'write' is complete, skipped" in m for m in messages)
+
+
+@pytest.mark.skipif(not WOJTEK.is_file(), reason="test video absent")
+def test_prepare_photometric_in_segments_over_workers(tmp_path, monkeypatch):
+    """The photometric stage cut into segments (3 of 3-4 frames here, 2 frames of overlap, one appearance fitted
+    first on a sample): the same fit on one process or two, every frame refined."""
+    import shutil
+
+    from geoavatar.prep import pipeline
+    from geoavatar.prep.pipeline import PrepareConfig, run_prepare
+
+    monkeypatch.setattr(pipeline, "PHOTOMETRIC_SEGMENT", 4)
+    monkeypatch.setattr(pipeline, "PHOTOMETRIC_OVERLAP", 2)
+    options = dict(video=WOJTEK, size=96, max_frames=10, tracking_steps=(10, 10), progress=False, overlay=False,
+                   photometric_epochs=(1, 1), log=lambda message: None)
+    run_prepare(PrepareConfig(out=tmp_path / "one", photometric=False, workers=1, **options))
+    shutil.copytree(tmp_path / "one", tmp_path / "two")
+    fits = []
+    for name, workers in (("one", 1), ("two", 2)):
+        run_prepare(PrepareConfig(out=tmp_path / name, photometric=True, workers=workers, **options))
+        fits.append(np.load(tmp_path / name / ".prepare" / "photometric.npz"))
+    marker = json.loads((tmp_path / "two" / ".prepare" / "photometric.json").read_text())
+    assert marker["log"][0].startswith("3 segment(s)") and "one appearance fitted on 4 frames" in marker["log"][0]
+    assert "segment 2 (frames 7-9)" in marker["log"][-1]
+    for key in fits[0].files:
+        np.testing.assert_array_equal(fits[0][key], fits[1][key], err_msg=key)
+    tracking = np.load(tmp_path / "one" / ".prepare" / "tracking.npz")
+    moved = np.abs(fits[0]["param_expr"] - tracking["param_expr"]).max(1)
+    assert (moved > 0).all() and np.isfinite(fits[0]["residual"]).all()
 
 
 def test_frames_without_pixels_get_no_image_term(head):

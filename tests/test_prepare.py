@@ -29,7 +29,7 @@ def _config(video, out, **changes):
 
     # the photometric stage has its own tests (test_photometric.py): without it these run in seconds
     options = dict(video=video, out=out, size=128, max_frames=6, tracking_steps=(40, 60), photometric=False,
-                   progress=False, log=lambda message: None)
+                   workers=1, progress=False, log=lambda message: None)
     options.update(changes)
     return PrepareConfig(**options)
 
@@ -83,12 +83,33 @@ def test_prepare_writes_every_output(prepared):
     report = json.loads((out / "report.json").read_text())
     assert report["frames"] == 6 and len(report["reprojection_error_over_face_width"]["per_frame"]) == 6
     assert report["reprojection_error_over_face_width"]["median"] < 0.05
+    capture = report["capture"]  # the capture check: ranges per split, its verdict, its picture
+    assert capture["splits"]["train"]["frames"] == 4 and capture["splits"]["test"]["frames"] == 2
+    assert capture["verdict"].startswith("capture check: ") and (out / "coverage.png").stat().st_size > 10_000
+    crop = out / ".prepare" / "frames" / "00000.png"  # the crops are linked into the dataset, not encoded again
+    assert (dataset / frames[0]["file_path"]).read_bytes() == crop.read_bytes()
     import av
 
     with av.open(str(out / "overlay.mp4")) as container:
         assert sum(1 for _ in container.decode(video=0)) == 6
     train = open_dataset(dataset, "train")  # the training side reads it
     assert len(train) == 4 and train[0]["image"].shape[:2] == (128, 128)
+
+
+@needs_video
+def test_the_dataset_does_not_depend_on_the_worker_count(prepared, tmp_path):
+    """Every stage splits its frames into fixed ranges and blocks, so two worker processes write, byte for byte,
+    the dataset one process writes."""
+    from geoavatar.prep.pipeline import run_prepare
+
+    _, out, dataset, _ = prepared
+    other = run_prepare(_config(WOJTEK, tmp_path / "two", workers=2))
+    names = sorted(path.relative_to(dataset) for path in dataset.rglob("*") if path.is_file())
+    assert len(names) == 6 * 3 + 6  # images, masks, parameters; canonical, transforms x 4, geoavatar.json
+    for name in names:
+        assert (other / name).read_bytes() == (dataset / name).read_bytes(), name
+    report, again = (json.loads((folder / "report.json").read_text()) for folder in (out, tmp_path / "two"))
+    assert report == again
 
 
 @needs_video
@@ -115,6 +136,27 @@ def test_rerun_skips_complete_stages(prepared):
     run_prepare(config)
     assert sum("skipped" in m for m in messages) == len(STAGES)
     assert (out / "dataset" / "transforms.json").stat().st_mtime_ns == before
+
+
+@needs_video
+def test_tracking_in_chunks_takes_the_same_steps(prepared, monkeypatch):
+    """The tracker's data term differentiated a few frames at a time (a long video's graph would not fit) sums to
+    the gradient of the whole: the fit is the same up to the float rounding of the sums."""
+    from geoavatar.prep import tracking
+    from geoavatar.prep.pipeline import load_tracking_head
+
+    config, out, _, _ = prepared
+    marks = np.load(out / ".prepare" / "landmarks.npz")
+    _, model = load_tracking_head(config)
+    principal = np.full((6, 2), 64.0)
+    settings = tracking.TrackingConfig(rigid_steps=10, full_steps=15, fit_static_offset=False)
+    fits = []
+    for chunk in (1024, 4):  # one chunk of 6 frames; chunks of 3
+        monkeypatch.setattr(tracking, "DATA_CHUNK", chunk)
+        fits.append(tracking.track(model, marks["filtered"], marks["confidence"], principal, 128, settings))
+    for key, value in fits[0].params.items():
+        np.testing.assert_allclose(fits[1].params[key], value, atol=2e-5, err_msg=key)
+    assert fits[1].log[-1].split(",")[1] == fits[0].log[-1].split(",")[1]  # the data term, as logged
 
 
 def test_landmark_head_matches_full_model():

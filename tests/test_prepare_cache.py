@@ -16,7 +16,7 @@ def ran(monkeypatch):
     """The list of stages run_prepare actually ran (each recorder writes nothing but its marker's info)."""
     calls: list[str] = []
     for stage in STAGES:
-        monkeypatch.setitem(pipeline._RUNNERS, stage, lambda config, work, stage=stage: calls.append(stage) or {})
+        monkeypatch.setitem(pipeline._RUNNERS, stage, lambda config, work, pool, stage=stage: calls.append(stage) or {})
     return calls
 
 
@@ -51,8 +51,8 @@ def test_a_changed_field_redoes_its_stage_and_the_dependants_only(config, ran):
         assert rerun(changed, ran) == []
     assert rerun(config, ran) == list(STAGES)  # back to the first options: the markers hold other keys now
     assert rerun(config, ran) == []
-    # Progress, logging and where the dataset goes are not part of any key.
-    assert rerun(replace(config, progress=True, log=print), ran) == []
+    # Progress, logging, the worker count and where the dataset goes are not part of any key.
+    assert rerun(replace(config, progress=True, log=print, workers=3), ran) == []
 
 
 def test_no_photometric_ignores_the_photometric_settings(config, ran):
@@ -89,7 +89,7 @@ def test_a_changed_video_file_redoes_everything(config, ran):
 def test_every_config_field_belongs_to_one_stage_key(config):
     stages = {f.name: f.metadata["stage"] for f in fields(PrepareConfig)}
     assert set(stages.values()) <= set(STAGES) | {UNKEYED}
-    assert {name for name, stage in stages.items() if stage == UNKEYED} == {"out", "progress", "log"}
+    assert {name for name, stage in stages.items() if stage == UNKEYED} == {"out", "progress", "log", "workers"}
     configs = stage_configs(config)
     for name, stage in stages.items():
         if stage != UNKEYED:

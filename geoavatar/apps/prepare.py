@@ -30,6 +30,7 @@ def prepare(
     static_offset: bool = True,
     photometric: bool = True,
     overlay: bool = True,
+    workers: Optional[int] = None,
     progress: bool = True,
 ) -> int:
     """Prepare a dataset from a monocular head video: crop, landmarks, masks, head-model tracking (a landmark fit,
@@ -37,8 +38,11 @@ def prepare(
 
     Writes OUT/dataset (VHAP / GaussianAvatars layout, ready for `geoavatar train --data OUT/dataset`),
     OUT/overlay.mp4 (tracked mesh and landmarks over the frames: green MediaPipe, red model; frames without a
-    face flagged) and OUT/report.json (per-frame landmark reprojection error and photometric residual, frames
-    without a face). Stages are resumable: a re-run skips the stages whose outputs are complete (OUT/.prepare/).
+    face flagged), OUT/report.json (per-frame landmark reprojection error and photometric residual, frames
+    without a face, the capture check) and OUT/coverage.png; prints the capture check's verdict: which head turns,
+    mouth openings, expressions and gaze the video covers, whether its test segment leaves what training saw,
+    and what to film differently. Stages are resumable: a re-run skips the stages whose outputs are complete
+    (OUT/.prepare/).
 
     Args:
         video: Input video (any container/codec PyAV decodes; rotation metadata is honoured).
@@ -58,12 +62,14 @@ def prepare(
             --no-photometric writes the landmark fit as is (faster). Re-running with it on over a
             --no-photometric folder reuses every earlier stage and adds the photometric one.
         overlay: Write OUT/overlay.mp4.
+        workers: Worker processes (default: one per core this process may use, at most 8; each holds up to
+            0.9 GB). The dataset does not depend on it.
         progress: Show progress bars.
     """
     config = PrepareConfig(
         video=video, out=out, head=head, size=size, fps=fps, max_frames=max_frames, missing=missing,
         test_fraction=test_fraction, flame_dir=flame_dir, flame_landmarks=flame_landmarks,
-        static_offset=static_offset, photometric=photometric, overlay=overlay,
+        static_offset=static_offset, photometric=photometric, overlay=overlay, workers=workers,
         progress=progress,
     )
     try:
@@ -72,4 +78,15 @@ def prepare(
         print(f"geoavatar prepare: {err}", file=sys.stderr)
         return 2
     print(f"dataset: {dataset}\noverlay: {Path(out) / 'overlay.mp4'}\nreport: {Path(out) / 'report.json'}")
+    print(capture_verdict(Path(out)))
     return 0
+
+
+def capture_verdict(out: Path) -> str:
+    """The capture check's verdict from OUT/report.json (a re-run that skipped every stage prints it too)."""
+    import json
+
+    try:
+        return json.loads((out / "report.json").read_text())["capture"]["verdict"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return "capture check: not in report.json (run prepare again to add it)"

@@ -19,6 +19,7 @@ def synth(
     tracking_noise: bool = True,
     novel_views: bool = False,
     novel_every: int = 2,
+    still_head: bool = False,
     progress: bool = True,
 ) -> None:
     """Generate a synthetic monocular head video with known ground truth, in the VHAP layout.
@@ -42,12 +43,15 @@ def synth(
         novel_views: Also render test frames from extra cameras turned about the head (yaw +-30 and +-60,
             pitch +-20 degrees) into transforms_novel.json, the split `geoavatar eval --split novel` scores.
         novel_every: Every this many test frames get the novel views.
+        still_head: The head never turns or nods (the face, the eyes and a slight sway still move): a video
+            that `geoavatar coverage` should find lacking.
         progress: Show progress bars.
     """
     get_subject(subject)  # OptionError for --subject outside 0..NUM_SUBJECTS-1 (bad options: one line at the CLI)
     config = SynthConfig(
         subject=subject, frames=frames, size=size, seed=seed,
         tracking_noise=TrackingNoise(enabled=tracking_noise), novel_views=novel_views, novel_every=novel_every,
+        still_head=still_head,
     )
     generate_dataset(Path(out), config, preview=preview, progress=progress)
     print(f"wrote {out}" + (f" (preview: {Path(out) / PREVIEW_FILE})" if preview else ""))

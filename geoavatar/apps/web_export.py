@@ -10,7 +10,7 @@ GPU (web/src). The clip is
                                       a video is tracked first as reenact does (RUN/drivers/, reused)
 
 The view the page opens with is the dataset camera's (the camera of the clip's first frame, at the run's
-resolution), and its orbit is limited to the head turns the training frames covered (eval/view_angles.py:
+resolution), and its orbit is limited to the head turns the training frames covered (head/view_angles.py:
 where the camera saw the face from, in the head's axes) plus ORBIT_MARGIN degrees, relative to where the
 dataset camera sees the clip's head from; the page's "free orbit" lifts the limit.
 """
@@ -28,7 +28,7 @@ from geoavatar.apps.expression_transfer import DEFAULT_TRANSFER, TransferMode, t
 from geoavatar.apps.reenact import driven_clip, frame_of, track_driver
 from geoavatar.errors import OptionError
 from geoavatar.eval.evaluate import trained_view_directions
-from geoavatar.eval.view_angles import view_directions, yaw_pitch
+from geoavatar.head.view_angles import view_directions, yaw_pitch
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
 from geoavatar.render.camera import Camera

@@ -403,11 +403,12 @@ class LayoutWriter:
     def add_frame(
         self,
         timestep: int,
-        image: np.ndarray | Tensor,  # [H, W, 3] uint8, or float in [0, 1]
+        image: np.ndarray | Tensor | os.PathLike,  # [H, W, 3] uint8, or float in [0, 1]; or an RGB PNG file
         params: Mapping[str, np.ndarray | Tensor],  # expr, rotation, neck_pose, jaw_pose, eyes_pose, translation
         viewmat: np.ndarray | Tensor,  # [4, 4] world-to-camera, OpenCV axes
         K: np.ndarray | Tensor,  # [3, 3] pixels
-        mask: np.ndarray | Tensor | None = None,  # [H, W] or [H, W, 1], uint8 or float in [0, 1]
+        mask: np.ndarray | Tensor | os.PathLike | None = None,  # [H, W] or [H, W, 1], uint8 or float in [0, 1]; or a
+        #                                                         greyscale PNG file
         camera: int = 0,
         split: str | None = None,
         view: Mapping[str, Any] | None = None,
@@ -415,7 +416,9 @@ class LayoutWriter:
         """Write one frame's image, mask and (once per timestep) parameter npz to disk.
 
         `split` names an extra split (EXTRA_SPLIT_FILES): the frame is listed in that split's transforms
-        file only. `view` ({"name": ..., ...}) is stored with the frame (how the camera was placed)."""
+        file only. `view` ({"name": ..., ...}) is stored with the frame (how the camera was placed).
+        An image or mask given as a PNG file of the dataset's size is linked (or copied) into the dataset as it is:
+        a producer that has its frames as PNGs already (prepare) saves decoding and encoding them again."""
         if split is not None and split not in EXTRA_SPLIT_FILES:
             raise ValueError(f"unknown extra split {split!r}; known: {', '.join(EXTRA_SPLIT_FILES)}")
         if self.done:
@@ -426,10 +429,10 @@ class LayoutWriter:
         if (timestep, camera) in self._keys:
             raise ValueError(f"frame (timestep {timestep}, camera {camera}) was already written")
         width, height = self.info.image_size
-        pixels = _to_uint8(image, "image")
-        if pixels.ndim != 3 or pixels.shape[2] != 3:
+        pixels = _png_file(image, "RGB", (width, height), "image") if _is_path(image) else _to_uint8(image, "image")
+        if not _is_path(pixels) and (pixels.ndim != 3 or pixels.shape[2] != 3):
             raise ValueError(f"image must be [H, W, 3], got {pixels.shape}")
-        if pixels.shape[:2] != (height, width):
+        if not _is_path(pixels) and pixels.shape[:2] != (height, width):
             raise ValueError(f"image is {pixels.shape[1]}x{pixels.shape[0]} but the dataset is {width}x{height}")
         viewmat_np = _numpy(viewmat).astype(np.float64)
         K_np = _numpy(K).astype(np.float64)
@@ -441,7 +444,10 @@ class LayoutWriter:
         if view is not None:
             frame["view"] = dict(view)
         alpha = None
-        if mask is not None:
+        if mask is not None and _is_path(mask):
+            alpha = _png_file(mask, "L", (width, height), "mask")
+            frame["fg_mask_path"] = f"fg_masks/{stem}.png"
+        elif mask is not None:
             alpha = _to_uint8(mask, "mask")
             alpha = alpha[..., 0] if alpha.ndim == 3 and alpha.shape[2] == 1 else alpha
             if alpha.shape != (height, width):
@@ -450,9 +456,11 @@ class LayoutWriter:
         frame["flame_param_path"] = f"flame_param/{timestep:05d}.npz"
         arrays = self._npz_arrays(params, f"frame {timestep}") if timestep not in self._written_params else None
         with self._disk_full():
-            Image.fromarray(pixels).save(self.tmp / frame["file_path"], compress_level=self.png_compress_level)
-            if alpha is not None:
-                Image.fromarray(alpha).save(self.tmp / frame["fg_mask_path"], compress_level=self.png_compress_level)
+            for picture, name in ((pixels, "file_path"), (alpha, "fg_mask_path")):
+                if _is_path(picture):
+                    _link_or_copy(Path(picture), self.tmp / frame[name])
+                elif picture is not None:
+                    Image.fromarray(picture).save(self.tmp / frame[name], compress_level=self.png_compress_level)
             if arrays is not None:
                 np.savez(self.tmp / frame["flame_param_path"], **arrays)
                 self._written_params.add(timestep)
@@ -576,6 +584,29 @@ class LayoutWriter:
         if self.root.exists() and not self.overwrite:
             raise FileExistsError(f"{self.root} appeared while writing; not replacing it")
         replace_folder(self.tmp, self.root)
+
+
+def _is_path(value) -> bool:
+    return isinstance(value, (str, os.PathLike))
+
+
+def _png_file(path, mode: str, size: tuple[int, int], name: str) -> Path:
+    """`path`, checked from its header to be a PNG of `mode` and `size` (width, height); ValueError otherwise."""
+    path = Path(path)
+    with Image.open(path) as image:
+        kind, have_mode, have_size = image.format, image.mode, image.size
+    if kind != "PNG" or have_mode != mode or have_size != tuple(size):
+        raise ValueError(f"{name} file {path}: a {have_size[0]}x{have_size[1]} {kind} of mode {have_mode}, but the "
+                         f"dataset takes {size[0]}x{size[1]} PNGs of mode {mode}")
+    return path
+
+
+def _link_or_copy(source: Path, target: Path) -> None:
+    """A hard link of `source` at `target` (no bytes copied), or a copy where links are not possible."""
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copyfile(source, target)
 
 
 def _numpy(value: np.ndarray | Tensor) -> np.ndarray:

@@ -59,7 +59,7 @@ from geoavatar.eval.face_scores import REFERENCE_FRAMES, FaceScorer, FaceScores,
 from geoavatar.eval.floaters import (DEFAULT_DILATE, FloaterConfig, dilate_mask, head_silhouette, outside_share,
                                      side_view_shares)
 from geoavatar.eval.lpips import LPIPS_NETS, MIN_SIZE
-from geoavatar.eval.view_angles import rest_skull, view_directions, within_trained_views, yaw_pitch
+from geoavatar.head.view_angles import rest_skull, view_directions, within_trained_views, yaw_pitch
 from geoavatar.imaging import to_uint8
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import dilation_pixels, rasterize_mesh

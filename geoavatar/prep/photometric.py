@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -133,25 +134,37 @@ class PhotometricTargets:
         each crop is resampled (area) to `size` x `size` (whole frames: the longer side to `size`)."""
         T, H, W = images.shape[:3]
         masks = np.full((T, H, W), 255, np.uint8) if masks is None else np.asarray(masks).reshape(T, H, W)
+        return cls.from_frames(zip(images, masks), T, viewmat, K, size, boxes)
+
+    @classmethod
+    def from_frames(cls, frames: Iterable[tuple[np.ndarray, np.ndarray]], count: int, viewmat: np.ndarray,
+                    K: np.ndarray, size: int, boxes: np.ndarray | None = None) -> "PhotometricTargets":
+        """from_arrays over `count` (image [H,W,3] uint8, mask [H,W] uint8) pairs read one at a time: only the
+        resampled crops are held, never the full-size frames (a long video's frames do not fit in memory)."""
+        T = count
         K_source = torch.as_tensor(np.asarray(K), dtype=torch.float32).expand(T, 3, 3).clone()
         view = torch.as_tensor(np.asarray(viewmat), dtype=torch.float32).expand(T, 4, 4).clone()
-        if boxes is None:
-            scale = min(1.0, size / max(H, W))
-            boxes = np.array([[0.0, 0.0, max(H, W)]] * T)
-            out_w, out_h = max(1, round(W * scale)), max(1, round(H * scale))
-        else:
-            out_w = out_h = size
-        rgb_out = np.zeros((T, out_h, out_w, 3), np.float32)
-        mask_out = np.zeros((T, out_h, out_w, 1), np.float32)
         K_out = K_source.clone()
-        for t in range(T):
-            x0, y0, side = (float(v) for v in boxes[t])
+        rgb_out = mask_out = None
+        for t, (image, mask) in enumerate(frames):
+            H, W = image.shape[:2]
+            if boxes is None:
+                scale = min(1.0, size / max(H, W))
+                box, out_w, out_h = (0.0, 0.0, max(H, W)), max(1, round(W * scale)), max(1, round(H * scale))
+            else:
+                box, out_w, out_h = boxes[t], size, size
+            if rgb_out is None:
+                rgb_out = np.zeros((T, out_h, out_w, 3), np.float32)
+                mask_out = np.zeros((T, out_h, out_w, 1), np.float32)
+            x0, y0, side = (float(v) for v in box)
             region = (x0, y0, x0 + side * out_w / max(out_w, out_h), y0 + side * out_h / max(out_w, out_h))
-            rgb_out[t] = _resample(images[t], region, (out_w, out_h))
-            mask_out[t, ..., 0] = _resample(masks[t], region, (out_w, out_h))
+            rgb_out[t] = _resample(image, region, (out_w, out_h))
+            mask_out[t, ..., 0] = _resample(np.asarray(mask).reshape(H, W), region, (out_w, out_h))
             s = max(out_w, out_h) / side
             K_out[t, 0, :] = s * (K_source[t, 0, :] - x0 * K_source[t, 2, :])
             K_out[t, 1, :] = s * (K_source[t, 1, :] - y0 * K_source[t, 2, :])
+        if rgb_out is None or t + 1 != T:
+            raise ValueError(f"photometric: {count} frames announced, {0 if rgb_out is None else t + 1} given")
         return cls(torch.as_tensor(rgb_out) / 255.0, torch.as_tensor(mask_out) / 255.0, view, K_out, K_source)
 
     @property
@@ -418,10 +431,12 @@ class _Chunk:
 
 def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTargets,
                     config: PhotometricConfig = PhotometricConfig(), landmarks: LandmarkTargets | None = None,
-                    progress=None) -> PhotometricResult:
+                    progress=None, appearance_start: tuple[np.ndarray, np.ndarray] | None = None) -> PhotometricResult:
     """Refine the per-frame parameters `init` [T] against the frames; see the module docstring.
 
-    progress: callable(frames_done) after each chunk step, or None (total = frames x all epochs)."""
+    progress: callable(frames_done) after each chunk step, or None (total = frames x all epochs).
+    appearance_start: (albedo [F, 3], light [9, 3]) of an earlier fit to start from (a long video's segments share the
+    appearance fitted on a sample of all its frames): no albedo initialisation and no appearance-only epochs."""
     T = targets.frames
     if init.batch != T:
         raise ValueError(f"photometric: {init.batch} frames of parameters but {T} images")
@@ -429,7 +444,14 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
     weighted = weighted_faces(head)
     appearance = SurfaceAppearance(head, grow_faces(head, weighted, config.render_rings), config, weighted=weighted)
     finest = targets.level(max(config.sizes))
-    _init_albedo(appearance, head, init, finest, config.chunk)
+    if appearance_start is None:
+        _init_albedo(appearance, head, init, finest, config.chunk)
+    else:
+        for parameter, value in zip((appearance.albedo, appearance.light), appearance_start):
+            if tuple(value.shape) != tuple(parameter.shape):
+                raise ValueError(f"photometric: a start appearance of shape {tuple(value.shape)}, the model has "
+                                 f"{tuple(parameter.shape)}")
+            parameter.data.copy_(torch.as_tensor(value, dtype=torch.float32))
     shape = torch.nn.Parameter(init.shape.clone())
     shared = [{"params": [appearance.albedo], "lr": config.lr_albedo, "base": (config.lr_albedo, config.lr_albedo_pose)},
               {"params": [appearance.light], "lr": config.lr_light, "base": (config.lr_light, config.lr_light)}]
@@ -498,7 +520,7 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
                     out[row] = float(photometric_loss(result.rgb, finest.images[row], weights[row]))
         return out
 
-    schedule = [(config.sizes[0], config.appearance_epochs, True)]
+    schedule = [(config.sizes[0], config.appearance_epochs if appearance_start is None else 0, True)]
     schedule += [(size, epochs, False) for size, epochs in zip(config.sizes, config.epochs)]
     for size, epochs, appearance_only in schedule:
         if epochs <= 0:
@@ -562,9 +584,10 @@ def residual_report(residual: np.ndarray, residual_before: np.ndarray) -> dict:
             "per_frame": listed(residual), "per_frame_before": listed(residual_before)}
 
 
-def total_steps(config: PhotometricConfig, frames: int) -> int:
-    """Frames the progress callback will count: frames x every epoch of the schedule."""
-    return frames * (config.appearance_epochs + sum(config.epochs))
+def total_steps(config: PhotometricConfig, frames: int, appearance_start: bool = False) -> int:
+    """Frames the progress callback will count: frames x every epoch of the schedule (no appearance-only epochs when
+    the fit starts from a given appearance)."""
+    return frames * ((0 if appearance_start else config.appearance_epochs) + sum(config.epochs))
 
 
 __all__ = ["LandmarkTargets", "PhotometricConfig", "PhotometricResult", "PhotometricTargets", "SurfaceAppearance",

@@ -6,7 +6,10 @@ Output folder OUT:
     OUT/dataset/          the VHAP / GaussianAvatars layout (LayoutWriter: appears atomically)
     OUT/overlay.mp4       tracked mesh + landmarks over the frames (green: MediaPipe, red: model)
     OUT/report.json       per-frame reprojection error, frames without a face (missing_source_frames: source
-                          frame numbers; interpolated_frames: dataset timesteps), focal, fps
+                          frame numbers; interpolated_frames: dataset timesteps), focal, fps; "capture": the
+                          capture check (geoavatar.prep.coverage: head turns, jaw, expressions, gaze per split,
+                          test frames outside training, the verdict)
+    OUT/coverage.png      the capture check's picture
     OUT/.prepare/         work files of the stages and their completion markers
 
 Stages (each writes `.prepare/<stage>.json` last, holding its key; a re-run skips a stage whose marker
@@ -17,7 +20,15 @@ holds the key it would have now, and redoes it and every stage that depends on i
     tracking   the head-model fit (geoavatar.prep.tracking)
     photometric  every frame refined against its crop (geoavatar.prep.photometric); with --no-photometric it only
                records that it was skipped and the dataset is written from the landmark fit
-    write      the dataset through LayoutWriter, then the overlay video and the report
+    write      the dataset through LayoutWriter, then the overlay video, the capture check and the report
+
+Every stage splits its frames into tasks for a WorkerPool (geoavatar.prep.workers: spawned processes, one torch
+thread each, `workers` of them, by default one per core): decoding + face detection and the crops one range of the
+video per worker, the landmarks, masks and overlay pictures in fixed blocks, the photometric fit in segments
+(geoavatar.prep.segments); the tracking stage is one batched fit (its data term in chunks). The tasks do not depend
+on the worker count, so neither does the dataset. No stage holds every frame's pixels: a long video costs time and
+disk, not memory. A marker's cpu_seconds counts this process and its workers. (Spawned workers import the caller's
+main module: a script that calls run_prepare with more than one worker needs the `if __name__ == "__main__":` guard.)
 
 A stage's key is the sha256 of the canonical JSON of {its version, its config, its upstream stages'
 keys}. Its config is derived from PrepareConfig: every field names the stage that reads it
@@ -38,7 +49,8 @@ import math
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Literal
 
@@ -46,11 +58,12 @@ import numpy as np
 
 from geoavatar.io.atomic import atomic_write_json, atomic_write_npz, atomic_write_png
 from geoavatar.prep.errors import PrepareError
+from geoavatar.prep.workers import WorkerPool, default_workers, report_progress, split_range, worker_cache
 
 STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
 # ones depending on it) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 2, "write": 4}
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 3, "write": 5}
 # The stages whose outputs a stage reads: a rerun of one redoes these dependants.
 DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "frames": (),
@@ -66,6 +79,16 @@ WORK = ".prepare"
 # time and 21x in CPU time than 1 thread (BENCHMARKS.md, photometric tracking); 1 thread costs little where it is quiet.
 PHOTOMETRIC_THREADS = 1
 UNKEYED = "-"  # a PrepareConfig field no stage output depends on (where to write, logging)
+# Frames per task of the landmark and mask stages (fixed, so that a dataset does not depend on the worker count). The
+# face mesh tracks from frame to frame: a landmark block starts LANDMARK_WARMUP frames early and drops them.
+LANDMARK_BLOCK = 600
+LANDMARK_WARMUP = 16
+MASK_BLOCK = 256
+# The photometric stage fits segments of at most this many frames, each with this many more on either side, in the
+# workers (geoavatar.prep.segments); both are part of the stage's key.
+PHOTOMETRIC_SEGMENT = 300
+PHOTOMETRIC_OVERLAP = 8
+OVERLAY_BLOCK = 32  # overlay pictures per worker task
 
 
 def _stage_field(stage: str, *default: Any, **kwargs) -> Any:
@@ -102,6 +125,8 @@ class PrepareConfig:
     photometric_epochs: tuple[int, int] = _stage_field("photometric", (16, 12))  # at 64 px, at 128 px (PhotometricConfig's)
     overlay: bool = _stage_field("write", True)
     mask_backend: str = _stage_field("masks", "selfie")
+    # worker processes (None: the cores this process may use, at most 8); the dataset does not depend on it
+    workers: int | None = _stage_field(UNKEYED, None)
     progress: bool = _stage_field(UNKEYED, True)
     log: Callable[[str], None] = _stage_field(UNKEYED, print, repr=False)
 
@@ -204,6 +229,7 @@ def stage_configs(config: PrepareConfig) -> dict[str, dict[str, Any]]:
     out["tracking"]["tracking_config"] = _canonical(tracking_config(config))
     if config.photometric:
         out["photometric"]["photometric_config"] = _canonical(photometric_config(config))
+        out["photometric"]["segments"] = {"length": PHOTOMETRIC_SEGMENT, "overlap": PHOTOMETRIC_OVERLAP}
     else:  # skipped: its settings are not read, so changing them must not redo the dataset written without them
         out["photometric"] = {"photometric": False}
     return out
@@ -223,21 +249,67 @@ def _stage_keys(config: PrepareConfig) -> dict[str, str]:
 # --- stages -----------------------------------------------------------------------------------------
 
 
-def stage_frames(config: PrepareConfig, work: Path) -> dict:
+def _expected_frames(config: PrepareConfig, info) -> int:
+    """The frames the frames stage will keep, from the container's count (0: unknown)."""
+    count = info.num_frames
+    if count and config.fps:
+        count = math.ceil(count * min(1.0, config.fps / info.fps))
+    if count and config.max_frames:
+        count = min(count, config.max_frames)
+    return int(count)
+
+
+def _video_ranges(config: PrepareConfig, info, workers: int) -> list[tuple[int, int | None]]:
+    """One (start, stop) range of kept frames per worker; the last one is open (the count may be an estimate)."""
+    expected = _expected_frames(config, info)
+    if not expected:
+        return [(0, None)]
+    ranges: list[tuple[int, int | None]] = list(split_range(expected, workers))
+    ranges[-1] = (ranges[-1][0], None)
+    return ranges
+
+
+def _detect_task(task) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Face detection on whole frames of a range: (source indices [n], centres [n, 2], sizes [n], scores [n])."""
     from geoavatar.prep.landmarks import FaceDetector
-    from geoavatar.prep.video import crop_square, decode_frames, probe_video, smooth_crop_boxes
+    from geoavatar.prep.video import decode_frames
+
+    video, fps, max_frames, start, stop = task
+    detect = worker_cache("face_detector", FaceDetector)  # stateless: one per process
+    indices, centres, sizes, scores = [], [], [], []
+    for index, rgb in decode_frames(video, fps, max_frames, start, stop):
+        box = detect(rgb)
+        indices.append(index)
+        centres.append(box.centre if box else np.zeros(2))
+        sizes.append(box.size if box else 0.0)
+        scores.append(box.score if box else 0.0)
+        report_progress(1)
+    return np.array(indices, np.int64), np.array(centres).reshape(-1, 2), np.array(sizes), np.array(scores)
+
+
+def _crop_task(task) -> int:
+    """Crop the frames of a range to frames/KKKKK.png (K: kept-frame number); returns how many."""
+    from geoavatar.prep.video import crop_square, decode_frames
+
+    video, fps, max_frames, start, boxes, size, frames_dir = task
+    count = 0
+    for k, (_, rgb) in enumerate(decode_frames(video, fps, max_frames, start, start + len(boxes)), start):
+        atomic_write_png(frames_dir / f"{k:05d}.png", crop_square(rgb, boxes[k - start], size), compress_level=1)
+        count += 1
+        report_progress(1)
+    return count
+
+
+def stage_frames(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
+    from geoavatar.prep.video import probe_video, smooth_crop_boxes
 
     info = probe_video(config.video)
-    indices, centres, sizes, scores = [], [], [], []
-    with FaceDetector() as detect, _bar(config, config.max_frames or info.num_frames or None, "detect faces") as bar:
-        for index, rgb in decode_frames(config.video, config.fps, config.max_frames):
-            box = detect(rgb)
-            indices.append(index)
-            centres.append(box.centre if box else np.zeros(2))
-            sizes.append(box.size if box else 0.0)
-            scores.append(box.score if box else 0.0)
-            bar.update(1)
-    found = np.array(scores) > 0
+    ranges = _video_ranges(config, info, pool.workers)
+    tasks = [(config.video, config.fps, config.max_frames, a, b) for a, b in ranges]
+    with _bar(config, _expected_frames(config, info) or None, "detect faces") as bar:
+        parts = pool.map(_detect_task, tasks, progress=bar.update)
+    indices, centres, sizes, scores = (np.concatenate(column) for column in zip(*parts))
+    found = scores > 0
     if len(indices) < config.min_frames:
         raise PrepareError(
             f"video '{config.video}': {len(indices)} frame(s) after --fps/--max-frames, fewer than the "
@@ -245,39 +317,53 @@ def stage_frames(config: PrepareConfig, work: Path) -> dict:
         )
     if not found.any():
         raise PrepareError(f"video '{config.video}': no face was found in any of its {len(indices)} frames")
-    boxes = smooth_crop_boxes(np.array(centres), np.array(sizes), found, (info.width, info.height),
-                              config.crop_scale, config.crop_sigma)
+    boxes = smooth_crop_boxes(centres, sizes, found, (info.width, info.height), config.crop_scale, config.crop_sigma)
     frames_dir = work / "frames"
     shutil.rmtree(frames_dir, ignore_errors=True)
     frames_dir.mkdir(parents=True)
-    by_index = {idx: k for k, idx in enumerate(indices)}
+    tasks = [(config.video, config.fps, config.max_frames, a, boxes[a:b], config.size, frames_dir)
+             for a, b in split_range(len(indices), pool.workers)]
     with _bar(config, len(indices), "crop") as bar:
-        for index, rgb in decode_frames(config.video, config.fps, config.max_frames):
-            k = by_index[index]
-            atomic_write_png(frames_dir / f"{k:05d}.png", crop_square(rgb, boxes[k], config.size), compress_level=1)
-            bar.update(1)
+        cropped = sum(pool.map(_crop_task, tasks, progress=bar.update))
+    if cropped != len(indices):  # the second decoding pass must meet the same frames
+        raise PrepareError(f"video '{config.video}': {cropped} frames decoded on the second pass, "
+                           f"{len(indices)} on the first")
     source_fps = info.fps
     fps = min(config.fps, source_fps) if config.fps else source_fps
-    atomic_write_npz(work / "frames.npz", source_index=np.array(indices), boxes=boxes, presence=np.array(scores),
-                detected=found, frame_size=np.array([info.width, info.height]), fps=np.array(fps))
+    atomic_write_npz(work / "frames.npz", source_index=indices, boxes=boxes, presence=scores,
+                     detected=found, frame_size=np.array([info.width, info.height]), fps=np.array(fps))
     return {"frames": len(indices), "no_face_detected": [int(indices[k]) for k in np.flatnonzero(~found)],
             "video": asdict(info)}
 
 
-def stage_landmarks(config: PrepareConfig, work: Path) -> dict:
-    from geoavatar.prep.landmarks import FaceMesh, filter_landmarks, landmark_confidence
+def _landmark_task(task) -> tuple[np.ndarray, np.ndarray]:
+    """Face mesh (video mode) on the crops of a block: raw points [n, 478, 3] and found [n]. The tracker starts
+    LANDMARK_WARMUP frames early, so that the block's first frames are tracked, not detected afresh."""
+    from geoavatar.prep.landmarks import FaceMesh
+
+    frames_dir, start, stop = task
+    raw = np.zeros((stop - start, 478, 3))
+    found = np.zeros(stop - start, bool)
+    with FaceMesh() as mesh:
+        for k in range(max(0, start - LANDMARK_WARMUP), stop):
+            points = mesh(_read_png(frames_dir / f"{k:05d}.png"))
+            if k >= start:
+                if points is not None:
+                    raw[k - start], found[k - start] = points, True
+                report_progress(1)
+    return raw, found
+
+
+def stage_landmarks(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
+    from geoavatar.prep.landmarks import filter_landmarks, landmark_confidence
     from geoavatar.prep.video import fill_missing
 
     frames = np.load(work / "frames.npz")
     count = len(frames["source_index"])
-    raw = np.zeros((count, 478, 3))
-    found = np.zeros(count, bool)
-    with FaceMesh() as mesh, _bar(config, count, "landmarks") as bar:
-        for k in range(count):
-            points = mesh(_read_png(work / "frames" / f"{k:05d}.png"))
-            if points is not None:
-                raw[k], found[k] = points, True
-            bar.update(1)
+    blocks = split_range(count, math.ceil(count / LANDMARK_BLOCK))
+    with _bar(config, count, "landmarks") as bar:
+        parts = pool.map(_landmark_task, [(work / "frames", a, b) for a, b in blocks], progress=bar.update)
+    raw, found = (np.concatenate(column) for column in zip(*parts))
     source = frames["source_index"]
     missing = [int(source[k]) for k in np.flatnonzero(~found)]
     if not found.any():
@@ -302,22 +388,31 @@ def stage_landmarks(config: PrepareConfig, work: Path) -> dict:
     return {"frames": int(len(keep)), "missing_source_frames": missing, "mode": config.missing}
 
 
-def stage_masks(config: PrepareConfig, work: Path) -> dict:
+def _mask_task(task) -> list[float]:
+    """Masks of a block of frames (rows of landmarks.npz's keep); returns each mask's coverage."""
     from geoavatar.prep.masks import PersonSegmenter, foreground_mask
 
+    work, backend, keep, points = task
+    segment = worker_cache(f"segmenter:{backend}", lambda: PersonSegmenter(backend))  # stateless: one per process
+    coverage = []
+    for k, landmarks in zip(keep, points):
+        mask = foreground_mask(segment(_read_png(work / "frames" / f"{k:05d}.png")), landmarks)
+        atomic_write_png(work / "masks" / f"{k:05d}.png", mask, compress_level=1)
+        coverage.append(float(mask.mean() / 255.0))
+        report_progress(1)
+    return coverage
+
+
+def stage_masks(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     marks = np.load(work / "landmarks.npz")
     keep, points = marks["keep"], marks["filtered"]
     masks_dir = work / "masks"
     shutil.rmtree(masks_dir, ignore_errors=True)
     masks_dir.mkdir(parents=True)
-    coverage = []
-    with PersonSegmenter(config.mask_backend) as segment, _bar(config, len(keep), "masks") as bar:
-        for row, k in enumerate(keep):
-            rgb = _read_png(work / "frames" / f"{k:05d}.png")
-            mask = foreground_mask(segment(rgb), points[row])
-            atomic_write_png(masks_dir / f"{k:05d}.png", mask, compress_level=1)
-            coverage.append(float(mask.mean() / 255.0))
-            bar.update(1)
+    blocks = split_range(len(keep), math.ceil(len(keep) / MASK_BLOCK))
+    tasks = [(work, config.mask_backend, keep[a:b], points[a:b]) for a, b in blocks]
+    with _bar(config, len(keep), "masks") as bar:
+        coverage = [value for part in pool.map(_mask_task, tasks, progress=bar.update) for value in part]
     return {"frames": int(len(keep)), "mean_coverage": float(np.mean(coverage))}
 
 
@@ -354,7 +449,7 @@ def load_tracking_head(config: PrepareConfig):
     return data, landmark_head(data)
 
 
-def stage_tracking(config: PrepareConfig, work: Path) -> dict:
+def stage_tracking(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     from geoavatar.prep.tracking import track_crops
 
     frames = np.load(work / "frames.npz")
@@ -376,95 +471,148 @@ def stage_tracking(config: PrepareConfig, work: Path) -> dict:
     return {"focal": result.focal, "median_error": float(np.median(result.errors)), "log": result.log}
 
 
-def stage_photometric(config: PrepareConfig, work: Path) -> dict:
-    """Refine every frame's parameters against the crops (masked photometric L1 + the landmark term)."""
-    import torch
-
+def _photometric_head(config: PrepareConfig):
+    """The head model the photometric stage renders: --head with the GeoAvatar mouth structure."""
     from geoavatar.head import HeadModel
     from geoavatar.head.mouth import add_mouth_structure
-    from geoavatar.head.params import HeadParams
-    from geoavatar.prep.photometric import (LandmarkTargets, PhotometricTargets, crop_boxes, fit_photometric,
-                                            residual_report, total_steps, weighted_vertex_ids)
+
+    data, _ = load_tracking_head(config)
+    return HeadModel(add_mouth_structure(data, kind="geoavatar"))
+
+
+def _load_crop(work: Path, keep: np.ndarray, found: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:
+    """(crop [H, W, 3], mask [H, W]) of dataset row `row`. No face found (landmarks interpolated): the image is
+    not of the face the parameters say (a hand, a turned-away head), so its mask is empty: no image term."""
+    k = keep[row]
+    image, mask = _read_png(work / "frames" / f"{k:05d}.png"), _read_png(work / "masks" / f"{k:05d}.png")
+    return image, mask if found[k] else np.zeros_like(mask)
+
+
+def _worker_config(config: PrepareConfig) -> PrepareConfig:
+    """The config as a worker gets it: picklable (the log callback may be a lambda; workers do not log)."""
+    return replace(config, log=print, progress=False)
+
+
+def _segment_jobs(config: PrepareConfig, work: Path, head, init, fit, marks) -> tuple[list, object]:
+    """The photometric stage's SegmentJobs (one per segment: its rows of the landmark fit, cameras, crops and
+    landmarks) and the appearance sample's (frames spread over the whole video, no pose epochs)."""
+    import torch
+
+    from geoavatar.data.splits import evenly_spaced
+    from geoavatar.head.params import SUBJECT_KEYS
+    from geoavatar.prep.photometric import crop_boxes, weighted_vertex_ids
+    from geoavatar.prep.segments import SegmentJob, segment_rows, segments
     from geoavatar.prep.tracking import GROUP_OF, GROUP_WEIGHTS
+
+    settings = photometric_config(config)
+    keep = marks["keep"]
+    T = len(keep)
+    viewmat = np.repeat(fit["viewmat"][None], T, 0)  # [T, 4, 4]: one camera
+    boxes = crop_boxes(head, init, torch.as_tensor(viewmat, dtype=torch.float32),
+                       torch.as_tensor(fit["K"], dtype=torch.float32), weighted_vertex_ids(head), settings.crop_margin)
+    ids = head.landmark_ids.cpu().numpy()
+    points = marks["filtered"]
+    size = np.maximum(np.linalg.norm(points[:, 10, :2] - points[:, 152, :2], axis=-1), 1.0)
+    landmarks = {"points": points[:, ids, :2], "size": size, "confidence": np.clip(marks["confidence"], 0.05, 1.0)}
+    weights = np.array([GROUP_WEIGHTS[GROUP_OF.get(int(i), "face_oval_lower")] for i in ids])
+    params = {k: v.numpy() for k, v in init.to_npz().items()}
+    workers = _worker_config(config)
+    head_key = f"photometric-head:{config.head}:{config.flame_dir}:{config.flame_landmarks}"
+
+    def job(rows: np.ndarray, core: slice, settings) -> SegmentJob:
+        return SegmentJob(
+            rows=rows, keep=core, head_key=head_key,
+            head_factory=partial(_photometric_head, workers), load=partial(_load_crop, work, keep, marks["found"]),
+            settings=settings, params={k: v if k in SUBJECT_KEYS else v[rows] for k, v in params.items()},
+            viewmat=viewmat[rows], K=fit["K"][rows], boxes=boxes[rows],
+            landmarks={**{k: v[rows] for k, v in landmarks.items()}, "weights": weights})
+
+    jobs = [job(*segment_rows(span), settings) for span in segments(T, PHOTOMETRIC_SEGMENT, PHOTOMETRIC_OVERLAP)]
+    sample = job(np.array(evenly_spaced(T, PHOTOMETRIC_SEGMENT)), slice(0, 0),
+                 replace(settings, epochs=(0,) * len(settings.epochs)))
+    return jobs, sample
+
+
+def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
+    """Refine every frame's parameters against the crops (masked photometric L1 + the landmark term), segment by
+    segment over the workers (geoavatar.prep.segments)."""
+    import torch
+
+    from geoavatar.head.params import HeadParams
+    from geoavatar.prep.photometric import residual_report, total_steps
+    from geoavatar.prep.segments import fit_segments
     from geoavatar.render.camera import project
-    from geoavatar.runtime import num_threads
 
     (work / "photometric.npz").unlink(missing_ok=True)
     if not config.photometric:
         return {"skipped": True}
-    marks = np.load(work / "landmarks.npz")
-    fit = np.load(work / "tracking.npz")
-    keep = marks["keep"]
-    data, _ = load_tracking_head(config)
-    head = HeadModel(add_mouth_structure(data, kind="geoavatar"))
-    settings = photometric_config(config)
-    params = {k[len("param_"):]: torch.as_tensor(fit[k], dtype=torch.float32) for k in fit.files if k.startswith("param_")}
+    marks = dict(np.load(work / "landmarks.npz"))
+    fit = dict(np.load(work / "tracking.npz"))
+    head = _photometric_head(config)
+    params = {k[len("param_"):]: torch.as_tensor(fit[k], dtype=torch.float32) for k in fit if k.startswith("param_")}
     if "static_offset" in params:
         params["static_offset"] = params["static_offset"].reshape(1, -1, 3)
     init = HeadParams.from_npz(params)
-    images = np.stack([_read_png(work / "frames" / f"{k:05d}.png") for k in keep])
-    masks = np.stack([_read_png(work / "masks" / f"{k:05d}.png") for k in keep])
-    # No face found (landmarks interpolated): the image is not of the face the parameters say (a hand, a
-    # turned-away head, a blank frame), so it gets no image term; its parameters follow the interpolated
-    # landmarks (low confidence), the priors and the temporal smoothness with the refined neighbours.
-    masks[~marks["found"][keep]] = 0
-    viewmat = torch.as_tensor(fit["viewmat"], dtype=torch.float32).expand(len(keep), 4, 4)
-    K = torch.as_tensor(fit["K"], dtype=torch.float32)
-    boxes = crop_boxes(head, init, viewmat, K, weighted_vertex_ids(head), settings.crop_margin)
-    targets = PhotometricTargets.from_arrays(images, masks, viewmat.numpy(), K.numpy(), max(settings.sizes), boxes)
-    ids = head.landmark_ids.cpu().numpy()
-    points = marks["filtered"]
-    landmarks = LandmarkTargets(
-        points=torch.as_tensor(points[:, ids, :2], dtype=torch.float32),
-        size=torch.as_tensor(np.linalg.norm(points[:, 10, :2] - points[:, 152, :2], axis=-1), dtype=torch.float32).clamp_min(1.0),
-        weights=torch.tensor([GROUP_WEIGHTS[GROUP_OF.get(int(i), "face_oval_lower")] for i in ids], dtype=torch.float32),
-        confidence=torch.as_tensor(marks["confidence"], dtype=torch.float32).clamp(0.05, 1.0))
-    bar = _bar(config, total_steps(settings, len(keep)), "photometric")
+    jobs, sample = _segment_jobs(config, work, head, init, fit, marks)
+    shared = len(jobs) > 1  # several segments start from one appearance, fitted on the sample first
+    steps = sum(total_steps(job.settings, len(job.rows), appearance_start=shared) for job in jobs)
+    bar = _bar(config, steps + (total_steps(sample.settings, len(sample.rows)) if shared else 0), "photometric")
     try:
-        with torch.enable_grad(), num_threads(PHOTOMETRIC_THREADS):
-            result = fit_photometric(head, init, targets, settings, landmarks=landmarks, progress=bar.update)
+        result = fit_segments(jobs, pool, progress=bar.update, sample=sample)
     finally:
         bar.close()
-    with torch.no_grad():
-        pixels, _ = project(head.forward_params(result.params, vertex_ids=head.landmark_vertex_ids).landmarks, viewmat, K)
-    width = np.maximum(np.linalg.norm(points[:, 234, :2] - points[:, 454, :2], axis=-1), 1e-6)
-    errors = np.median((pixels - landmarks.points).norm(dim=-1).numpy(), axis=1) / width
-    fitted = {k: v.numpy() for k, v in result.params.to_npz().items() if k != "static_offset"}
-    if "param_static_offset" in fit.files:
+    fitted = {k: v for k, v in result.params.items() if k != "static_offset"}
+    if "param_static_offset" in fit:
         fitted["static_offset"] = fit["param_static_offset"]
+    values = {k: torch.as_tensor(v) for k, v in fitted.items() if k != "static_offset"}
+    ids, points = head.landmark_ids.cpu().numpy(), marks["filtered"]
+    with torch.no_grad():
+        refined = HeadParams.from_npz({**values, "static_offset": init.static_offset})
+        pixels, _ = project(head.forward_params(refined, vertex_ids=head.landmark_vertex_ids).landmarks,
+                            torch.as_tensor(fit["viewmat"], dtype=torch.float32),
+                            torch.as_tensor(fit["K"], dtype=torch.float32))
+    width = np.maximum(np.linalg.norm(points[:, 234, :2] - points[:, 454, :2], axis=-1), 1e-6)
+    detected = torch.as_tensor(points[:, ids, :2], dtype=torch.float32)
+    errors = np.median((pixels - detected).norm(dim=-1).numpy(), axis=1) / width
     atomic_write_npz(work / "photometric.npz", **{f"param_{k}": v for k, v in fitted.items()}, focal=fit["focal"],
-                viewmat=fit["viewmat"], K=fit["K"], projected=pixels.numpy(), landmark_ids=ids, errors=errors,
-                residual=result.residual, residual_before=result.residual_before)
-    for line in result.log:
-        config.log(f"prepare: photometric {line}")
+                     viewmat=fit["viewmat"], K=fit["K"], projected=pixels.numpy(), landmark_ids=ids, errors=errors,
+                     residual=result.residual, residual_before=result.residual_before)
     summary = residual_report(result.residual, result.residual_before)
+    log = [f"{len(jobs)} segment(s) of at most {PHOTOMETRIC_SEGMENT} frames (+{PHOTOMETRIC_OVERLAP} overlap)"
+           + (f", one appearance fitted on {len(sample.rows)} frames first" if shared else "")]
+    log += result.logs[0] if shared else []
+    cores = [job.rows[job.keep] for job in jobs]
+    log += [f"segment {i} (frames {core[0]}-{core[-1]}): {line}"
+            for i, (core, lines) in enumerate(zip(cores, result.logs[shared:])) for line in lines]
+    config.log(f"prepare: photometric {log[0]}; residual (masked L1): {summary['mean_before']:.4f} -> "
+               f"{summary['mean']:.4f}")
     return {"residual_before": summary["mean_before"], "residual": summary["mean"],
-            "median_error": float(np.median(errors)), "log": result.log}
+            "median_error": float(np.median(errors)), "log": log}
 
 
-def stage_write(config: PrepareConfig, work: Path) -> dict:
+def stage_write(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     from geoavatar.data.layout import LayoutWriter
     from geoavatar.data.splits import SplitConfig
 
-    frames = np.load(work / "frames.npz")
-    marks = np.load(work / "landmarks.npz")
-    fit = np.load(fit_file(config, work))
+    frames = dict(np.load(work / "frames.npz"))  # every array read once (an npz re-reads an array at each access)
+    marks = dict(np.load(work / "landmarks.npz"))
+    fit = dict(np.load(fit_file(config, work)))
     keep = marks["keep"]
     count = len(keep)
     test = max(1, math.ceil(config.test_fraction * count)) if config.test_fraction > 0 else 0
     dataset = Path(config.out) / "dataset"
-    params = {k[len("param_"):]: fit[k] for k in fit.files if k.startswith("param_")}
+    params = {k[len("param_"):]: fit[k] for k in fit if k.startswith("param_")}
     with LayoutWriter(dataset, head_model=config.head, image_size=(config.size, config.size), shape=params["shape"],
                       static_offset=params.get("static_offset"),
                       background=(1.0, 1.0, 1.0), source=str(Path(config.video).name),
                       split=SplitConfig(test_frames=test), overwrite=True) as writer, _bar(config, count, "write") as bar:
-        for t, k in enumerate(keep):
+        for t, k in enumerate(keep):  # the crops and masks are PNGs already: linked into the dataset, not re-encoded
             frame = {name: params[name][t] for name in ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")}
-            writer.add_frame(t, _read_png(work / "frames" / f"{k:05d}.png"), frame, fit["viewmat"], fit["K"][t],
-                             mask=_read_png(work / "masks" / f"{k:05d}.png"))
+            writer.add_frame(t, work / "frames" / f"{k:05d}.png", frame, fit["viewmat"], fit["K"][t],
+                             mask=work / "masks" / f"{k:05d}.png")
             bar.update(1)
     if config.overlay:
-        write_overlay(config, work, Path(config.out) / "overlay.mp4")
+        write_overlay(config, work, Path(config.out) / "overlay.mp4", pool)
     errors = fit["errors"]
     source = frames["source_index"][keep]
     report = {
@@ -479,56 +627,113 @@ def stage_write(config: PrepareConfig, work: Path) -> dict:
         },
         "jaw_open_rad": {"min": float(params["jaw_pose"][:, 0].min()), "max": float(params["jaw_pose"][:, 0].max())},
     }
-    if "residual" in fit.files:  # masked L1 of the photometric fit's appearance model, 128 px face crops
+    if "residual" in fit:  # masked L1 of the photometric fit's appearance model, 128 px face crops
         from geoavatar.prep.photometric import residual_report
 
         report["photometric_residual"] = residual_report(fit["residual"], fit["residual_before"])  # null: no face
+    report["capture"] = write_capture_check(config, params, fit["viewmat"], count - test, count, marks["raw"])
     atomic_write_json(Path(config.out) / "report.json", report)
     return {"dataset": str(dataset), "frames": int(count), "test_frames": int(test)}
 
 
-def overlay_frames(config: PrepareConfig, work: Path, rows=None):
-    """Yield (row, overlay picture) for the rows (dataset timesteps) asked for (all by default), each captioned
-    with its timestep and the fit shown; a frame where no face was found (interpolated) is flagged."""
+def write_capture_check(config: PrepareConfig, params: dict[str, np.ndarray], viewmat: np.ndarray, train: int,
+                        count: int, landmarks: np.ndarray) -> dict:
+    """The capture check (geoavatar.prep.coverage) of the written fit: OUT/coverage.png; returns its report.
+    params: the fit's npz arrays (per-frame keys [T, ...]); the first `train` rows are the training frames;
+    landmarks [T, 478, 3] the face mesh's unfiltered points (its blinks: the filter and the fit may smooth a short
+    one away)."""
+    import torch
+
+    from geoavatar.head import HeadModel
+    from geoavatar.head.params import HeadParams
+    from geoavatar.prep.coverage import capture_check, eye_openness
+
+    data, _ = load_tracking_head(config)
+    values = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in params.items()}
+    if "static_offset" in values:
+        values["static_offset"] = values["static_offset"].reshape(1, -1, 3)
+    splits = {"train": np.arange(train), "test": np.arange(train, count)}
+    return capture_check(HeadModel(data), HeadParams.from_npz(values), viewmat, splits, np.arange(count),
+                         Path(config.out) / "coverage.png", detected_eyes=eye_openness(landmarks))
+
+
+@dataclass
+class _OverlayBlock:
+    """What a worker needs to draw the overlay of some dataset rows (picklable; arrays hold those rows only)."""
+
+    config: PrepareConfig  # picklable (_worker_config): names the head model
+    rows: np.ndarray  # [n] dataset rows
+    frame_paths: list[Path]
+    params: dict[str, np.ndarray]  # the npz layout, per-frame keys [n, ...]
+    viewmat: np.ndarray  # [4, 4]
+    K: np.ndarray  # [n, 3, 3]
+    detected: np.ndarray  # [n, L, 2] MediaPipe's filtered landmarks (the model's embedded ones)
+    projected: np.ndarray  # [n, L, 2] the fit's
+    lost: np.ndarray  # [n] bool: no face found, landmarks interpolated
+
+
+def _overlay_blocks(config: PrepareConfig, work: Path, rows) -> list[_OverlayBlock]:
+    """The rows asked for, OVERLAY_BLOCK at a time, with their inputs (each npz read once)."""
+    marks = dict(np.load(work / "landmarks.npz"))
+    fit = dict(np.load(fit_file(config, work)))
+    keep, found, ids = marks["keep"], marks["found"], fit["landmark_ids"]
+    rows = np.arange(len(keep)) if rows is None else np.asarray(rows, np.int64)
+    params = {k[len("param_"):]: fit[k] for k in fit if k.startswith("param_")}
+    blocks = []
+    for a, b in split_range(len(rows), math.ceil(len(rows) / OVERLAY_BLOCK)):
+        chosen = rows[a:b]
+        blocks.append(_OverlayBlock(
+            config=_worker_config(config), rows=chosen,
+            frame_paths=[work / "frames" / f"{keep[r]:05d}.png" for r in chosen],
+            params={k: v if k in ("shape", "static_offset") else v[chosen] for k, v in params.items()},
+            viewmat=fit["viewmat"], K=fit["K"][chosen], detected=marks["filtered"][chosen][:, ids, :2],
+            projected=fit["projected"][chosen], lost=~found[keep[chosen]]))
+    return blocks
+
+
+def _overlay_task(block: _OverlayBlock) -> list[np.ndarray]:
+    """The overlay pictures of a block's rows (in a worker; the head model is built once per process)."""
     import torch
 
     from geoavatar.head import HeadModel, npz_frame
     from geoavatar.prep.overlay import overlay_frame
 
-    marks = np.load(work / "landmarks.npz")
-    fit = np.load(fit_file(config, work))
-    data, _ = load_tracking_head(config)
-    head = HeadModel(data)
-    keep, found = marks["keep"], marks["found"]
-    ids = fit["landmark_ids"]
+    config = block.config
+    head = worker_cache(f"overlay-head:{config.head}:{config.flame_dir}:{config.flame_landmarks}",
+                        lambda: HeadModel(load_tracking_head(config)[0]))
     shown = "photometric" if config.photometric else "landmark fit"
-    params = {k[len("param_"):]: torch.as_tensor(fit[k]) for k in fit.files if k.startswith("param_")}
-    viewmat = torch.as_tensor(fit["viewmat"], dtype=torch.float32)
-    for row in rows if rows is not None else range(len(keep)):
-        frame_params = npz_frame(params, row)
+    params = {k: torch.as_tensor(v) for k, v in block.params.items()}
+    viewmat = torch.as_tensor(block.viewmat, dtype=torch.float32)
+    pictures = []
+    for i, row in enumerate(block.rows):
         with torch.no_grad():
-            vertices = head.forward_params(frame_params).vertices[0]
-        image = _read_png(work / "frames" / f"{keep[row]:05d}.png")
-        lost = not found[keep[row]]
-        caption = f"{row:05d}  {shown}" + ("  no face: interpolated" if lost else "")
-        yield row, overlay_frame(image, vertices, head.faces, viewmat, torch.as_tensor(fit["K"][row], dtype=torch.float32),
-                                 marks["filtered"][row, ids, :2], fit["projected"][row], caption=caption, flagged=lost)
+            vertices = head.forward_params(npz_frame(params, i)).vertices[0]
+        caption = f"{row:05d}  {shown}" + ("  no face: interpolated" if block.lost[i] else "")
+        pictures.append(overlay_frame(_read_png(block.frame_paths[i]), vertices, head.faces, viewmat,
+                                      torch.as_tensor(block.K[i], dtype=torch.float32), block.detected[i],
+                                      block.projected[i], caption=caption, flagged=bool(block.lost[i])))
+        report_progress(1)
+    return pictures
 
 
-def write_overlay(config: PrepareConfig, work: Path, path: Path) -> Path:
+def overlay_frames(config: PrepareConfig, work: Path, rows=None):
+    """Yield (row, overlay picture) for the rows (dataset timesteps) asked for (all by default), each captioned
+    with its timestep and the fit shown; a frame where no face was found (interpolated) is flagged."""
+    for block in _overlay_blocks(config, work, rows):
+        yield from zip(block.rows.tolist(), _overlay_task(block))
+
+
+def write_overlay(config: PrepareConfig, work: Path, path: Path, pool: WorkerPool) -> Path:
+    """OUT/overlay.mp4: the pictures drawn in the workers, a few blocks ahead, encoded here in order."""
     from geoavatar.prep.overlay import write_video
 
     frames = np.load(work / "frames.npz")
-    count = len(np.load(work / "landmarks.npz")["keep"])
-    bar = _bar(config, count, "overlay video")
-
-    def pictures():
-        for _, picture in overlay_frames(config, work):
-            bar.update(1)
-            yield picture
-
+    blocks = _overlay_blocks(config, work, None)
+    bar = _bar(config, sum(len(block.rows) for block in blocks), "overlay video")
     try:
-        return write_video(path, pictures(), float(frames["fps"]))
+        pictures = (picture for done in pool.imap(_overlay_task, blocks, bar.update, window=2 * pool.workers)
+                    for picture in done)
+        return write_video(path, pictures, float(frames["fps"]))
     finally:
         bar.close()
 
@@ -548,6 +753,8 @@ def run_prepare(config: PrepareConfig) -> Path:
         raise PrepareError(f"--test-fraction must be in [0, 1), got {config.test_fraction}")
     if not video.is_file():
         raise PrepareError(f"video '{video}': file not found")
+    if config.workers is not None and config.workers < 1:
+        raise PrepareError(f"--workers must be at least 1, got {config.workers}")
     created = not out.exists()
     work = out / WORK
     work.mkdir(parents=True, exist_ok=True)
@@ -555,17 +762,19 @@ def run_prepare(config: PrepareConfig) -> Path:
     timings: dict[str, float] = {}
     completed_any = False
     try:
-        for stage in STAGES:
-            if stages.done(stage):
-                config.log(f"prepare: stage '{stage}' is complete, skipped")
+        with WorkerPool(config.workers or default_workers()) as pool:
+            for stage in STAGES:
+                if stages.done(stage):
+                    config.log(f"prepare: stage '{stage}' is complete, skipped")
+                    completed_any = True
+                    continue
+                stages.start(stage)
+                start, cpu = time.perf_counter(), time.process_time() + pool.cpu_seconds()
+                info = _RUNNERS[stage](config, work, pool)
+                timings[stage] = time.perf_counter() - start
+                cpu = time.process_time() + pool.cpu_seconds() - cpu  # this process and its workers
+                stages.finish(stage, {**info, "seconds": timings[stage], "cpu_seconds": cpu})
                 completed_any = True
-                continue
-            stages.start(stage)
-            start, cpu = time.perf_counter(), time.process_time()
-            info = _RUNNERS[stage](config, work)
-            timings[stage] = time.perf_counter() - start
-            stages.finish(stage, {**info, "seconds": timings[stage], "cpu_seconds": time.process_time() - cpu})
-            completed_any = True
     except PrepareError:
         if created and not completed_any:
             shutil.rmtree(out, ignore_errors=True)

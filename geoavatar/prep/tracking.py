@@ -42,6 +42,7 @@ from geoavatar.head import landmarks_mediapipe as mpids
 from geoavatar.head.base import HeadModel, HeadModelData
 from geoavatar.head.params import HeadParams
 from geoavatar.head.smooth_offset import SmoothOffset
+from geoavatar.prep.workers import split_range
 from geoavatar.render.camera import project
 
 # Landmark groups: weight in the data term, and whether the rigid stage uses them.
@@ -49,6 +50,8 @@ GROUP_WEIGHTS = {
     "lips": 1.0, "eyes": 1.0, "irises": 0.5, "nose": 1.0, "brows": 0.5, "face_oval_upper": 0.3, "face_oval_lower": 0.3,
 }
 RIGID_GROUPS = ("eyes", "nose", "brows", "face_oval_upper")
+# Frames whose data term is differentiated at once (the same energy and step; a long video's graph stays bounded).
+DATA_CHUNK = 1024
 
 
 def _group_of() -> dict[int, str]:
@@ -351,13 +354,20 @@ def track(
     fit = _Fit(T, num_shape, num_expr, f0, translation, rows, energy)
 
     landmark_vertices = model.landmark_vertex_ids  # [K]: the subset of vertices posed in every step
+    chunks = [slice(a, b) for a, b in split_range(T, math.ceil(T / DATA_CHUNK))]
 
-    def loss_terms(stage: str) -> dict[str, Tensor]:
-        p = fit.params()
+    def data_term(stage: str, rows: slice) -> Tensor:
+        """The data term's share of the frames `rows`: their confidence-weighted sum over all frames' confidence."""
+        p = fit.params().rows(rows)
         posed = _rigid_only(p) if stage == "rigid" else p
-        K = _intrinsics(fit.log_focal.exp(), principal_t)
+        K = _intrinsics(fit.log_focal.exp(), principal_t[rows])
         w = weights * (rigid_mask if stage == "rigid" else 1.0)
-        terms = {"data": _data_term(model, posed, viewmat, K, target, size, w, conf, config.huber)}
+        share = conf[rows].sum() / conf.sum()
+        return _data_term(model, posed, viewmat, K, target[rows], size[rows], w, conf[rows], config.huber) * share
+
+    def loss_terms(stage: str, data: bool = True) -> dict[str, Tensor]:
+        p = fit.params()
+        terms = {"data": data_term(stage, slice(None))} if data else {}
         terms.update(_pose_smoothness(p, config))
         if stage == "rigid":
             return terms
@@ -379,9 +389,18 @@ def track(
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: 0.1 ** (s / steps))
         for step in range(steps):
             optimizer.zero_grad(set_to_none=True)
-            terms = loss_terms(stage)
-            total = sum(terms.values())
-            total.backward()
+            if len(chunks) == 1:
+                terms = loss_terms(stage)
+                sum(terms.values()).backward()
+            else:  # the data term's graph chunk by chunk: over a long video's frames at once it would take gigabytes
+                data = torch.zeros(())
+                for rows in chunks:
+                    term = data_term(stage, rows)
+                    term.backward()
+                    data = data + term.detach()
+                terms = loss_terms(stage, data=False)
+                sum(terms.values()).backward()
+                terms = {"data": data, **terms}
             optimizer.step()
             schedule.step()
             if progress is not None:

@@ -82,8 +82,12 @@ def upright(image: np.ndarray, rotation: int) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(image, k)) if k else image
 
 
-def decode_frames(path: str | Path, fps: float | None = None, max_frames: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
-    """(source frame index, upright RGB [H, W, 3] uint8), optionally subsampled to `fps`, at most max_frames."""
+def decode_frames(path: str | Path, fps: float | None = None, max_frames: int | None = None, start: int = 0,
+                  stop: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """(source frame index, upright RGB [H, W, 3] uint8), optionally subsampled to `fps`, at most max_frames.
+
+    start / stop: only the kept frames number start..stop-1 (counted after the subsampling): the earlier ones
+    are decoded, not converted; a worker's share of a video, exactly the frames a whole pass would give it."""
     if fps is not None and fps <= 0:
         raise PrepareError(f"--fps must be positive, got {fps}")
     if max_frames is not None and max_frames <= 0:
@@ -101,9 +105,10 @@ def decode_frames(path: str | Path, fps: float | None = None, max_frames: int | 
                     if time + 0.5 / source_fps < next_tick:
                         continue
                     next_tick = (math.floor(time * fps + 0.5) + 1) / fps
-                yield index, upright(frame.to_ndarray(format="rgb24"), _rotation_of(frame))
+                if kept >= start:
+                    yield index, upright(frame.to_ndarray(format="rgb24"), _rotation_of(frame))
                 kept += 1
-                if max_frames is not None and kept >= max_frames:
+                if (max_frames is not None and kept >= max_frames) or (stop is not None and kept >= stop):
                     return
         except PrepareError:
             raise

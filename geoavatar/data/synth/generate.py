@@ -30,7 +30,6 @@ import json
 import logging
 import math
 import multiprocessing
-import os
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -110,6 +109,7 @@ class SynthConfig:
     workers: int = field(default_factory=lambda: default_workers())  # rendering processes (1: inline)
     novel_views: bool = False  # also render test timesteps from the NOVEL_VIEWS cameras (transforms_novel.json)
     novel_every: int = 2  # every this many test timesteps get the novel views
+    still_head: bool = False  # the head never turns or nods (motion.script_motion's still_head)
 
 
 def check_output_folder(out: Path) -> bool:
@@ -241,7 +241,7 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
     actor = actor_for_subject(subject.index)
     camera = frontal_camera(actor, config.size, config.fov_deg)
     renderer = ActorRenderer(actor, camera, subject.background_rgb, ssaa=config.ssaa)
-    motion = script_motion(config.frames, config.seed, config.fps)
+    motion = script_motion(config.frames, config.seed, config.fps, still_head=config.still_head)
     gt, mapping = motion_to_params(motion, actor)
     written = apply_tracking_noise(gt, config.tracking_noise, config.fps, config.seed,
                                    num_expr_used=actor.head.exprdirs.shape[-1],
@@ -290,6 +290,7 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
             "subject": subject.summary(),
             "seed": config.seed,
             "frames": config.frames,
+            "still_head": config.still_head,
             "fps": config.fps,
             "size": config.size,
             "fov_deg_vertical": config.fov_deg,
@@ -360,11 +361,9 @@ _STATE: dict = {}  # actor, renderer, ground truth: inherited by forked workers
 
 def default_workers() -> int:
     """Worker processes for rendering: the cores this process may use (at most 8)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(8, cores))
+    from geoavatar.runtime import available_cores
+
+    return max(1, min(8, available_cores()))
 
 
 def _render_one(job: tuple[int, int, Camera | None]) -> tuple[int, int, np.ndarray, np.ndarray]:

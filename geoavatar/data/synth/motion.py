@@ -170,11 +170,13 @@ def _talking(rng: np.random.Generator, times: np.ndarray, envelope: np.ndarray) 
     return jaw * envelope, {k: v * envelope for k, v in shapes.items()}
 
 
-def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0) -> Motion:
+def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0, still_head: bool = False) -> Motion:
     """The motion of one synthetic video (deterministic for a given num_frames and seed).
 
     The test segment is the last `held_out_frame_count(num_frames)` frames: open-mouth speech in
     expression combinations outside the training part, at poses inside it (see the module docstring).
+    `still_head`: the head never turns, nods or rolls (the sway, the face and the eyes move as scripted):
+    the video a user makes who looks straight into the camera throughout.
     """
     test_frames = held_out_frame_count(num_frames)
     train_frames = num_frames - test_frames
@@ -264,6 +266,9 @@ def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0) -> Motion:
         [0.006 * _smooth_noise(rng, num_frames, corr), 0.004 * _smooth_noise(rng, num_frames, corr),
          0.008 * _smooth_noise(rng, num_frames, corr)], axis=-1,
     )
+
+    if still_head:
+        yaw, pitch, roll = np.zeros(num_frames), np.zeros(num_frames), np.zeros(num_frames)
 
     segments = [(0, int(round(talk_end * (train_frames - 1))) + 1, "talking")]
     for k, idx in enumerate(order):
