@@ -100,8 +100,8 @@ def demo(
     `geoavatar eval RUN`: their simulated tracker error, which the avatar never saw), renders the tracked test
     re-enactment (ground truth | render | error), a novel-view orbit and a cross re-enactment at
     --picture-resolution, and writes report.md (led by the tracked test score) and report.json with timings and
-    pictures. Re-running continues an interrupted demo. The defaults take about 5 minutes on 2 CPU cores (native cpu
-    rasterizer).
+    pictures. Re-running continues an interrupted demo. The defaults take an estimated 4-5 minutes on 2 quiet CPU
+    cores (native cpu rasterizer; docs/demo.md).
 
     Args:
         out: Output folder (data/, run/, videos, stills and report.md go here).
