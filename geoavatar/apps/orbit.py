@@ -25,8 +25,8 @@ from typing import Literal, NamedTuple, Optional
 
 import torch
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, check_resolution, default_output, head_centre, progress,
-                                   record_camera, run_background, side_by_side, torch_threads)
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, check_resolution, default_output, head_centre,
+                                   progress, record_camera, run_background, side_by_side, torch_threads)
 from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
