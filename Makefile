@@ -24,7 +24,8 @@ install-cuda: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-# The main job: generate a subject, train, evaluate, render; read demo_output/report.md.
+# The main job, as a user's video goes: generate a subject, train, track the test frames against the avatar,
+# evaluate, render (256 px); read demo_output/report.md.
 demo: $(STAMP)
 	$(VENV)/bin/geoavatar demo --out demo_output
 

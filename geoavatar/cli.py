@@ -36,7 +36,7 @@ COMMANDS: CommandTable = {
 }
 
 _DESCRIPTIONS = {
-    "demo": "The main job end to end on a generated subject: train, evaluate, render; writes report.md.",
+    "demo": "The main job end to end on a generated subject: train, track the test frames, evaluate, render; writes report.md.",
     "head": "Head models: inspect the template, expressions and mouth structure.",
     "head show": "Render a contact sheet of a head model (front/side, expressions, open jaw).",
     "synth": "Generate a synthetic monocular dataset of a ground-truth actor (the embedded default).",

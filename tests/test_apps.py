@@ -28,8 +28,10 @@ from geoavatar.apps import render_video
 from geoavatar.apps import view as view_app
 from geoavatar.apps.common import colormap_lut, error_map, pose_gaussians, record_camera, render_params, torch_threads
 from geoavatar.apps.expression_transfer import TRANSFER_MODES
+from geoavatar.apps.track import write_tracked_copy
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
+from geoavatar.head.params import HeadParams
 from geoavatar.io.ply import PLY_PROPERTIES, read_gaussian_ply
 from geoavatar.io.video import Mp4Writer
 from geoavatar.render import composite_target
@@ -88,6 +90,43 @@ def test_render_writes_ground_truth_render_error_video(run, run_dir, tmp_path):
     assert np.abs(frames[0][:, SIZE:2 * SIZE] - pred).mean() < 6.0
     assert np.abs(frames[0][:, :SIZE] - pred).mean() > np.abs(frames[0][:, SIZE:2 * SIZE] - pred).mean()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["render.mp4"]  # no temporary file left
+
+
+
+def test_render_with_a_dataset_copy_shows_the_copys_parameters_on_held_out_frames(run, run_dir, data, tmp_path):
+    """`render --data COPY` (a `track --avatar` copy) renders the test frames with the copy's parameters, as
+    `eval --data COPY` scores them, not with those the run recorded."""
+    subject = open_subject(data)
+    params = HeadParams.from_npz({k: v.float() for k, v in subject.params.items()})
+    copy = write_tracked_copy(subject, params.replace(translation=params.translation + torch.tensor([0.03, 0.0, 0.0])),
+                              tmp_path / "copy", {})
+    out = tmp_path / "render.mp4"
+    assert render_video.render(run_dir, split="test", out=out, data=copy, device="cpu", progress=False) == 0
+    item = open_run_dataset(run, "test", copy)[0]
+    camera = Camera(item["viewmat"], item["K"], SIZE, SIZE)
+    shown = decode(out)[0][:, SIZE:2 * SIZE].astype(np.float64)
+    copys = render_params(run, HeadParams.from_npz(item["params"]), camera).numpy() * 255.0
+    recorded = render_params(run, RunFrames(run).params(item["timestep"])[0], camera).numpy() * 255.0
+    assert np.abs(shown - copys).mean() < 6.0 < np.abs(shown - recorded).mean()
+
+
+
+def test_render_reenact_and_orbit_at_another_resolution(run_dir, driver, tmp_path):
+    """--resolution sets the renders' longer side (the demo's pictures are larger than its training images); a bad
+    value is a one-line OptionError naming it, before any work."""
+    out = tmp_path / "render.mp4"
+    assert render_video.render(run_dir, out=out, resolution=32, device="cpu", progress=False) == 0
+    assert decode(out)[0].shape == (32, 3 * 32, 3)  # ground truth | render | error, all at 32 px
+    out = tmp_path / "reenact.mp4"
+    assert reenact_app.reenact(run_dir, driver, out=out, max_frames=1, resolution=32, device="cpu", progress=False) == 0
+    assert decode(out)[0].shape == (32, 2 * 32, 3)  # driver (scaled to the height) | avatar
+    bad = {"render": lambda: render_video.render(run_dir, out=tmp_path / "x.mp4", resolution=0, progress=False),
+           "reenact": lambda: reenact_app.reenact(run_dir, driver, out=tmp_path / "x.mp4", resolution=-5, progress=False),
+           "orbit": lambda: orbit_app.orbit(run_dir, out=tmp_path / "x.mp4", resolution=0, progress=False)}
+    for name, command in bad.items():
+        with pytest.raises(OptionError, match="--resolution"):
+            command()
+    assert not (tmp_path / "x.mp4").exists()
 
 
 def test_error_map_scale_and_colours():

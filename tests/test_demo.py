@@ -1,14 +1,36 @@
-"""`geoavatar demo` end to end on a tiny budget: every stage runs and the report points at real files."""
+"""`geoavatar demo` end to end on a tiny budget: every stage of a user's path runs (train, track the test frames
+against the avatar, eval on that copy), the report leads with that score, the pictures are 256 px, and the report
+points at real files."""
 
+import functools
+import json
 import re
+import shlex
 
-from geoavatar.apps.demo import demo
+import numpy as np
+import pytest
+from PIL import Image
+
+from geoavatar import cli
+from geoavatar.apps.demo import TRACKED_NAME, demo
+
+# 256 px generated images, trained at 48 px: the pictures (256 px) are larger than the training images
+TINY = dict(steps=4, frames=8, size=256, resolution=48, track_steps=2, driver_frames=3, device="cpu", backend="torch")
 
 
-def test_demo_writes_report_with_metrics_videos_and_stills(tmp_path, capsys):
-    out = tmp_path / "demo"
-    assert demo(out=out, steps=4, frames=8, size=48, resolution=48, driver_frames=3, device="cpu", backend="torch") == 0
-    assert f"--directory {out / 'web'}" in capsys.readouterr().out  # how to open the web player
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    assert demo(out=out, **TINY) == 0
+    return out
+
+
+def _summary(path):
+    return json.loads(path.read_text())["summary"]
+
+
+def test_demo_writes_report_with_metrics_videos_and_stills(demo_out, capsys):
+    out = demo_out
     report = (out / "report.md").read_text()
     assert "PSNR" in report and "| **total** |" in report and "backend 'torch'" in report
     for name in ("render_test.mp4", "orbit.mp4", "reenact.mp4", "render.png", "orbit.png", "reenact.png"):
@@ -20,5 +42,86 @@ def test_demo_writes_report_with_metrics_videos_and_stills(tmp_path, capsys):
     assert {"index.html", "player.js", "avatar.json", "avatar.bin", "clip.bin"} <= {f.name for f in (out / "web").iterdir()}
 
     # a second call finds every stage complete, rewrites the report and keeps the measured times
-    assert demo(out=out, steps=4, frames=8, size=48, resolution=48, driver_frames=3, device="cpu", backend="torch") == 0
+    capsys.readouterr()
+    assert demo(out=out, **TINY) == 0
+    assert f"--directory {out / 'web'}" in capsys.readouterr().out  # how to open the web player
     assert (out / "report.md").read_text() == report
+
+
+def test_demo_tracks_only_the_test_frames_against_its_avatar(demo_out):
+    tracked = json.loads((demo_out / "data" / TRACKED_NAME / "track.json").read_text())["avatar_tracking"]
+    run = json.loads((demo_out / "run" / "config.json").read_text())
+    test = sorted(json.loads((demo_out / "data" / "subject0" / "transforms_test.json").read_text())["frames"],
+                  key=lambda f: f["timestep_index"])
+    assert tracked["steps"] == TINY["track_steps"] and tracked["avatar"] == str((demo_out / "run").resolve())
+    assert tracked["fitted"] == [f["timestep_index"] for f in test]  # the held-out frames, and only they
+    assert sorted(tracked["from_run"]) == sorted(run["dataset"]["timesteps"]["train"])  # they keep training's
+    assert not set(tracked["fitted"]) & set(tracked["from_run"])
+
+
+def test_demo_report_leads_with_the_tracked_score(demo_out):
+    out = demo_out
+    report = (out / "report.md").read_text()
+    tracked = _summary(out / "run" / "eval" / f"test@{TRACKED_NAME}" / "metrics.json")
+    written = _summary(out / "run" / "eval" / "test" / "metrics.json")
+
+    # the first figure of the report is the tracked test PSNR, with its SSIM and LPIPS
+    first = re.search(r"\*\*PSNR ([\d.]+) dB · SSIM ([\d.]+) · LPIPS ([\d.]+)\*\*", report)
+    assert first and re.search(r"[\d.]+ dB", report).group(0) == f"{first.group(1)} dB"
+    assert float(first.group(1)) == pytest.approx(tracked["psnr"]["mean"], abs=0.006)
+    assert float(first.group(2)) == pytest.approx(tracked["ssim"]["mean"], abs=6e-4)
+    assert float(first.group(3)) == pytest.approx(tracked["lpips"]["mean"], abs=6e-4)
+    assert report.index(first.group(0)) < report.index("## Pictures")
+    # the plain eval's score beside it, in the row below the tracked one, with its one-line explanation
+    lines = report.splitlines()
+    rows = [i for i, line in enumerate(lines) if line.startswith(("| **tracked against the avatar**", "| written "))]
+    assert len(rows) == 2 and rows[1] == rows[0] + 1
+    rows = [lines[i] for i in rows]
+    assert f"**{tracked['psnr']['mean']:.2f}** ± {tracked['psnr']['std']:.2f}" in rows[0]
+    assert f"{written['psnr']['mean']:.2f} ± {written['psnr']['std']:.2f}" in rows[1]
+    assert f"{written['lpips']['mean']:.3f}" in rows[1]
+    assert "simulated tracker error" in report
+
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["test"]["lead"] == "tracked"
+    assert summary["test"]["tracked"]["psnr"]["mean"] == pytest.approx(tracked["psnr"]["mean"])
+    assert summary["test"]["written"]["psnr"]["mean"] == pytest.approx(written["psnr"]["mean"])
+    assert summary["frames_evaluated"] == 2 and summary["tracking"]["frames_fitted"] == 2
+    assert summary["pictures"]["resolution"] == 256
+    assert set(summary["seconds"]) >= {"track the test frames against the avatar", "evaluate (test split, tracked)"}
+
+
+def test_demo_stills_are_256_px_from_a_48_px_run(demo_out):
+    assert json.loads((demo_out / "run" / "config.json").read_text())["run"]["resolution"] == 48
+    for name in ("render", "orbit", "reenact"):
+        with Image.open(demo_out / f"{name}.png") as image:
+            assert image.height >= 256, (name, image.size)
+    with Image.open(demo_out / "render.png") as image:  # ground truth | render | error, 256 px each
+        assert image.size == (3 * 256, 256)
+        assert np.asarray(image).std() > 0
+
+
+def test_demo_report_commands_parse_with_the_cli(demo_out, monkeypatch):
+    """The report's step-by-step commands (a user's path) are real command lines of the CLI."""
+    block = (demo_out / "report.md").read_text().split("or the same steps one by one")[1]
+    lines = [re.sub(r"\s+#.*$", "", line) for line in re.search(r"```bash\n(.*?)```", block, re.S).group(1).splitlines()]
+    calls = []
+    resolve = cli._resolve
+
+    def recorder(target):
+        func = resolve(target)
+
+        @functools.wraps(func)
+        def record(*args, **kwargs):
+            calls.append((target, kwargs))
+            return 0
+
+        return record
+
+    monkeypatch.setattr(cli, "_resolve", recorder)
+    for line in lines:
+        assert cli.main(shlex.split(line)[1:]) == 0, line
+    commands = [target.split(":")[1] for target, _ in calls]
+    assert commands[:4] == ["synth", "train", "track", "eval_runs"] and "render" in commands
+    track = calls[2][1]
+    assert track["avatar"] == demo_out / "run" and track["out"] == demo_out / "data" / TRACKED_NAME

@@ -71,6 +71,14 @@ def check_threads(threads: int) -> int:
     return threads
 
 
+def check_resolution(resolution: int | None) -> int | None:
+    """`resolution` (None: the run's training resolution) when it is a positive int, else OptionError naming
+    --resolution."""
+    if resolution is not None and (isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 1):
+        raise OptionError(f"--resolution must be a positive number of pixels, got {resolution!r}")
+    return resolution
+
+
 @contextmanager
 def torch_threads(threads: int):
     """Run a block with `threads` CPU threads for torch and the native rasterizer; the old count after.

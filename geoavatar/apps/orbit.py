@@ -25,8 +25,8 @@ from typing import Literal, NamedTuple, Optional
 
 import torch
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, default_output, head_centre, progress,
-                                   record_camera, run_background, side_by_side, torch_threads)
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, check_resolution, default_output, head_centre,
+                                   progress, record_camera, run_background, side_by_side, torch_threads)
 from geoavatar.avatar import pose_avatar, rasterize_gaussians
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
@@ -159,8 +159,7 @@ def orbit(
             and on a busy 2-core machine 2 threads made each frame several times slower (OpenMP threads waiting
             for each other); more may pay on a quiet machine.
     """
-    if resolution is not None and resolution <= 0:
-        raise OptionError(f"--resolution must be positive, got {resolution}")
+    check_resolution(resolution)
     loaded = open_run(run, device, flame_dir)
     timestep = RunFrames(loaded).resolve(frame)
     target = out or default_output(loaded, VIDEO_DIR, f"orbit_{timestep:05d}.mp4")

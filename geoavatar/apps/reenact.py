@@ -47,8 +47,8 @@ The driver must be tracked with the same head model as the avatar (expression co
 nothing across models); a model with fewer modes uses the leading ones (zero-padded).
 
 Camera: by default the avatar's own dataset camera (that of its neutral frame, or its first frame
-with `mean`), at the run's resolution: the driver's camera may differ (another focal length, another
-distance). `--camera driver` renders each frame with the driver's camera instead, for drivers whose
+with `mean`), at the run's resolution (or --resolution): the driver's camera may differ (another focal
+length, another distance). `--camera driver` renders each frame with the driver's camera instead, for drivers whose
 tracker moves the camera rather than the head (INSTA / metrical-tracker data). The mouth deformer
 runs with T = 0 (novel animation, as the paper does at inference).
 
@@ -67,7 +67,7 @@ from typing import Iterator, Literal, Optional, Sequence
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, check_threads, default_output, progress,
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, check_resolution, check_threads, default_output, progress,
                                    record_camera, render_params, run_background, side_by_side, torch_threads)
 from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, resolve_transfer,
                                                 statistics_transfer, subspace_projection, transfer_mode,
@@ -251,6 +251,7 @@ class DrivingOptions:
     driver_split: str = "all"
     data: Path | None = None  # the avatar's dataset folder, when it moved since training
     backend: str = "auto"
+    resolution: int | None = None  # longer side of the renders (None: the run's training resolution)
 
 
 class DrivenAvatar:
@@ -270,11 +271,12 @@ class DrivenAvatar:
         self.dataset = HeadAvatarDataset(self.subject, options.driver_split, DataConfig(cache="none"), check_head=False)
         if len(self.dataset) == 0:
             raise OptionError(f"--driver-split {options.driver_split}: the driver has no frames in this split")
+        self.resolution = options.resolution or run.info.resolution
         self.fixed_camera = self._avatar_camera(frames) if options.camera == "avatar" else None
         self.background = run_background(run).to(self.device)
 
     def _avatar_camera(self, frames: RunFrames):
-        """The camera of the avatar's neutral frame (its first frame for 'first' and 'mean') at the run's resolution."""
+        """The camera of the avatar's neutral frame (its first frame for 'first' and 'mean') at the renders' size."""
         run = self.run
         avatar_root = Path(self.options.data) if self.options.data is not None else run.info.data_root
         if not avatar_root.is_dir():
@@ -282,7 +284,7 @@ class DrivenAvatar:
                            "it); pass --data DIR, or --camera driver")
         neutral = self.options.avatar_neutral
         camera_timestep = frames.timesteps[0] if neutral in ("first", "mean") else int(neutral)
-        return record_camera(open_subject(avatar_root), camera_timestep, run.info.resolution)
+        return record_camera(open_subject(avatar_root), camera_timestep, self.resolution)
 
     def params(self, mode: TransferMode) -> dict[str, Tensor]:
         """The avatar's per-frame parameters [T, ...] driven in transfer `mode` (computed once per mode)."""
@@ -296,7 +298,7 @@ class DrivenAvatar:
         if self.fixed_camera is not None:
             return self.fixed_camera
         camera = item_camera(item)
-        resolution = self.run.info.resolution
+        resolution = self.resolution
         if resolution is not None and max(camera.width, camera.height) > resolution:
             camera = camera.resized(resolution)
         return camera
@@ -372,6 +374,7 @@ def reenact(
     driver_size: Optional[int] = None,
     photometric: bool = False,
     threads: int = RENDER_THREADS,
+    resolution: Optional[int] = None,
 ) -> int:
     """Cross-re-enactment: drive the avatar with another video's expression, jaw, eyes and head motion.
 
@@ -420,16 +423,19 @@ def reenact(
             a frame's tensors are small, and on a busy 2-core machine 2 threads made each frame 5-7x slower
             (OpenMP threads waiting for each other); more may pay on a quiet machine. Tracking a --driver-video
             keeps the process's threads.
+        resolution: Longer side of the avatar's renders in pixels (default: the run's training resolution; at most
+            the stored size of the camera's images).
     """
     mode = resolve_transfer(transfer, relative)
     check_driver_options(driver, driver_video, driver_cache, driver_size, photometric, "reenact")
     check_threads(threads)  # before a --driver-video is tracked
+    check_resolution(resolution)
     loaded = open_run(run, device, flame_dir)
     driver, video_fps, driver_name = track_driver(loaded, driver, driver_video, driver_cache, driver_size, photometric,
                                                   flame_dir, progress)
     name = f"reenact_{driver_name}{'' if mode == DEFAULT_TRANSFER else '_' + mode}.mp4"
     target = out or default_output(loaded, VIDEO_DIR, name)
-    options = DrivingOptions(mode, driver_neutral, avatar_neutral, camera, driver_split, data, backend)
+    options = DrivingOptions(mode, driver_neutral, avatar_neutral, camera, driver_split, data, backend, resolution)
     count = reenact_video(loaded, driver, target, options, max_frames, fps or video_fps or 25.0, crf, side_by_side,
                           progress, threads)
     shown = "driver | avatar" if side_by_side else "avatar"

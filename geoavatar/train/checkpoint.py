@@ -419,16 +419,17 @@ def open_run(run_dir: str | os.PathLike, device: str = "auto", flame_dir: str | 
 
 
 def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None = None,
-                     flame_dir: str | os.PathLike | None = None) -> HeadAvatarDataset:
+                     flame_dir: str | os.PathLike | None = None, resolution: int | None = None) -> HeadAvatarDataset:
     """A split of the dataset the run trained on, loaded as training loaded it (resolution, split rule).
 
-    `data` overrides the dataset folder recorded in the run (a moved dataset). RunError when the folder
+    `data` overrides the dataset folder recorded in the run (a moved dataset); `resolution` the training
+    resolution (longer side; images are never enlarged beyond their stored size). RunError when the folder
     is gone, belongs to another head model, or its frames no longer match the run."""
     info = run.info
     root = Path(data) if data is not None else info.data_root
     if not root.is_dir():
         raise RunError(f"{info.run_dir}: its dataset folder {root} is not found; pass --data DIR to point at it")
-    config = DataConfig(resolution=info.resolution, test_frames=info.run_options.get("test_frames"))
+    config = DataConfig(resolution=resolution or info.resolution, test_frames=info.run_options.get("test_frames"))
     head_options = {"flame_dir": flame_dir or info.run_options.get("flame_dir")} if info.head_model == "flame" else {}
     try:
         subject = open_subject(root)
