@@ -694,7 +694,7 @@ def drive(
         transfer: How the driver's expression, jaw and eyes become the avatar's: absolute, relative (offsets from
             the driver's neutral, its first second, onto the avatar's first frame), statistics (the driver's
             first-second statistics mapped to the avatar's training-set statistics) or subspace (relative, kept
-            inside the expressions the avatar was trained on), as `geoavatar reenact --transfer`. Default: subspace.
+            inside the expressions the avatar was trained on), as `geoavatar reenact --transfer`. Default: relative.
         out: Write driver | avatar to this mp4 (at the source's frame rate; a dropped frame repeats the last output).
         view: Show the avatar live in the browser player on --host/--port (posed meshes streamed to it).
         size: Side of the rendered avatar in pixels (the avatar's dataset camera, scaled).

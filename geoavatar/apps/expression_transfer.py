@@ -49,7 +49,7 @@ if TYPE_CHECKING:
 
 TransferMode = Literal["absolute", "relative", "statistics", "subspace"]
 TRANSFER_MODES: tuple[str, ...] = get_args(TransferMode)
-DEFAULT_TRANSFER: TransferMode = "subspace"  # by #30's table (docs/cross_reenactment.md)
+DEFAULT_TRANSFER: TransferMode = "relative"  # no mode beat it across #30's two tables (docs/cross_reenactment.md)
 EXPRESSION_KEYS = ("expr", "jaw_pose", "eyes_pose")
 PRIOR_FRAMES = 25  # the avatar's spread counts as this many driver frames (one second at 25 fps)
 SUBSPACE_VARIANCE = 0.99  # share of the training expressions' variance the kept directions hold

@@ -396,7 +396,7 @@ def reenact(
             (each coefficient standardised by the driver's statistics, mapped to the avatar's training-set
             statistics) or subspace (relative, then projected onto the expressions the avatar was trained on and
             clamped to their range). Head rotation and neck follow the driver's change from its neutral frame in
-            every mode but absolute. Default: subspace (docs/cross_reenactment.md).
+            every mode but absolute. Default: relative (docs/cross_reenactment.md).
         driver_neutral: The driver's neutral frame for relative transfer and for the translation: first, mean
             (over all its frames) or a timestep number.
         avatar_neutral: The avatar's neutral frame: first, mean (over its training frames) or a timestep.
