@@ -183,6 +183,12 @@ class NewestFrame:
             self.lossless = lossless
             self._cond.notify_all()
 
+    def wait_for_room(self) -> None:
+        """Lossless: wait until the consumer has taken what waits (where `put` would wait)."""
+        with self._cond:
+            while self.lossless and self._items and not self._closed:
+                self._cond.wait()
+
     def put(self, item) -> None:
         with self._cond:
             while self.lossless and self._items and not self._closed:
@@ -222,6 +228,9 @@ def start_reader(source: Source, mailbox: NewestFrame, max_frames: int | None, s
             for index, rgb in enumerate(source.frames()):
                 if stop.is_set() or (max_frames is not None and index >= max_frames):
                     break
+                # a frame held back by a lossless mailbox (the identity stage) is available when it goes in, not
+                # when it was read: its time is taken after the wait
+                mailbox.wait_for_room()
                 if not source.live and not mailbox.lossless:
                     if origin is None:
                         origin = (time.perf_counter(), index)
