@@ -10,7 +10,8 @@ delivery and latency, fidelity against the CPU renderer, and (on a machine with 
     .venv/bin/python benchmarks/web_player_bench.py gpu-fps [--sizes 512x512 1920x1080]   # hardware WebGL
 
 `live` starts the browser at nice 10 (--browser-nice): with software GL it would otherwise take the cores the
-tracker needs, which a browser drawing on a GPU does not. Without --run, an untrained run of a generated subject is made in a temporary folder and its avatar is given
+tracker needs, which a browser drawing on a GPU does not (geoavatar/web/browser.py keeps it there: before #28's fix
+Chromium, run as root in its own session's autogroup, had its threads at nice 0 and -8 and half the CPU). Without --run, an untrained run of a generated subject is made in a temporary folder and its avatar is given
 the benchmark's number of Gaussians (tests/web_fixtures.py): sizes and timings depend on the counts, not on
 what was learned. Timings need a quiet machine; the load average is printed with them. Everything is served
 from 127.0.0.1 and drawn by Debian's chromium (geoavatar/web/browser.py).

@@ -59,6 +59,32 @@ def test_newest_frame_drops_what_the_worker_did_not_take():
     assert box.get() == 3 and box.get() is None  # closed and empty: the end
 
 
+def test_a_deeper_mailbox_keeps_the_newest_items_in_order():
+    box = NewestFrame(depth=2)
+    for i in range(4):
+        box.put(i)
+    assert box.dropped == 2 and box.get() == 2 and box.get() == 3  # the oldest waiting first
+    box.close()
+    assert box.get() is None
+
+
+def test_a_lossless_mailbox_makes_the_reader_wait_before_it_stamps_a_frame():
+    box = NewestFrame(lossless=True, depth=2)
+    box.put(0)
+    waited = threading.Event()
+
+    def reader():
+        box.wait_for_room()  # the identity stage holds frame 0: the next frame's time is taken after this
+        waited.set()
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    assert not waited.wait(0.2)
+    box.set_lossless(False)  # the identity stage ends: the file's clock starts
+    assert waited.wait(5.0)
+    thread.join(5)
+
+
 def test_newest_frame_hands_on_the_reader_error():
     box = NewestFrame()
     box.close(RuntimeError("camera unplugged"))

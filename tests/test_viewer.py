@@ -22,7 +22,7 @@ from geoavatar.geometry import axis_angle_to_matrix
 from geoavatar.train.checkpoint import open_run
 from geoavatar.train.run_frames import RunFrames
 from geoavatar.web.browser import browser_missing, chromium_page
-from geoavatar.web.live import KIND_VERTICES, LiveServerError
+from geoavatar.web.live import KIND_VERTICES, LiveServerError, vertex_message
 
 
 @pytest.fixture(scope="module")
@@ -108,6 +108,35 @@ def test_a_port_in_use_is_one_line(run, capsys):
         assert cli.main(["view", str(run.info.run_dir), "--port", str(port), "--device", "cpu"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("geoavatar view: ") and "already in use" in err
+
+
+def test_the_server_keeps_the_two_newest_meshes_per_browser(run):
+    """Three meshes published before the loop's writer runs (the machine busy for a moment): the two newest are
+    sent, in order, the oldest dropped and counted."""
+    import threading
+
+    from websockets.sync.client import connect
+
+    viewer = view_app.start_viewer(run, port=0, live=True)
+    try:
+        server, count = viewer.server, run.head.num_vertices
+        with connect(viewer.url.replace("http", "ws") + "ws") as client:
+            assert server.wait_for_client(10.0)
+            messages = [vertex_message(np.full((count, 3), k, np.float32), k) for k in range(3)]
+            published = threading.Event()
+
+            def burst() -> None:  # one callback of the loop: its writer cannot run between the three
+                for message in messages:
+                    server._publish(message, None)
+                published.set()
+
+            server._loop.call_soon_threadsafe(burst)
+            assert published.wait(10.0)
+            got = [received_mesh(client.recv(timeout=10), count) for _ in range(2)]
+        assert [sequence for sequence, _ in got] == [1, 2] and float(got[1][1][0, 0]) == 2.0
+        assert server.dropped == 1 and server.sent == 2
+    finally:
+        viewer.stop()
 
 
 @pytest.mark.skipif(browser_missing() is not None, reason=f"browser tests: {browser_missing()}")

@@ -169,3 +169,49 @@ def test_a_clip_whose_camera_moves_lists_each_frames_camera(run, tmp_path, monke
     np.testing.assert_allclose(viewmats[:, 0, 3] - viewmats[0, 0, 3], 0.01 * np.asarray(manifest["clip"]["timesteps"]),
                                atol=1e-6)
     assert manifest["camera"]["viewmat"] == manifest["viewmats"][0]
+
+
+def _descendants(root: int) -> list[int]:
+    """Process ids below `root` (Linux /proc)."""
+    from pathlib import Path
+
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(parent, []).append(int(stat.parent.name))
+    found, stack = [], list(children.get(root, []))
+    while stack:
+        pid = stack.pop()
+        found.append(pid)
+        stack.extend(children.get(pid, []))
+    return found
+
+
+@pytest.mark.skipif(browser_missing() is not None, reason=f"browser tests: {browser_missing()}")
+def test_a_niced_browser_stays_niced():
+    """web_player_bench live runs the browser at nice 10 beside drive (#28): Chromium raises its own threads to nice 0
+    and -8 when it may (root), and Playwright starts it in a session of its own, whose autogroup the scheduler
+    weighs as much as drive's; every browser thread and its session's group must stay at the given nice."""
+    import os
+    from pathlib import Path
+
+    with chromium_page(64, 64, nice=7) as page:
+        page.goto("about:blank")
+        threads, groups = {}, set()
+        for pid in _descendants(os.getpid()):
+            try:
+                if b"chromium" not in Path(f"/proc/{pid}/cmdline").read_bytes():
+                    continue
+                for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+                    nice = int(stat.read_text().rsplit(")", 1)[1].split()[16])
+                    threads[nice] = threads.get(nice, 0) + 1
+                autogroup = Path(f"/proc/{pid}/autogroup")
+                if autogroup.exists():
+                    groups.add(autogroup.read_text().split()[-1])
+            except OSError:  # a process that ended meanwhile
+                continue
+    assert threads and set(threads) == {7}, threads
+    assert groups <= {"7"}, groups

@@ -152,8 +152,11 @@ def driven_params(
     else:
         avatar_expr, delta = _match_width(avatar_ref["expr"], driver_expr - ref_expr)
         out["expr"] = avatar_expr + delta  # [T, E]
-        for key in ROTATION_KEYS:
-            out[key] = _compose_relative(driver[key], driver_ref[key], avatar_ref[key])
+        # every joint in one composition (per joint the same arithmetic; one call, not four: drive poses per frame)
+        stacked = [torch.cat([values[key] for key in ROTATION_KEYS], -1) for values in (driver, driver_ref, avatar_ref)]
+        composed = _compose_relative(*stacked)  # [T, 15]
+        widths = [driver[key].shape[-1] for key in ROTATION_KEYS]
+        out.update((key, value.contiguous()) for key, value in zip(ROTATION_KEYS, torch.split(composed, widths, dim=-1)))
     if mode == "statistics":
         out.update(statistics_transfer(driver, learned))  # expr, jaw, eyes from the two sequences' statistics
     elif mode == "subspace":

@@ -31,6 +31,7 @@ the forward pass is exact and costs O(landmarks), not O(mesh).
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -482,6 +483,7 @@ def track(
 # Solvers of OnlineFit and their default iterations per frame (about the same time per frame; see OnlineFit).
 ONLINE_SOLVERS = {"gauss_newton": 2, "lbfgs": 8}
 ONLINE_KEYS = ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")  # what OnlineFit fits
+FD_STEP = 1e-6  # forward-difference step of OnlineFit's Jacobian (float64; the unknowns are radians, metres, ~N(0, 1))
 
 
 class OnlineFit:
@@ -492,12 +494,14 @@ class OnlineFit:
     last two fitted frames (fixed) and the new one. Causal: a frame never waits for later ones.
 
     Solvers (`solver=`):
-    - "gauss_newton" (default): damped Gauss-Newton (Levenberg-Marquardt) on the same energy: the exact
-      gradient by autograd, the curvature of the data term from its Jacobian (forward mode, one pass
-      for all ~40 unknowns) with the pseudo-Huber's IRLS weights, the exact Hessian of the priors and
-      temporal terms (no head-model pass); a step is kept only when the energy drops. The unknowns are
-      few and the residuals many: 2 iterations land closer to the offline fit than 8 of L-BFGS, in less time
-      (benchmarks/online_fit_bench.py).
+    - "gauss_newton" (default): damped Gauss-Newton (Levenberg-Marquardt) on the same energy: the data term's
+      Jacobian by forward differences in float64 (the ~40 unknowns each perturbed, posed as one batch of the
+      head model: one pass), its gradient and Gauss-Newton curvature with the pseudo-Huber's IRLS weights, the
+      exact gradient and Hessian of the priors and temporal terms (no head-model pass); a step is kept only when
+      the energy drops. The Jacobian is taken once per frame, at the warm start, and kept for the frame's later
+      iterations (a chord method; `refresh_jacobian=True` retakes it at each: on wojtek.mp4's live landmarks the
+      same landmark error for a third more time, #28). The unknowns are few and the residuals many: 2 iterations land closer to
+      the offline fit than 8 of L-BFGS, in less time (benchmarks/online_fit_bench.py).
     - "lbfgs": L-BFGS with a strong-Wolfe line search, curvature pairs carried over from frame to frame.
 
         online = OnlineFit(model, result)                  # or solver="lbfgs", iterations=8
@@ -505,13 +509,15 @@ class OnlineFit:
     """
 
     def __init__(self, model: HeadModel, result: TrackingResult, config: TrackingConfig = TrackingConfig(),
-                 iterations: int | None = None, lr: float = 1.0, solver: str = "gauss_newton"):
+                 iterations: int | None = None, lr: float = 1.0, solver: str = "gauss_newton",
+                 refresh_jacobian: bool = False):
         if solver not in ONLINE_SOLVERS:
             raise ValueError(f"OnlineFit: solver must be one of {', '.join(ONLINE_SOLVERS)}, got {solver!r}")
         iterations = ONLINE_SOLVERS[solver] if iterations is None else iterations
         if iterations < 1:
             raise ValueError(f"OnlineFit: iterations must be >= 1, got {iterations}")
         self.model, self.config, self.iterations, self.solver = model, config, iterations, solver
+        self.refresh_jacobian = refresh_jacobian
         values = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in result.params.items() if k != "static_offset"}
         fitted = HeadParams.from_npz(values)  # [T, ...] of the frames `track` fitted
         static = result.model_static_offset
@@ -530,10 +536,20 @@ class OnlineFit:
             from torch.func import hessian
 
             self.damping = 1e-3  # Levenberg-Marquardt's, carried from frame to frame
-            # The priors and temporal terms are quadratic in x (the jaw's range hinge aside, whose pull the exact
-            # gradient still carries): their Hessian [P, P] is one constant, taken here so that the first live
-            # frame does not wait for it (and for torch.func's set-up).
-            self.regulariser_hessian = hessian(self._regularisers)(self._flat().detach())
+            # The Jacobian by forward differences: the P + 1 points (x and x + h e_i) posed as one batch of the head
+            # model, in float64 (h = FD_STEP: the error of the difference quotient is ~1e-8 of the derivative).
+            self.model64 = copy.deepcopy(model).to(torch.float64)
+            self.vertex_ids = self.model64.landmark_vertex_ids  # (a property that sorts; taken once)
+            self.viewmat64 = self.viewmat.double()
+            self.shape64 = self.shape.double()
+            self.static_offset64 = None if self.static_offset is None else self.static_offset.double()
+            # The priors and temporal terms are quadratic in x but for the jaw's range hinge (`_jaw_range`): the
+            # quadratic's Hessian [P, P] is one constant, taken here (with the jaw inside its range, so without the
+            # hinge's curvature) so that the first live frame does not wait for it (and for torch.func's set-up).
+            self.jaw_index = sum(self.sizes[:ONLINE_KEYS.index("jaw_pose")])  # x[jaw_index]: the jaw's opening
+            inside = self._flat().detach().double()
+            inside[self.jaw_index] = 0.5 * config.jaw_max
+            self.regulariser_hessian = hessian(self._regularisers)(inside)
         if solver == "lbfgs":
             # a handful of iterations reach what Adam needs hundreds for, from a warm start
             self.optimizer = torch.optim.LBFGS(list(self.current.values()), lr=lr, max_iter=iterations,
@@ -550,56 +566,99 @@ class OnlineFit:
     def _frame(self, x: Tensor) -> HeadParams:
         return HeadParams(shape=self.shape, static_offset=self.static_offset, **self._split(x))
 
-    def _residuals(self, x: Tensor, K: Tensor, target: Tensor, size: Tensor) -> Tensor:
-        """[L, 2] the data term's 2D residuals in face sizes (see `_data_residuals`)."""
-        return _data_residuals(self.model, self._frame(x), self.viewmat, K, target, size)[0]
-
     def _regularisers(self, x: Tensor) -> Tensor:
         """Priors and temporal terms of the frame (no head-model pass)."""
         past, p = self.history, self._frame(x)
         window = HeadParams(shape=self.shape, static_offset=self.static_offset, **{
-            key: torch.cat([getattr(past[0], key), getattr(past[1], key), getattr(p, key)], 0)
+            key: torch.cat([getattr(past[0], key).to(x.dtype), getattr(past[1], key).to(x.dtype), getattr(p, key)], 0)
             for key in ONLINE_KEYS})  # [3, ...]: t-2, t-1 fixed; t free
         terms = _pose_smoothness(window, self.config)
         terms.update(_frame_priors(p, self.config))
         terms["smooth"] = _motion_smoothness(window, self.config)
         return sum(terms.values())
 
+    def _jaw_range(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The jaw's range hinge of `_frame_priors` at x [P]: its value, slope and curvature in the jaw's opening."""
+        jaw, weight = x[self.jaw_index], self.config.w_jaw_range
+        below, above = torch.relu(-jaw), torch.relu(jaw - self.config.jaw_max)
+        curvature = 2.0 * weight * ((below > 0) | (above > 0)).to(x.dtype)
+        return weight * (below ** 2 + above ** 2), 2.0 * weight * (above - below), curvature
+
     def _energy(self, x: Tensor, K: Tensor, target: Tensor, size: Tensor) -> Tensor:
         data = _data_term(self.model, self._frame(x), self.viewmat, K, target, size, self.weights, torch.ones(1),
                           self.config.huber)
         return data + self._regularisers(x)
 
-    def _gauss_newton(self, x: Tensor, K: Tensor, target: Tensor, size: Tensor) -> Tensor:
-        from torch.func import jacfwd
+    def _residuals_batch(self, X: Tensor, K: Tensor, target: Tensor, size: Tensor) -> Tensor:
+        """[B, L, 2] the data term's 2D residuals in face sizes (`_data_residuals`) at B unknown vectors X [B, P]
+        at once, in float64."""
+        parts = dict(zip(ONLINE_KEYS, torch.split(X, self.sizes, dim=1)))  # each [B, D]
+        params = HeadParams(shape=self.shape64, static_offset=self.static_offset64, **parts)
+        landmarks = self.model64.forward_params(params, vertex_ids=self.vertex_ids).landmarks  # [B, L, 3]
+        pixels, _ = project(landmarks, self.viewmat64, K)  # [B, L, 2]
+        return (pixels - target) / size[:, None, None]
 
-        delta, weights = self.config.huber, self.weights / self.weights.sum()  # [L]
-        residuals_and_value = lambda v: (lambda r: (r, r.detach()))(self._residuals(v, K, target, size))  # noqa: E731
-        energy = self._energy(x, K, target, size)
-        for _ in range(self.iterations):
-            J, e = jacfwd(residuals_and_value, has_aux=True)(x)  # [L, 2, P], [L, 2]
-            with torch.no_grad():
-                irls = weights / torch.sqrt(1.0 + (e.norm(dim=-1) / delta) ** 2)  # [L]: rho'(r) / r times the landmark weight
-                grad_data = torch.einsum("l,lcp,lc->p", irls, J, e)  # [P] the data term's exact gradient
-                H = torch.einsum("l,lcp,lcq->pq", irls, J, J) + self.regulariser_hessian  # [P, P]
-            with torch.enable_grad():
-                xr = x.detach().requires_grad_(True)
-                (grad_reg,) = torch.autograd.grad(self._regularisers(xr), xr)  # [P], no head-model pass
-            grad = grad_data + grad_reg
-            with torch.no_grad():
-                eye = torch.eye(H.shape[0], dtype=H.dtype)
-                for _attempt in range(4):  # Levenberg-Marquardt: raise the damping until the energy drops
-                    step = torch.linalg.solve(H + self.damping * (torch.diagonal(H).clamp_min(1e-9) * eye), -grad)
-                    candidate = x + step
-                    candidate_energy = self._energy(candidate, K, target, size)
-                    if candidate_energy < energy:
-                        x, energy = candidate, candidate_energy
-                        self.damping = max(self.damping / 3.0, 1e-7)
-                        break
-                    self.damping = min(self.damping * 4.0, 1e4)
-                else:
-                    break  # no step lowers the energy: at a minimum for this damping
-        return x.detach()
+    def _gauss_newton(self, x: Tensor, K: Tensor, target: Tensor, size: Tensor) -> tuple[Tensor, Tensor]:
+        """Damped Gauss-Newton from x [P]: (the solution [P] (float32), its residuals [L, 2] (float64)).
+
+        The data term's Jacobian [L, 2, P] comes from forward differences, the P + 1 points posed as one batch of the
+        head model (one model pass; torch.func.jacfwd's took 4x the time, most of it per-op overhead); a candidate
+        step costs one more pass of one frame, whose residuals are the next iteration's."""
+        x, K, target, size = x.double(), K.double(), target.double(), size.double()
+        delta = self.config.huber
+        weights = (self.weights / self.weights.sum()).double()  # [L]
+        steps = FD_STEP * torch.eye(x.shape[0], dtype=x.dtype)  # [P, P]
+
+        def data_energy(r: Tensor) -> Tensor:  # _data_term of one frame from its residuals r [L, 2]
+            return (_pseudo_huber(r.norm(dim=-1), delta) * weights).sum()
+
+        # The priors and temporal terms: quadratic in x but for the jaw's range hinge, so from one autograd pass at the
+        # start their value and gradient anywhere are the quadratic's (its constant Hessian) plus the hinge's.
+        start = x
+        with torch.enable_grad():
+            v = x.detach().requires_grad_(True)
+            value = self._regularisers(v)
+            (gradient,) = torch.autograd.grad(value, v)
+        hinge, hinge_slope, _ = self._jaw_range(x)
+        quadratic, quadratic_grad = value.detach() - hinge, gradient.clone()
+        quadratic_grad[self.jaw_index] -= hinge_slope
+
+        def regularisers(v: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # value, gradient [P], the hinge's curvature
+            d = v - start
+            moved = self.regulariser_hessian @ d  # [P]
+            hinge, slope, curvature = self._jaw_range(v)
+            grad = quadratic_grad + moved
+            grad[self.jaw_index] += slope
+            return quadratic + quadratic_grad @ d + 0.5 * (d @ moved) + hinge, grad, curvature
+
+        both = self._residuals_batch(torch.cat([x[None], x[None] + steps]), K, target, size)  # [P + 1, L, 2]
+        r = both[0]  # [L, 2]
+        J = (both[1:] - r).permute(1, 2, 0) / FD_STEP  # [L, 2, P]
+        reg_value, grad_reg, reg_curvature = regularisers(x)
+        energy = data_energy(r) + reg_value
+        eye = torch.eye(x.shape[0], dtype=x.dtype)
+        for iteration in range(self.iterations):
+            if iteration > 0 and self.refresh_jacobian:  # the Jacobian at the accepted point (its residuals r are known)
+                J = (self._residuals_batch(x[None] + steps, K, target, size) - r).permute(1, 2, 0) / FD_STEP
+            irls = weights / torch.sqrt(1.0 + (r.norm(dim=-1) / delta) ** 2)  # [L]: rho'(r) / r times the landmark weight
+            grad = torch.einsum("l,lcp,lc->p", irls, J, r) + grad_reg  # [P] the energy's gradient
+            H = torch.einsum("l,lcp,lcq->pq", irls, J, J) + self.regulariser_hessian  # [P, P]
+            H[self.jaw_index, self.jaw_index] += reg_curvature
+            for _attempt in range(4):  # Levenberg-Marquardt: raise the damping until the energy drops
+                step = torch.linalg.solve(H + self.damping * (torch.diagonal(H).clamp_min(1e-9) * eye), -grad)
+                candidate = x + step
+                r_candidate = self._residuals_batch(candidate[None], K, target, size)[0]
+                reg_candidate, grad_candidate, curvature_candidate = regularisers(candidate)
+                candidate_energy = data_energy(r_candidate) + reg_candidate
+                if candidate_energy < energy:
+                    x, r, energy = candidate, r_candidate, candidate_energy
+                    grad_reg, reg_curvature = grad_candidate, curvature_candidate
+                    self.damping = max(self.damping / 3.0, 1e-7)
+                    break
+                self.damping = min(self.damping * 4.0, 1e4)
+            else:
+                break  # no step lowers the energy: at a minimum for this damping
+        return x.float(), r
 
     def __call__(self, landmarks: np.ndarray, principal) -> tuple[HeadParams, float]:
         """Fit one frame: landmarks [478, >=2] in crop pixels, principal point [2] (crop pixels).
@@ -609,9 +668,10 @@ class OnlineFit:
         target = torch.as_tensor(np.asarray(landmarks)[None, self.ids.numpy(), :2], dtype=torch.float32)  # [1, L, 2]
         size = torch.as_tensor(np.linalg.norm(landmarks[10, :2] - landmarks[152, :2]), dtype=torch.float32).clamp_min(1.0)[None]
         K = _intrinsics(torch.tensor(self.focal), torch.as_tensor(np.asarray(principal, np.float32))[None])
+        residuals = None
         if self.solver == "gauss_newton":
-            x = self._gauss_newton(self._flat().detach(), K, target, size)
             with torch.no_grad():
+                x, residuals = self._gauss_newton(self._flat().detach(), K, target, size)
                 for key, value in self._split(x).items():
                     self.current[key].copy_(value)
         else:
@@ -627,10 +687,14 @@ class OnlineFit:
             fitted = HeadParams(shape=self.shape, static_offset=self.static_offset,
                                 **{key: self.current[key].detach().clone() for key in ONLINE_KEYS})
             self.history = [self.history[1], fitted]
-            pixels, _ = project(self.model.forward_params(fitted, vertex_ids=self.model.landmark_vertex_ids).landmarks,
-                                self.viewmat, K)
+            if residuals is None:
+                pixels, _ = project(self.model.forward_params(fitted, vertex_ids=self.model.landmark_vertex_ids).landmarks,
+                                    self.viewmat, K)
+                offsets = pixels[0] - target[0]  # [L, 2]
+            else:  # the solver's residuals at the solution, in pixels
+                offsets = residuals * size.double()
             width = max(float(np.linalg.norm(landmarks[234, :2] - landmarks[454, :2])), 1e-6)
-            error = float((pixels[0] - target[0]).norm(dim=-1).median()) / width
+            error = float(offsets.norm(dim=-1).median()) / width
         return fitted, error
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import http.server
+import os
 import shutil
 import tempfile
 import threading
@@ -47,13 +48,28 @@ def browser_missing() -> str | None:
 
 @contextlib.contextmanager
 def _niced(executable: str, nice: int) -> Iterator[str]:
-    """`executable` itself, or (nice > 0) a wrapper script that starts it at that lower CPU priority."""
+    """`executable` itself, or (nice > 0) a wrapper script that starts it at that lower CPU priority.
+
+    Two things defeated a plain `nice -n`: Playwright starts the browser in a session of its own, and with the
+    kernel's autogroups (sched_autogroup_enabled, on by default) the scheduler shares the CPU between sessions'
+    groups before it looks at a thread's nice, so the wrapper sets its session's group nice too
+    (/proc/self/autogroup); and Chromium sets its threads' priorities itself (nice 0, -8 for the GPU process and
+    display-critical threads), which it can when it has CAP_SYS_NICE, as under root, so there the wrapper drops
+    that capability (util-linux's setpriv). Measured under root on a 2-core machine: every thread of the browser
+    had nice 0 or -8 before, and its session's group took as much CPU as drive's."""
     if nice <= 0:
         yield executable
         return
+    keep = ""
+    if os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            raise RuntimeError("running as root, the browser's nice needs setpriv (util-linux) to hold: Chromium "
+                               "raises its threads' priorities otherwise")
+        keep = "setpriv --inh-caps=-sys_nice --bounding-set=-sys_nice "
     with tempfile.TemporaryDirectory(prefix="geoavatar-browser-") as folder:
         wrapper = Path(folder) / "chromium"
-        wrapper.write_text(f'#!/bin/sh\nexec nice -n {int(nice)} "{executable}" "$@"\n')
+        wrapper.write_text(f'#!/bin/sh\n(echo {int(nice)} > /proc/self/autogroup) 2>/dev/null\n'
+                           f'exec nice -n {int(nice)} {keep}"{executable}" "$@"\n')
         wrapper.chmod(0o755)
         yield str(wrapper)
 

@@ -4,9 +4,10 @@
     server.send_vertices(vertices, read_time)                        # [V, 3]; from any thread
     server.stop()
 
-One asyncio loop in a thread serves everything on one port. send_vertices is newest-only per browser: while a
-browser's previous mesh is still being written, a newer one replaces the waiting one (counted in `dropped`), so
-a slow connection never builds a queue. Latency: `read_time` (time.perf_counter() when the source frame was
+One asyncio loop in a thread serves everything on one port. send_vertices keeps the newest PENDING (2) meshes per
+browser: while a browser's previous mesh is still being written (or the loop has not run yet), newer ones wait, and
+one more drops the oldest waiting (counted in `dropped`), so a slow connection never builds a queue, and one late
+turn of the loop (the machine busy for a moment) costs no frame. Latency: `read_time` (time.perf_counter() when the source frame was
 read) to the moment the message is written to every connected browser's socket (`latency_ms`). A text message
 from the page (view's sliders, JSON) is handed to `on_edit` in a worker thread; it may answer with
 send_vertices. The wire format is web/src/live.js's: a 16-byte header (uint32 1, uint32 sequence number, float64
@@ -21,6 +22,7 @@ import json
 import struct
 import threading
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 from urllib.parse import urlsplit
@@ -48,10 +50,13 @@ def vertex_message(vertices, sequence: int) -> bytes:
     return struct.pack("<IId", KIND_VERTICES, sequence & 0xFFFFFFFF, time.time()) + body
 
 
+PENDING = 2  # meshes waiting per browser (see the module docstring)
+
+
 class _Client:
     def __init__(self, socket):
         self.socket = socket
-        self.pending: tuple[bytes, float | None] | None = None
+        self.pending: deque[tuple[bytes, float | None]] = deque()  # oldest first
         self.wake = asyncio.Event()
 
 
@@ -153,27 +158,26 @@ class LiveServer:
         while True:
             await client.wake.wait()
             client.wake.clear()
-            if client.pending is None:
-                continue
-            message, read_time = client.pending
-            client.pending = None
-            try:
-                await client.socket.send(message)
-            except Exception:
-                return
-            self.sent += 1
-            if read_time is not None:
-                self.latency_ms.append(1000.0 * (time.perf_counter() - read_time))
+            while client.pending:
+                message, read_time = client.pending.popleft()
+                try:
+                    await client.socket.send(message)
+                except Exception:
+                    return
+                self.sent += 1
+                if read_time is not None:
+                    self.latency_ms.append(1000.0 * (time.perf_counter() - read_time))
 
     def _publish(self, message: bytes, read_time: float | None) -> None:
         for client in self._clients:
-            if client.pending is not None:
+            if len(client.pending) >= PENDING:
+                client.pending.popleft()
                 self.dropped += 1
-            client.pending = (message, read_time)
+            client.pending.append((message, read_time))
             client.wake.set()
 
     def send_vertices(self, vertices, read_time: float | None = None) -> None:
-        """Send a posed mesh [V, 3] to every connected browser (thread-safe, newest-only per browser)."""
+        """Send a posed mesh [V, 3] to every connected browser (thread-safe; the newest PENDING wait per browser)."""
         if self._loop is None or self._loop.is_closed():
             return
         self.sequence += 1
