@@ -51,9 +51,9 @@ InitColour = Literal["grey", "images"]
 
 PAPER_STEPS = 200_000
 # The budget of a new CPU run given no --steps / --minutes (`train --schedule auto`): the steps and the
-# longer image side that, measured on our test videos, give held-out scores within a few tenths of a dB
-# of the best budget in about ten minutes of 2 cores for a 300-frame video (BENCHMARKS.md, training budget).
-CPU_STEPS = 1500
+# longer image side that gave the best held-out scores measured on both test videos (3000 steps: duda 31.32 dB,
+# wojtek 22.19; 1500: 30.38, 21.40), 3 min 39 s for duda on 2 quiet cores (BENCHMARKS.md, training budget).
+CPU_STEPS = 3000
 CPU_RESOLUTION = 256
 # The fields of TrainConfig counted in steps (dotted names): TrainConfig.scaled_to scales them.
 STEP_FIELDS = ("aps_step", "densify.start", "densify.stop", "densify.every", "densify.reset_opacity_every",

@@ -50,8 +50,8 @@ class TrainArgs:
 
     run: Annotated[RunOptions, tyro.conf.arg(name="", prefix_name=False)]
     # The budget of a new run given neither --steps nor --minutes (default auto): auto = on CUDA the
-    # paper's 200000 steps at the stored size, on CPU 1500 steps at 256 px (about 10 minutes on 2 cores
-    # for a 300-frame video, within a few tenths of a dB of the best held-out score we measured);
+    # paper's 200000 steps at the stored size, on CPU 3000 steps at 256 px (about 5 minutes on 2 cores
+    # for a 300-frame video; the best held-out score we measured on our test videos);
     # paper = the paper's 200000 steps at the stored size on any device (days on a CPU).
     schedule: Optional[Literal["auto", "paper"]] = None
     # Training steps (default: chosen by --schedule for a new run; with --resume the run's own).
