@@ -326,13 +326,18 @@ def test_video_loops_run_on_threads_asked_and_restore_the_process_count(run_dir,
     """--threads (default 1) holds inside the frame loops of render, reenact and orbit, the process's count after;
     the frames do not depend on it."""
     seen: list[int] = []
-    real = render_video.render_params
+    real, real_frames = reenact_app.render_params, render_video.render_run_frames
 
     def spy(*args, **kwargs):
         seen.append(torch.get_num_threads())
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(render_video, "render_params", spy)
+    def frames_spy(*args, **kwargs):  # render draws eval's frames: the count while each frame is made
+        for frame in real_frames(*args, **kwargs):
+            seen.append(torch.get_num_threads())
+            yield frame
+
+    monkeypatch.setattr(render_video, "render_run_frames", frames_spy)
     monkeypatch.setattr(reenact_app, "render_params", spy)
     before = torch.get_num_threads()
     with torch_threads(3):
