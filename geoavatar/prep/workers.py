@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import os
 import queue as queue_module
-import signal
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Any, Callable, Iterable, Iterator
@@ -172,13 +171,16 @@ class WorkerPool:
         if self._executor is None:
             return
         if stop:
-            self._drain(None)
-            for pid in self._pids:
-                try:
-                    os.kill(pid, signal.SIGTERM)
-                except OSError:  # already gone
-                    pass
-        self._executor.shutdown(wait=True, cancel_futures=True)
+            # Every worker process, whether or not its hello was read: one killed while it held the progress
+            # queue's lock would leave the others blocked on it, and a wait for them would never end.
+            processes = list((getattr(self._executor, "_processes", None) or {}).values())
+            for process in processes:
+                process.terminate()
+            for process in processes:
+                process.join(timeout=10)
+                if process.is_alive():
+                    process.kill()
+        self._executor.shutdown(wait=not stop, cancel_futures=True)
         self._executor, self._pids = None, set()
         self._queue.close()
         self._queue = None
