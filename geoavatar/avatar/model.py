@@ -115,19 +115,17 @@ class GaussianAvatar(nn.Module):
         frame at a time (vertices [V, 3])."""
         frames = face_frames(vertices, self.faces)
         p = self.params
-        local_means, colour_offset = p["means"], None
+        local_means = p["means"]
+        colors = SH_C0 * p["f_dc"] + 0.5  # [N, 3], clamped once every term is in (3DGS: no upper clamp)
         if code is not None and self.follows_head:
-            local_means = p["means"] + self.pose_offset(p["means_pose"], code)  # [N, 3]
-            colour_offset = self.pose_offset(p["f_pose"], code)  # [N, 3]
+            mean_offset, colour_offset = self.pose_offsets(code)  # [N, 3] each
+            local_means, colors = local_means + mean_offset, colors + colour_offset
         means, quats, scales = local_to_global(local_means, p["quats"], p["scales"], self.binding, frames)
         if "f_normal" in p:
             # The face normal in world axes (detached: shading must not pull the geometry or the tracking).
             normal = frames.rotation[..., self.binding, :, 1].detach()  # [(B,) N, 3]
-            shading = (p["f_normal"].view(-1, 3, 3) * normal[..., None, :]).sum(-1)  # [(B,) N, 3]
-            colors = SH_C0 * p["f_dc"] + 0.5 + shading
-        else:
-            colors = SH_C0 * p["f_dc"] + 0.5
-        colors = (colors if colour_offset is None else colors + colour_offset).clamp_min(0.0)
+            colors = colors + (p["f_normal"].view(-1, 3, 3) * normal[..., None, :]).sum(-1)  # [(B,) N, 3]
+        colors = colors.clamp_min(0.0)
         return GlobalGaussians(
             means=means,
             quats=quats,
@@ -146,13 +144,15 @@ class GaussianAvatar(nn.Module):
         """Whether the Gaussians off the face move with the head pose code (model.hair_follows_head)."""
         return "f_pose" in self.params
 
-    def pose_offset(self, basis: Tensor, code: Tensor) -> Tensor:
-        """basis [N, 18], code [6] -> [N, 3]: sum_k code_k basis[:, :, k] for the moving faces' Gaussians, 0 elsewhere."""
+    def pose_offsets(self, code: Tensor) -> tuple[Tensor, Tensor]:
+        """code [6] -> the local mean and colour offsets [N, 3] each: sum_k code_k basis[:, :, k] of means_pose and
+        f_pose for the moving faces' Gaussians, 0 elsewhere."""
         if code.shape != (POSE_CODE_DIM,):
             raise ValueError(f"GaussianAvatar: the head pose code must be [{POSE_CODE_DIM}] (one frame), got "
                              f"{tuple(code.shape)}")
-        offset = basis.view(-1, 3, POSE_CODE_DIM) @ code.to(basis.dtype)  # [N, 3]
-        return offset * self.moving[self.binding][:, None]
+        moving = self.moving[self.binding][:, None]  # [N, 1]
+        return tuple(self.params[name].view(-1, 3, POSE_CODE_DIM) @ code.to(self.params[name].dtype) * moving
+                     for name in ("means_pose", "f_pose"))
 
     def polar(self, two_sided: bool = False) -> tuple[Tensor, Tensor]:
         """r [N], phi [N] of the local means (see binding.polar_coordinates)."""
