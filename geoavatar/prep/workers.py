@@ -13,7 +13,7 @@ a face detector) between tasks. With workers == 1 every task runs inline, in thi
 
 Progress: a task calls `report_progress(n)`; from a worker the counts travel over a queue and the parent
 passes them to `progress` while it waits. An exception in a task is raised in the parent; the pool's workers
-are then stopped (by their process ids), so a failed run does not leave them computing.
+are then ended (every worker process, without waiting on them), so a failed run does not leave them computing.
 """
 
 from __future__ import annotations
