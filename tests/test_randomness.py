@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from geoavatar.train.randomness import (
-    BACKGROUND, FRAME_ORDER, TURNED_CAMERA, frame_index, stream_generator, turned_angles,
+    BACKGROUND, FRAME_ORDER, TURNED_CAMERA, frame_index, restore_rng, rng_state, stream_generator, turned_angles,
 )
 
 
@@ -36,3 +36,16 @@ def test_turned_angles_are_seeded_and_within_range():
     assert max(y for y, _ in drawn) > 30.0 and min(y for y, _ in drawn) < -30.0
     assert turned_angles(45.0, 10.0, 4, 7) != turned_angles(45.0, 10.0, 3, 7)
 
+
+
+def test_a_cuda_runs_generator_state_resumes_on_cpu_reproducibly():
+    """A checkpoint of a CUDA run holds a 16-byte generator state; resuming it on CPU (another size) seeds the
+    CPU generator from it, the same way each time, instead of failing in set_state."""
+    state = rng_state(torch.Generator().manual_seed(3))
+    state["generator"] = torch.arange(16, dtype=torch.uint8)  # the size of a CUDA Philox state
+    draws = []
+    for _ in range(2):
+        generator = torch.Generator()
+        restore_rng(state, generator)
+        draws.append(torch.rand(4, generator=generator))
+    assert torch.equal(draws[0], draws[1])

@@ -66,6 +66,13 @@ class ExpressionStatistics:
     high: dict[str, Tensor]  # key -> [D_key] maximum
     frames: int
 
+    def to(self, device: torch.device) -> ExpressionStatistics:
+        """The same statistics with every tensor on `device` (a live driver's are fitted on CPU)."""
+        def moved(part: dict[str, Tensor]) -> dict[str, Tensor]:
+            return {key: value.to(device) for key, value in part.items()}
+
+        return ExpressionStatistics(moved(self.mean), moved(self.std), moved(self.low), moved(self.high), self.frames)
+
 
 @dataclass(frozen=True)
 class ExpressionSubspace:
@@ -133,7 +140,7 @@ def expression_subspace(expr: Tensor, mean: Tensor, variance: float = SUBSPACE_V
         empty = centred.new_zeros(0)
         return ExpressionSubspace(centred.new_zeros(expr.shape[1], 0), empty, empty)
     share = torch.cumsum(energy, 0) / energy.sum()
-    keep = int(torch.searchsorted(share, torch.tensor(variance, dtype=share.dtype)).item()) + 1
+    keep = int(torch.searchsorted(share, torch.tensor(variance, dtype=share.dtype, device=share.device)).item()) + 1
     basis = vh[:min(keep, vh.shape[0])].T  # [E, K]
     coordinates = centred @ basis  # [N, K]
     return ExpressionSubspace(basis, coordinates.min(0).values, coordinates.max(0).values)

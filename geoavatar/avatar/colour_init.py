@@ -28,7 +28,7 @@ def face_colours(
 ) -> tuple[Tensor, Tensor]:
     """(colour [F, 3] in [0, 1], seen [F] bool): the cos^2-weighted mean colour of each face's pixels over
     the frames; faces no pixel shows take the colour of the nearest seen face (centres in the first frame)."""
-    faces = faces.long()
+    faces = faces.long().cpu()  # the projection below runs on CPU whatever device training uses
     num_faces = faces.shape[0]
     total = torch.zeros(num_faces, 3, dtype=torch.float64)
     weight = torch.zeros(num_faces, dtype=torch.float64)

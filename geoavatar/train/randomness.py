@@ -86,7 +86,11 @@ def restore_rng(state: dict, generator: torch.Generator) -> None:
     np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"]))
     p = state["python"]
     random.setstate((p["version"], tuple(p["internal"]), p["gauss_next"]))
-    generator.set_state(state["generator"])
+    saved = state["generator"].cpu()
+    if saved.numel() == generator.get_state().numel():
+        generator.set_state(saved)
+    else:  # saved on another kind of device (a CUDA run resumed on CPU or back): its states do not carry over
+        generator.manual_seed(int.from_bytes(bytes(saved[:8].tolist()), "little") % 2**63)
 
 
 __all__ = ["BACKGROUND", "FRAME_ORDER", "TURNED_CAMERA", "frame_index", "restore_rng", "rng_state", "seed_everything",
