@@ -6,15 +6,16 @@
 The test video is looped to each length (played forwards, then backwards, and so on: no jump cut for the
 crop smoothing and the face tracker to stumble on) at its own resolution (duda.mp4: 1920x1080, 25 fps, so
 5,400 frames is the paper's 3-minute video) and written once to OUT/looped_N.mp4. Then `geoavatar prepare`
-runs on it as a separate process (arguments after `--` are passed on) while this script samples, every
-0.2 s, the memory of that process and all its descendants (the worker processes) from /proc. Set
+runs on it as a separate process (arguments after `--` are passed on) while this script samples, once
+a second, the memory of that process and all its descendants (the worker processes) from /proc. Set
 GEOAVATAR_EXT_CACHE to a folder of this checkout's own: where worktrees share one build cache, a run may rebuild the
 native rasterizer (a compiler of 1.5 GB that the sampled memory then includes).
 
 Prints and writes OUT/scale.json and OUT/scale.md: per length the wall time, the CPU time of the process tree
 (user + system, from the kernel's accounting of waited-for children), the peak memory of the tree (sampled:
 summed PSS, what the tree uses, shared library pages split among the processes; summed RSS, which counts them in
-every process) and the largest single process's peak RSS (exact, ru_maxrss), the load average before and after,
+every process), the largest single process's peak RSS (sampled), the sampler's own CPU seconds, the load average
+before and after,
 and each stage's wall / CPU seconds from prepare's stage markers. `--geoavatar` runs another checkout's
 prepare (e.g. main's, for a before / after table on the same machine); its own --workers etc. are its own.
 Time on a quiet machine only: other jobs sharing the cores make every figure meaningless.
@@ -88,18 +89,24 @@ def _memory_bytes(pid: int) -> tuple[int, int]:
 
 
 class TreeMemory(threading.Thread):
-    """Samples the summed RSS and PSS of a process and its descendants until stopped; `.peak` (rss, pss) in bytes."""
+    """Samples the summed RSS and PSS of a process and its descendants until stopped: `.peak` (rss, pss) in bytes,
+    `.largest` the largest single process's RSS seen, `.cpu_s` this sampler's own CPU seconds. Once a second: reading
+    smaps_rollup walks each process's page tables in the kernel, and at five times a second the sampler took about a
+    third of a core from the run it measured."""
 
-    def __init__(self, pid: int, every: float = 0.2):
+    def __init__(self, pid: int, every: float = 1.0):
         super().__init__(daemon=True)
-        self.pid, self.every, self.peak = pid, every, (0, 0)
+        self.pid, self.every, self.peak, self.largest, self.cpu_s = pid, every, (0, 0), 0, 0.0
         self._done = threading.Event()
 
     def run(self) -> None:
+        start = time.thread_time()
         while not self._done.is_set():
             samples = [_memory_bytes(p) for p in [self.pid, *_children(self.pid)]]
             rss, pss = sum(s[0] for s in samples), sum(s[1] for s in samples)
             self.peak = (max(self.peak[0], rss), max(self.peak[1], pss))
+            self.largest = max([self.largest, *(s[0] for s in samples)])
+            self.cpu_s = time.thread_time() - start
             self._done.wait(self.every)
 
     def stop(self) -> tuple[int, int]:
@@ -134,7 +141,7 @@ def run_prepare(geoavatar: str, video: Path, out: Path, extra: list[str]) -> dic
     cpu = (after_cpu.ru_utime - before_cpu.ru_utime) + (after_cpu.ru_stime - before_cpu.ru_stime)
     return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "peak_pss_tree_gb": round(peak_pss / 1e9, 3),
             "peak_rss_tree_gb": round(peak_rss / 1e9, 3),
-            "peak_rss_largest_process_gb": round(after_cpu.ru_maxrss * 1024 / 1e9, 3),
+            "peak_rss_largest_process_gb": round(memory.largest / 1e9, 3), "sampler_cpu_s": round(memory.cpu_s, 1),
             "load_1min_before_after": [round(load_before, 2), round(os.getloadavg()[0], 2)], "stages": stages}
 
 
