@@ -474,7 +474,6 @@ class _OutputStage:
         self.dropped = dropped  # frames dropped so far (the viewer's caption)
         self.last_timestep, self.last_picture = -1, None
         self.started: float | None = None  # perf_counter() at the end of the first online frame
-        self._driver_statistics: tuple | None = None  # (the tracker's statistics, the same on the avatar's device)
 
     def __call__(self, timestep: int, driver: DriverFrame, timings: dict, available: float) -> None:
         t0 = time.perf_counter()
@@ -503,10 +502,8 @@ class _OutputStage:
         device = self.avatar.device
         driver_now = {k: getattr(driver.params, k).to(device) for k in TRANSFERRED_KEYS}
         driver_ref = {k: v.to(device) for k, v in self.tracker.neutral.items()}
-        statistics = self.tracker.statistics  # the driver's, fitted on CPU: moved to the avatar's device once
-        if self._driver_statistics is None or self._driver_statistics[0] is not statistics:
-            self._driver_statistics = (statistics, statistics.to(device))
-        learned = TransferStatistics(*self.avatar.learned, self._driver_statistics[1])
+        # the driver's statistics are fitted on CPU, like its neutral: both move to the avatar's device
+        learned = TransferStatistics(*self.avatar.learned, self.tracker.statistics.to(device))
         return HeadParams.from_npz(driven_params(self.avatar.identity, self.avatar.reference, driver_now, driver_ref,
                                                  self.transfer, learned=learned))
 
