@@ -54,7 +54,7 @@ def synthetic_run(root: Path, gaussians: int | None, frames: int = 8):
 
 def player_folder(run, out: Path, frames: int | None = None, split: str = "all") -> Path:
     """The run's player folder (a split); with `frames`, a clip of that many frames cycling through its timesteps."""
-    from geoavatar.apps.web_export import export_web, split_vertices, web_assets
+    from geoavatar.apps.web_export import export_web, split_clip, web_assets
     from geoavatar.train.run_frames import RunFrames
     from geoavatar.web.pack import write_player_folder
 
@@ -62,9 +62,9 @@ def player_folder(run, out: Path, frames: int | None = None, split: str = "all")
         return export_web(run, out, split, show_progress=False)
     run_frames = RunFrames(run)
     timesteps = run_frames.timesteps
-    vertices = split_vertices(run, run_frames, timesteps, show_progress=False)
+    clip = split_clip(run, run_frames, timesteps, show_progress=False)
     cycle = [i % len(timesteps) for i in range(frames)]
-    assets = web_assets(run, vertices[cycle], run_frames.params(timesteps[0])[0], [timesteps[i] for i in cycle], 25.0,
+    assets = web_assets(run, clip.take(cycle), run_frames.params(timesteps[0])[0], [timesteps[i] for i in cycle], 25.0,
                         "benchmark", None, timesteps[:1])
     return write_player_folder(out, assets)
 

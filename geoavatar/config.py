@@ -93,10 +93,10 @@ class ModelConfig:
     init_colour: InitColour = "images"
     # Hair that follows the head's turn (ours, issue #27; avatar/hair_motion.py): each Gaussian off the face (hair,
     # scalp, ears, neck) moves its local mean and colour linearly with the frame's head rotation and neck pose, so
-    # long hair that hangs and swings as the head turns is learned instead of blurred. For long hair: on d3.mp4
-    # (E, 1500 steps at 256 px) held-out PSNR 19.12 -> 20.13 dB, training frames 21.27 -> 24.09 (BENCHMARKS.md).
-    # The web player does not play it (it moves Gaussians with their triangles only).
-    hair_follows_head: bool = False
+    # long hair that hangs and swings as the head turns is learned instead of blurred. Held-out PSNR, 256 px
+    # (BENCHMARKS.md): d3.mp4 (long hair, 1500 steps) 19.12 -> 20.13 dB, duda 31.32 -> 31.72, wojtek 22.19 -> 24.76
+    # (3000 steps). Default since the web player plays it too (web/pack.py); off = GaussianAvatars' rigging.
+    hair_follows_head: bool = True
     mouth: MouthKind = "geoavatar"  # mouth interior: none, gaussianavatars (frontal teeth), geoavatar (+molars, palate, floor)
     face_sets: FaceSetMode = "aps"  # regulariser threshold per face: aps, rigid, flexible, gaussianavatars (one threshold)
     mouth_deform: MouthDeformConfig = field(default_factory=MouthDeformConfig)  # part-wise mouth deformation

@@ -164,8 +164,8 @@ def test_view_mode_streams_every_online_frame_to_the_browser(run, clip):
     try:
         shown = []
         show_live = viewer.show_live
-        viewer.show_live = lambda vertices, info="", read_time=None: (shown.append((info, read_time)),
-                                                                      show_live(vertices, info, read_time))
+        viewer.show_live = lambda vertices, info="", read_time=None, code=None: (
+            shown.append((info, read_time)), show_live(vertices, info, read_time, code))
         with connect(viewer.url.replace("http", "ws") + "ws") as browser:
             assert viewer.server.wait_for_client(10.0)
             stats = drive_avatar(run, open_video(clip), None, viewer=viewer, size=32, init_seconds=0.2, lossless=True,
@@ -174,9 +174,10 @@ def test_view_mode_streams_every_online_frame_to_the_browser(run, clip):
         assert stats.processed == 10 and len(shown) == 10 - 5 and shown[-1][0].startswith("live: frame 9")
         assert all(read_time is not None for _, read_time in shown)  # the frame's read time, for read -> sent
         assert not stats.stage_ms["render"]  # --view without --out: the browser renders, the render stage is skipped
-        vertices = np.frombuffer(last[16:], dtype="<f4").reshape(-1, 3)
-        assert struct.unpack("<I", last[:4])[0] == 1 and vertices.shape == (run.head.num_vertices, 3)
-        assert np.isfinite(vertices).all()
+        body = np.frombuffer(last[16:], dtype="<f4")  # the posed mesh, then its head pose code (the hair follows)
+        vertices, code = body[:run.head.num_vertices * 3], body[run.head.num_vertices * 3:]
+        assert struct.unpack("<I", last[:4])[0] == 1 and code.shape == (6,) and run.avatar.follows_head
+        assert np.isfinite(vertices).all() and np.isfinite(code).all()
         assert viewer.server.sent >= 1 and len(viewer.server.latency_ms) == viewer.server.sent
         assert "read->sent" in viewer.summary()
     finally:

@@ -77,32 +77,43 @@ def test_the_moving_faces_are_the_hair_ears_and_neck_not_the_face_or_mouth():
     assert moving[parts.faces_of("ears")].all()
 
 
-def test_a_run_with_the_option_trains_reloads_poses_and_the_web_export_says_what_it_leaves_out(tmp_path, capsys):
+def test_a_run_follows_the_head_by_default_reloads_poses_and_exports_each_frames_code(tmp_path, capsys):
+    import json
     import warnings
+
+    import numpy as np
 
     from apps_fixtures import make_subject
     from geoavatar import cli
     from geoavatar.apps.web_export import export_web
     from geoavatar.avatar.render import pose_avatar
     from geoavatar.data.splits import ShortVideoWarning
-    from geoavatar.errors import GeoAvatarWarning
     from geoavatar.train.checkpoint import open_run
     from geoavatar.train.run_frames import RunFrames
+    from geoavatar.web import pack
 
     data = make_subject(tmp_path / "data", frames=6, size=32)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ShortVideoWarning)
-        code = cli.main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--steps", "3", "--device", "cpu",
-                         "--config.model.hair-follows-head", "--no-progress"])
-    assert code == 0, capsys.readouterr().err
-    run = open_run(tmp_path / "run", "cpu")
-    assert run.config.model.hair_follows_head and run.avatar.follows_head
+
+    def train(out: str, *options: str):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ShortVideoWarning)
+            code = cli.main(["train", "--data", str(data), "--out", str(tmp_path / out), "--steps", "3", "--device",
+                             "cpu", "--no-progress", *options])
+        assert code == 0, capsys.readouterr().err
+        return open_run(tmp_path / out, "cpu")
+
+    run = train("run")
+    assert run.config.model.hair_follows_head and run.avatar.follows_head  # the default
     frames = RunFrames(run)
     params, timestep = frames.params(frames.timesteps[0])
     turned = pose_avatar(run.avatar, run.head, params.replace(rotation=params.rotation + 0.2), timestep, run.deformer)
     assert turned.gaussians.means.shape[0] == run.avatar.num_gaussians and torch.isfinite(turned.gaussians.means).all()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        export_web(run, tmp_path / "web", show_progress=False)
-    assert any(issubclass(w.category, GeoAvatarWarning) and "hair follows the head" in str(w.message) for w in caught)
-    assert (tmp_path / "web" / "index.html").is_file()
+    manifest = json.loads((export_web(run, tmp_path / "web", show_progress=False) / pack.MANIFEST).read_text())
+    assert manifest["avatar"]["followsHead"] and len(manifest["clip"]["pose"]) == manifest["clip"]["frames"]
+    first = frames.params(manifest["clip"]["timesteps"][0])[0]
+    np.testing.assert_allclose(manifest["clip"]["pose"][0], head_pose_code(first).numpy(), atol=1e-6)
+
+    rigid = train("rigid", "--config.model.no-hair-follows-head")  # GaussianAvatars' rigging
+    assert not rigid.avatar.follows_head
+    manifest = json.loads((export_web(rigid, tmp_path / "web_rigid", show_progress=False) / pack.MANIFEST).read_text())
+    assert "followsHead" not in manifest["avatar"] and "pose" not in manifest["clip"]

@@ -18,6 +18,7 @@ from apps_fixtures import make_subject, make_untrained_run
 from geoavatar import cli
 from geoavatar.apps import view as view_app
 from geoavatar.apps.common import head_centre, posed_head_vertices
+from geoavatar.avatar.hair_motion import head_pose_code
 from geoavatar.geometry import axis_angle_to_matrix
 from geoavatar.train.checkpoint import open_run
 from geoavatar.train.run_frames import RunFrames
@@ -38,9 +39,17 @@ def fetch(url: str) -> tuple[int, str, bytes]:
 
 
 def received_mesh(message: bytes, vertex_count: int) -> tuple[int, np.ndarray]:
+    sequence, mesh, _code = received_frame(message, vertex_count)
+    return sequence, mesh
+
+
+def received_frame(message: bytes, vertex_count: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """sequence, vertices [V, 3] and the head pose code ([6], or [0] when the hair does not follow the head)."""
     kind, sequence, _sent = struct.unpack("<IId", message[:16])
     assert kind == KIND_VERTICES
-    return sequence, np.frombuffer(message[16:], dtype="<f4").reshape(vertex_count, 3)
+    body = np.frombuffer(message[16:], dtype="<f4")
+    assert len(body) in (vertex_count * 3, vertex_count * 3 + 6)
+    return sequence, body[:vertex_count * 3].reshape(vertex_count, 3), body[vertex_count * 3:]
 
 
 def test_view_serves_the_player_and_streams_slider_edits(run):
@@ -60,13 +69,15 @@ def test_view_serves_the_player_and_streams_slider_edits(run):
 
         with connect(viewer.url.replace("http", "ws") + "ws") as socket_:
             socket_.send(json.dumps({"type": "edit", "frame": 1, "expr": [0.8, 0.0, 0.0], "jaw": 0.3, "yaw": 20.0}))
-            _, mesh = received_mesh(socket_.recv(timeout=30), run.head.num_vertices)
+            _, mesh, code = received_frame(socket_.recv(timeout=30), run.head.num_vertices)
             socket_.send("not json")  # ignored
             socket_.send(json.dumps({"type": "edit", "frame": 99, "expr": [], "jaw": 0.0}))  # out of range: ignored
         params, _ = RunFrames(run).params(RunFrames(run).timesteps[1])
-        expected = posed_head_vertices(run, view_app.edited_params(run.head, params, [0.8, 0.0, 0.0], 0.3, 20.0, 0.0,
-                                                                   viewer.centre), None)
-        np.testing.assert_allclose(mesh, expected.detach().numpy(), atol=1e-5)
+        edited = view_app.edited_params(run.head, params, [0.8, 0.0, 0.0], 0.3, 20.0, 0.0, viewer.centre)
+        np.testing.assert_allclose(mesh, posed_head_vertices(run, edited, None).detach().numpy(), atol=1e-5)
+        # the default avatar's hair follows the head: the turned head's pose code travels with its mesh
+        np.testing.assert_allclose(code, head_pose_code(edited).numpy(), atol=1e-6)
+        assert np.abs(code - head_pose_code(params).numpy()).max() > 0.1
         unedited = posed_head_vertices(run, *RunFrames(run).params(RunFrames(run).timesteps[1])).detach().numpy()
         assert np.abs(mesh - unedited).max() > 1e-3  # the jaw opened, the head turned
     finally:
@@ -145,15 +156,18 @@ def test_a_browser_counts_and_draws_every_live_mesh(run):
     try:
         frames = RunFrames(run)
         meshes = [posed_head_vertices(run, *frames.params(t)).detach() for t in frames.timesteps]
+        codes = [head_pose_code(frames.params(t)[0]) for t in frames.timesteps]  # [6] each
         with chromium_page(160, 120) as page:
             page.goto(viewer.url)
             page.wait_for_function("window.geoavatar && window.geoavatar.stats.ready", timeout=120_000)
             assert viewer.server.wait_for_client(30.0)
             for k, mesh in enumerate(meshes):
-                viewer.show_live(mesh, read_time=None)
+                viewer.show_live(mesh, read_time=None, code=codes[k])
                 page.wait_for_function(f"window.geoavatar.stats.received === {k + 1}", timeout=60_000)
             shown = np.asarray(page.evaluate("Array.from(window.geoavatar.player.liveVertices)"), dtype=np.float32)
             np.testing.assert_array_equal(shown, meshes[-1].numpy().reshape(-1))
+            shown_code = page.evaluate("Array.from(window.geoavatar.player.liveCode)")
+            np.testing.assert_allclose(shown_code, codes[-1].numpy(), rtol=1e-6)
             page.wait_for_function("window.geoavatar.stats.frameCostMs > 0")
         assert viewer.server.sent == len(meshes)
     finally:

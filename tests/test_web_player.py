@@ -3,7 +3,8 @@ driven by Playwright) plays; the page's frame from the dataset camera scores lik
 same ground truth; deep links, counters and controls; bad input and interrupted exports.
 
 The avatar is a run's step-0 state (colours from the images) thinned to 4000 Gaussians with varied local means,
-rotations, scales, opacities and normal shading, so every part of the GPU placement is exercised on 64 px frames."""
+rotations, scales, opacities, normal shading and pose offsets (hair that follows the head), so every part of the GPU
+placement is exercised on 64 px frames."""
 
 from __future__ import annotations
 
@@ -33,7 +34,8 @@ def run_dir(tmp_path_factory):
 @pytest.fixture(scope="module")
 def run(run_dir):
     loaded = open_run(run_dir, "cpu")
-    assert loaded.avatar.normal_shading  # the default: the page must shade
+    assert loaded.avatar.normal_shading and loaded.avatar.follows_head  # the defaults: the page must shade and
+    # move the hair with the head's turn
     varied_avatar(loaded.avatar, SPLATS)
     return loaded
 
@@ -51,7 +53,8 @@ def test_export_writes_the_player_folder(run, player):
     assert manifest["clip"]["timesteps"] == test_steps and manifest["clip"]["frames"] == len(test_steps)
     avatar = manifest["avatar"]
     assert (avatar["splats"], avatar["faces"], avatar["vertices"]) == (SPLATS, run.avatar.num_faces, run.head.num_vertices)
-    assert (player / pack.AVATAR_FILE).stat().st_size == SPLATS * 24 * 4 + run.avatar.num_faces * 12
+    assert avatar["followsHead"] and len(manifest["clip"]["pose"]) == len(test_steps)  # the default: the hair follows
+    assert (player / pack.AVATAR_FILE).stat().st_size == SPLATS * 24 * 4 + run.avatar.num_faces * 12 + SPLATS * 36 * 2
     assert (player / pack.CLIP_FILE).stat().st_size == len(test_steps) * run.head.num_vertices * 6
     yaw, pitch = manifest["orbit"]["yaw"], manifest["orbit"]["pitch"]
     assert yaw[0] <= 0 <= yaw[1] and pitch[0] <= 0 <= pitch[1] and yaw[1] - yaw[0] < 180

@@ -33,6 +33,7 @@ import tyro
 from torch import Tensor
 
 from geoavatar.avatar import GlobalGaussians, pose_avatar, posed_head, render_avatar
+from geoavatar.avatar.hair_motion import head_pose_code
 from geoavatar.data import DatasetError
 from geoavatar.data.subject import Subject
 from geoavatar.errors import OptionError
@@ -121,6 +122,12 @@ def split_timesteps(run: LoadedRun, split: str) -> list[int]:
 def posed_head_vertices(run: LoadedRun, params: HeadParams, timestep: int | None = None) -> Tensor:
     """[V, 3] the run's head model posed by `params`, with the mouth deformer's offsets."""
     return posed_head(run.head, params, run.deformer, timestep).vertices[0]
+
+
+def browser_pose_code(run: LoadedRun, params: HeadParams) -> Tensor | None:
+    """[6] the frame's head pose code when the run's hair follows the head's turn (the browser player moves the hair
+    by it, web/pack.py), else None."""
+    return head_pose_code(params) if run.avatar.follows_head else None
 
 
 def pose_gaussians(run: LoadedRun, params: HeadParams, timestep: int | None = None) -> GlobalGaussians:
@@ -218,7 +225,8 @@ class Timer:
 
 
 __all__ = [
-    "EXPORT_DIR", "check_threads", "RunPath", "Timer", "VIDEO_DIR", "colormap_lut", "default_output", "error_map",
+    "EXPORT_DIR", "check_threads", "RunPath", "Timer", "VIDEO_DIR", "browser_pose_code", "colormap_lut", "default_output",
+    "error_map",
     "head_centre", "pose_gaussians", "posed_head_vertices", "progress", "record_camera", "render_params",
     "RENDER_THREADS", "run_background", "side_by_side", "split_timesteps", "synchronize",
     "torch_threads",

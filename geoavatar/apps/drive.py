@@ -51,7 +51,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import RunPath, posed_head_vertices, record_camera, run_background, side_by_side
+from geoavatar.apps.common import (RunPath, browser_pose_code, posed_head_vertices, record_camera, run_background,
+                                   side_by_side)
 from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, TransferMode, TransferStatistics, avatar_expressions,
                                                 expression_statistics, resolve_transfer)
 from geoavatar.apps.reenact import TRANSFERRED_KEYS, driven_params, reference_frame
@@ -484,7 +485,7 @@ class _OutputStage:
         if self.viewer is not None:
             vertices = posed.vertices if posed is not None else posed_head_vertices(run, params, None)
             self.viewer.show_live(vertices, f"live: frame {timestep}, {self.stats.fps:.1f} fps, "
-                                            f"dropped {self.dropped()}", available)
+                                            f"dropped {self.dropped()}", available, browser_pose_code(run, params))
         t1 = time.perf_counter()
         timings["pose"] = t1 - t0
         if self.render:

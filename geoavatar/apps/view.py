@@ -10,7 +10,7 @@ page plays its clip by itself (the T rule of apps/common.py: training frames wit
 parameters).
 
 Live mode (`live=True`, used by `geoavatar drive --view`): the page has no clip of its own and draws every mesh
-the caller sends with `LiveViewer.show_live(vertices, info, read_time)`.
+the caller sends with `LiveViewer.show_live(vertices, info, read_time, code)`.
 
 `start_viewer(...)` returns a running `LiveViewer` (tests and notebooks: `viewer.stop()` ends it); `view(...)`
 serves until Ctrl-C. The server listens on 127.0.0.1 unless --host says otherwise: only this machine can connect
@@ -27,7 +27,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import RunPath, head_centre, posed_head_vertices
+from geoavatar.apps.common import RunPath, browser_pose_code, head_centre, posed_head_vertices
 from geoavatar.errors import OptionError
 from geoavatar.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from geoavatar.head.params import HeadParams
@@ -74,7 +74,7 @@ class LiveViewer:
 
     def __init__(self, run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr_sliders: int = 10,
                  fps: float = 25.0, data: Path | None = None, live: bool = False):
-        from geoavatar.apps.web_export import split_vertices, web_assets
+        from geoavatar.apps.web_export import split_clip, web_assets
 
         self.run = run
         self.frames = RunFrames(run)
@@ -82,8 +82,8 @@ class LiveViewer:
         timesteps = self.frames.timesteps[:1] if live else list(self.frames.timesteps)
         first, _ = self.frames.params(timesteps[0])
         self.centre = head_centre(run, first)  # [3]
-        vertices = split_vertices(run, self.frames, timesteps, show_progress=False)
-        assets = web_assets(run, vertices, first, timesteps, fps, "live" if live else "split all", data, timesteps)
+        clip = split_clip(run, self.frames, timesteps, show_progress=False)
+        assets = web_assets(run, clip, first, timesteps, fps, "live" if live else "split all", data, timesteps)
         assets.manifest["live"] = "drive" if live else "view"
         if not live:
             names = list(run.head.data.metadata.get("expression_names", []))
@@ -119,11 +119,14 @@ class LiveViewer:
         """A slider message from the page: pose the edited frame (T = 0) and stream it back."""
         params = self.edit_params(request)
         if params is not None:
-            self.server.send_vertices(posed_head_vertices(self.run, params, None))
+            self.server.send_vertices(posed_head_vertices(self.run, params, None), None,
+                                      browser_pose_code(self.run, params))
 
-    def show_live(self, vertices: Tensor, info: str = "", read_time: float | None = None) -> None:
-        """Live mode: send a posed mesh [V, 3] to the browsers (the caller poses it, e.g. `drive`)."""
-        self.server.send_vertices(vertices, read_time)
+    def show_live(self, vertices: Tensor, info: str = "", read_time: float | None = None,
+                  code: Tensor | None = None) -> None:
+        """Live mode: send a posed mesh [V, 3] and its head pose code [6] (apps/common.browser_pose_code) to the
+        browsers (the caller poses it, e.g. `drive`)."""
+        self.server.send_vertices(vertices, read_time, code)
 
     def summary(self) -> str:
         """The stream's counts and its latency from frame read to message sent (median)."""

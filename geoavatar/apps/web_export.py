@@ -1,8 +1,8 @@
 """`geoavatar export RUN --format web --out DIR`: a static folder that plays the animated avatar in a browser.
 
 Python poses the head, the one posing path of every command (apps/common.py: RunFrames' parameters and T rule,
-avatar.posed_head with the mouth deformer), and the clip stores each frame's posed vertices, quantised
-(web/pack.py); the page turns them into face frames and places, rotates, scales and shades every splat on the
+avatar.posed_head with the mouth deformer), and the clip stores each frame's posed vertices, quantised, with its
+head pose code when the avatar's hair follows the head's turn (web/pack.py); the page turns them into face frames and places, rotates, scales and shades every splat on the
 GPU (web/src). The clip is
 
     --split S (default test)          the run's frames of that split, as `geoavatar render` poses them
@@ -17,17 +17,17 @@ dataset camera sees the clip's head from; the page's "free orbit" lifts the limi
 
 from __future__ import annotations
 
-import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from geoavatar.apps.common import (head_centre, posed_head_vertices, progress, record_camera, run_background,
-                                   split_timesteps)
+from geoavatar.apps.common import (browser_pose_code, head_centre, posed_head_vertices, progress, record_camera,
+                                   run_background, split_timesteps)
 from geoavatar.apps.expression_transfer import DEFAULT_TRANSFER, TransferMode, transfer_mode
 from geoavatar.apps.reenact import driven_clip, frame_of, track_driver
-from geoavatar.errors import GeoAvatarWarning, OptionError
+from geoavatar.errors import OptionError
 from geoavatar.eval.evaluate import trained_view_directions
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
@@ -49,19 +49,38 @@ def clip_timesteps(run: LoadedRun, split: str) -> list[int]:
     return timesteps
 
 
-@torch.no_grad()
-def split_vertices(run: LoadedRun, frames: RunFrames, timesteps: list[int], show_progress: bool) -> Tensor:
-    """[T, V, 3] the head posed for each timestep with its parameters and T (RunFrames: the T rule)."""
-    return torch.stack([posed_head_vertices(run, *frames.params(t))
-                        for t in progress(timesteps, enabled=show_progress, desc="pose")]).cpu()
+@dataclass
+class PosedClip:
+    """What the player plays: the head posed for each frame, and each frame's head pose code when the avatar's hair
+    follows the head's turn (avatar/hair_motion.py)."""
+
+    vertices: Tensor  # [T, V, 3]
+    codes: Tensor | None  # [T, 6], or None
+
+    def take(self, rows: list[int]) -> "PosedClip":
+        """The clip of these frames, in this order."""
+        return PosedClip(self.vertices[rows], None if self.codes is None else self.codes[rows])
+
+
+def _posed_clip(run: LoadedRun, frames: list[tuple[HeadParams, int | None]]) -> PosedClip:
+    """The head posed (the one posing path: apps/common.posed_head_vertices) for each (parameters, T)."""
+    vertices = torch.stack([posed_head_vertices(run, params, t) for params, t in frames]).cpu()
+    codes = [browser_pose_code(run, params) for params, _ in frames]
+    return PosedClip(vertices, None if codes[0] is None else torch.stack(codes).cpu())
 
 
 @torch.no_grad()
-def driven_vertices(run: LoadedRun, params: dict[str, Tensor], show_progress: bool) -> Tensor:
-    """[T, V, 3] the head posed by driven parameters [T, ...] (T = 0: a new animation)."""
+def split_clip(run: LoadedRun, frames: RunFrames, timesteps: list[int], show_progress: bool) -> PosedClip:
+    """Each timestep posed with its parameters and T (RunFrames: the T rule)."""
+    return _posed_clip(run, [frames.params(t) for t in progress(timesteps, enabled=show_progress, desc="pose")])
+
+
+@torch.no_grad()
+def driven_posed_clip(run: LoadedRun, params: dict[str, Tensor], show_progress: bool) -> PosedClip:
+    """The head posed by driven parameters [T, ...] (T = 0: a new animation)."""
     count = int(params["expr"].shape[0])
-    return torch.stack([posed_head_vertices(run, frame_of(params, row), None)
-                        for row in progress(range(count), enabled=show_progress, desc="pose")]).cpu()
+    return _posed_clip(run, [(frame_of(params, row), None)
+                             for row in progress(range(count), enabled=show_progress, desc="pose")])
 
 
 def orbit_limits(run: LoadedRun, data: Path | None, vertices: Tensor, viewmats: Tensor,
@@ -94,18 +113,14 @@ def clip_cameras(run: LoadedRun, data: Path | None, timesteps: list[int]) -> tup
     return cameras[0], [c.viewmat for c in cameras] if moving else None
 
 
-def web_assets(run: LoadedRun, vertices: Tensor, first_params: HeadParams, timesteps: list[int], fps: float,
+def web_assets(run: LoadedRun, clip: PosedClip, first_params: HeadParams, timesteps: list[int], fps: float,
                source: str, data: Path | None, camera_timesteps: list[int]) -> PlayerAssets:
-    """The player's manifest and binaries of a posed clip (vertices [T, V, 3])."""
-    if run.avatar.follows_head:
-        warnings.warn(GeoAvatarWarning(
-            "the web player moves every Gaussian with its triangle only: this avatar's hair follows the head's turn "
-            "(model.hair_follows_head) in Python's renderer, in the browser it stays as learned at the rest pose"))
+    """The player's manifest and binaries of a posed clip."""
     camera, viewmats = clip_cameras(run, data, camera_timesteps)
-    orbit = orbit_limits(run, data, vertices, torch.stack(viewmats) if viewmats else camera.viewmat)
+    orbit = orbit_limits(run, data, clip.vertices, torch.stack(viewmats) if viewmats else camera.viewmat)
     orbit["centre"] = [float(c) for c in head_centre(run, first_params).cpu()]
-    return player_assets(run.avatar, quantise_clip(vertices), fps, camera, orbit, run_background(run).tolist(),
-                         timesteps, source, viewmats=viewmats)
+    return player_assets(run.avatar, quantise_clip(clip.vertices), fps, camera, orbit, run_background(run).tolist(),
+                         timesteps, source, viewmats=viewmats, pose_codes=clip.codes)
 
 
 def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | None = None,
@@ -123,17 +138,17 @@ def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | No
         mode = transfer_mode(transfer)
         subject, params = driven_clip(run, frames, Path(driver), mode)
         timesteps = list(subject.timesteps)
-        vertices = driven_vertices(run, params, show_progress)
+        clip = driven_posed_clip(run, params, show_progress)
         first = frame_of(params, 0)
         source = f"driver {Path(driver_video or driver).name} ({mode} transfer)"
         camera_timesteps = [frames.timesteps[0]]  # reenact's camera: the avatar's (first) neutral frame
     else:
         timesteps = clip_timesteps(run, split)
-        vertices = split_vertices(run, frames, timesteps, show_progress)
+        clip = split_clip(run, frames, timesteps, show_progress)
         first = frames.params(timesteps[0])[0]
         source = f"split {split}"
         camera_timesteps = timesteps
-    assets = web_assets(run, vertices, first, timesteps, fps or DEFAULT_FPS, source, data, camera_timesteps)
+    assets = web_assets(run, clip, first, timesteps, fps or DEFAULT_FPS, source, data, camera_timesteps)
     return write_player_folder(out, assets)
 
 
@@ -141,4 +156,5 @@ def folder_size(folder: Path) -> int:
     return sum(f.stat().st_size for f in Path(folder).iterdir() if f.is_file())
 
 
-__all__ = ["ORBIT_MARGIN", "clip_timesteps", "export_web", "folder_size", "orbit_limits", "web_assets"]
+__all__ = ["ORBIT_MARGIN", "PosedClip", "clip_timesteps", "driven_posed_clip", "export_web", "folder_size",
+           "orbit_limits", "split_clip", "web_assets"]

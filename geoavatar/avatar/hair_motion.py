@@ -6,7 +6,7 @@ shoulders and the back, which Gaussians rigged to the scalp's triangles cannot d
 a mean position and the silhouette's band carries most of the error (on d3.mp4, 63-73 % of a training frame's
 squared error lies in 8 % of its pixels, the band around the head's outline). With `model.hair_follows_head`
 each Gaussian off the face (hair, scalp, ears, neck, eyeballs) moves its local mean and its colour linearly with
-the frame's head pose:
+the frame's head pose (on by default; the web player applies the same offsets on the GPU, web/pack.py):
 
     code = head_pose_code(params)                 # [6]: head rotation 3 + neck 3 (axis-angle)
     local mean += M code,  colour += C code        # M, C [3, 6] per Gaussian (means_pose, f_pose in avatar/model.py)

@@ -157,7 +157,8 @@ def dataclass_from_dict(cls: type, data: dict, where: str = "config") -> Any:
 
 # Fields added to the configuration after runs had been written, with the value those runs were trained with
 # (a stored configuration without the field predates it); their defaults today differ.
-FIELDS_ADDED_LATER: dict[str, dict[str, Any]] = {"model": {"normal_shading": False, "init_colour": "grey"}}
+FIELDS_ADDED_LATER: dict[str, dict[str, Any]] = {
+    "model": {"normal_shading": False, "init_colour": "grey", "hair_follows_head": False}}
 
 
 # Options removed after runs had been written (measured and rejected: docs/REJECTED.md), by dotted name, with the value

@@ -1,7 +1,7 @@
 """The live player server: the page, its bundle and an avatar over HTTP, posed meshes over a websocket (/ws).
 
     server = LiveServer(assets, host, port, on_edit=None).start()   # LiveServerError naming --port when taken
-    server.send_vertices(vertices, read_time)                        # [V, 3]; from any thread
+    server.send_vertices(vertices, read_time, code)                  # [V, 3], code [6] or None; from any thread
     server.stop()
 
 One asyncio loop in a thread serves everything on one port. send_vertices keeps the newest PENDING (2) meshes per
@@ -11,7 +11,8 @@ turn of the loop (the machine busy for a moment) costs no frame. Latency: `read_
 read) to the moment the message is written to every connected browser's socket (`latency_ms`). A text message
 from the page (view's sliders, JSON) is handed to `on_edit` in a worker thread; it may answer with
 send_vertices. The wire format is web/src/live.js's: a 16-byte header (uint32 1, uint32 sequence number, float64
-send time in Unix seconds) and float32 vertices [V * 3].
+send time in Unix seconds) and float32 vertices [V * 3], then, when the avatar's hair follows the head's turn, the
+frame's float32 head pose code [6] (web/pack.py).
 """
 
 from __future__ import annotations
@@ -42,11 +43,16 @@ class LiveServerError(GeoAvatarError, OSError):
     """The player's address cannot be served (a port in use); the message names --host / --port."""
 
 
-def vertex_message(vertices, sequence: int) -> bytes:
-    """The wire message of one posed mesh [V, 3] (see the module docstring)."""
-    if isinstance(vertices, torch.Tensor):
-        vertices = vertices.detach().to("cpu", torch.float32).numpy()
-    body = np.ascontiguousarray(vertices, dtype="<f4").tobytes()
+def _float32_bytes(values) -> bytes:
+    if isinstance(values, torch.Tensor):
+        values = values.detach().to("cpu", torch.float32).numpy()
+    return np.ascontiguousarray(values, dtype="<f4").tobytes()
+
+
+def vertex_message(vertices, sequence: int, code=None) -> bytes:
+    """The wire message of one posed mesh [V, 3] with its head pose code [6] when the hair follows the head (see the
+    module docstring)."""
+    body = _float32_bytes(vertices) + (b"" if code is None else _float32_bytes(code))
     return struct.pack("<IId", KIND_VERTICES, sequence & 0xFFFFFFFF, time.time()) + body
 
 
@@ -176,12 +182,13 @@ class LiveServer:
             client.pending.append((message, read_time))
             client.wake.set()
 
-    def send_vertices(self, vertices, read_time: float | None = None) -> None:
-        """Send a posed mesh [V, 3] to every connected browser (thread-safe; the newest PENDING wait per browser)."""
+    def send_vertices(self, vertices, read_time: float | None = None, code=None) -> None:
+        """Send a posed mesh [V, 3] (and its head pose code [6] when the avatar's hair follows the head) to every
+        connected browser (thread-safe; the newest PENDING wait per browser)."""
         if self._loop is None or self._loop.is_closed():
             return
         self.sequence += 1
-        message = vertex_message(vertices, self.sequence)
+        message = vertex_message(vertices, self.sequence, code)
         self._loop.call_soon_threadsafe(self._publish, message, read_time)
 
     def wait_for_client(self, timeout_s: float) -> bool:

@@ -4,7 +4,8 @@ A player folder (`geoavatar export RUN --format web`) holds
 
     index.html, player.js   the page and its bundle (three.js + Spark + web/src), copied from static/
     avatar.json             the manifest below
-    avatar.bin              float32 splat table [N, 24] (little-endian), then uint32 faces [F, 3]
+    avatar.bin              float32 splat table [N, 24] (little-endian), then uint32 faces [F, 3], then, when the
+                            avatar's hair follows the head's turn, float16 pose table [N, 36]
     clip.bin                uint16 posed vertices [T, V, 3]: v = offset + code * step per axis
 
 Splat table row (what web/src/generator.js reads as 6 RGBA texels):
@@ -15,13 +16,19 @@ zeros without it). The browser computes each face's frame from the clip's vertic
 maths of avatar/binding.py) and places every splat as avatar/model.py does: mu = k R mu_l + C,
 q = q_face (x) q_l, s = k s_l, colour = max(colour + F n, 0).
 
+Hair that follows the head's turn (model.hair_follows_head, avatar/hair_motion.py): each frame of the clip carries
+its head pose code c [6] (head rotation, neck; "clip.pose" [T][6]), and the pose table row of a splat holds
+M [3, 6] then C [3, 6] row-major (zeros for the splats on the face): the page adds M c to the local mean before
+placing the splat and C c to its colour before shading, as avatar/model.py does.
+
 Only posed vertices and the triangle list leave Python: a FLAME avatar ships no FLAME model file or basis.
 
 avatar.json: {"format", "avatar": {splats, faces, vertices, shading, file}, "clip": {frames, fps, offset, step,
 timesteps, file, source}, "camera": {viewmat [4][4] OpenCV world-to-camera, K [3][3], width, height},
 "viewmats": per-frame viewmats when the clip's cameras differ, "orbit": {centre, yaw [lo, hi], pitch [lo, hi]}
 (degrees about the dataset camera; the turns the training video covered plus a margin), "background",
-"live" (absent, "view" or "drive"), "edit" (view's sliders)}.
+"live" (absent, "view" or "drive"), "edit" (view's sliders)}; avatar.followsHead and clip.pose with hair that
+follows the head.
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from geoavatar.avatar.hair_motion import POSE_CODE_DIM
 from geoavatar.avatar.model import SH_C0
 from geoavatar.io.atomic import atomic_folder
 
@@ -45,6 +53,7 @@ AVATAR_FILE = "avatar.bin"
 CLIP_FILE = "clip.bin"
 PLAYER_FILES = ("index.html", "player.js")
 SPLAT_FLOATS = 24  # 6 RGBA32F texels per splat
+POSE_FLOATS = 36  # 9 RGBA16F texels per splat: M [3, 6], C [3, 6] of the hair's pose offsets
 CODE_MAX = 65535  # uint16 codes of the clip
 
 
@@ -71,6 +80,19 @@ def splat_table(avatar) -> np.ndarray:
         table[:, 16:20] = shading[:, 0:4]
         table[:, 20:24] = shading[:, 4:8]
     return table.float().numpy()
+
+
+def pose_table(avatar) -> np.ndarray | None:
+    """[N, 36] float16: each splat's pose offsets M [3, 6] then C [3, 6] (row-major; zeros off the moving faces), or
+    None when the avatar's Gaussians do not follow the head's turn."""
+    if not avatar.follows_head:
+        return None
+    moving = avatar.moving[avatar.binding].to("cpu", torch.float64)[:, None]  # [N, 1]
+    table = torch.cat([avatar.params[name].detach().to("cpu", torch.float64) * moving
+                       for name in ("means_pose", "f_pose")], dim=1)  # [N, 36]
+    if not torch.isfinite(table).all() or table.abs().max() > np.finfo(np.float16).max:
+        raise ValueError("pose_table: the avatar's pose offsets are not finite in float16")
+    return table.numpy().astype(np.float16)
 
 
 @dataclass
@@ -112,17 +134,27 @@ class PlayerAssets:
                 CLIP_FILE: self.clip_bytes}
 
 
+def _array(values: Tensor | np.ndarray) -> np.ndarray:
+    return np.asarray(values.detach().cpu() if isinstance(values, Tensor) else values, dtype=np.float64)
+
+
 def _listed(matrix: Tensor | np.ndarray) -> list:
-    return np.asarray(matrix.detach().cpu() if isinstance(matrix, Tensor) else matrix, dtype=np.float64).tolist()
+    return _array(matrix).tolist()
 
 
 def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, background, timesteps: list[int],
                   source: str, viewmats: list | None = None, live: str | None = None,
-                  edit: dict | None = None) -> PlayerAssets:
-    """The manifest and binaries of `avatar` playing `clip` (see the module docstring); camera: render.camera.Camera."""
+                  edit: dict | None = None, pose_codes: Tensor | np.ndarray | None = None) -> PlayerAssets:
+    """The manifest and binaries of `avatar` playing `clip` (see the module docstring); camera: render.camera.Camera;
+    pose_codes [T, 6]: each frame's head pose code, needed when the avatar's hair follows the head."""
     table = splat_table(avatar)
+    poses = pose_table(avatar)
+    codes = None if pose_codes is None else _array(pose_codes)  # [T, 6]
     faces = avatar.faces.detach().cpu().numpy().astype("<u4")  # [F, 3]
     frames, vertex_count, _ = clip.codes.shape
+    if poses is not None and (codes is None or codes.shape != (frames, POSE_CODE_DIM)):
+        raise ValueError(f"player_assets: the avatar's hair follows the head, so each of the {frames} frames needs its "
+                         f"head pose code [{frames}, {POSE_CODE_DIM}], got {None if codes is None else codes.shape}")
     manifest = {
         "format": FORMAT_VERSION,
         "avatar": {"splats": int(table.shape[0]), "faces": int(faces.shape[0]), "vertices": int(vertex_count),
@@ -134,6 +166,9 @@ def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, 
         "orbit": orbit,
         "background": [float(c) for c in background],
     }
+    if poses is not None:
+        manifest["avatar"]["followsHead"] = True
+        manifest["clip"]["pose"] = codes.tolist()
     if viewmats is not None:
         manifest["viewmats"] = [_listed(v) for v in viewmats]
     if live is not None:
@@ -141,6 +176,8 @@ def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, 
     if edit is not None:
         manifest["edit"] = edit
     avatar_bytes = table.astype("<f4").tobytes() + faces.tobytes()
+    if poses is not None:
+        avatar_bytes += poses.astype("<f2").tobytes()
     return PlayerAssets(manifest, avatar_bytes, clip.codes.tobytes())
 
 
@@ -159,4 +196,4 @@ def write_player_folder(out: str | Path, assets: PlayerAssets) -> Path:
 
 
 __all__ = ["AVATAR_FILE", "CLIP_FILE", "MANIFEST", "PLAYER_FILES", "PlayerAssets", "QuantisedClip", "player_assets",
-           "quantise_clip", "splat_table", "static_dir", "write_player_folder"]
+           "pose_table", "quantise_clip", "splat_table", "static_dir", "write_player_folder"]

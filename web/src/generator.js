@@ -6,6 +6,7 @@ import { SplatGenerator, dyno } from "@sparkjsdev/spark";
 export const TEXTURE_WIDTH = 2048; // texels per row of both textures (a linear index i is texel (i & 2047, i >> 11))
 export const SPLAT_TEXELS = 6; // RGBA texels per splat in the avatar table (see geoavatar/web/pack.py)
 export const FACE_TEXELS = 2; // RGBA texels per face: C, k | q (binding.js FACE_STRIDE)
+export const POSE_TEXELS = 9; // RGBA16F texels per splat in the pose table (hair that follows the head, pack.py)
 
 // A float RGBA texture holding `texels` texels of `data` (padded to whole rows).
 export function floatTexture(texels) {
@@ -19,25 +20,54 @@ export function floatTexture(texels) {
   return texture;
 }
 
+// A half-float RGBA texture holding `texels` texels (uint16 IEEE halves, padded to whole rows).
+export function halfTexture(texels) {
+  const rows = Math.max(1, Math.ceil(texels / TEXTURE_WIDTH));
+  const data = new Uint16Array(rows * TEXTURE_WIDTH * 4);
+  const texture = new THREE.DataTexture(data, TEXTURE_WIDTH, rows, THREE.RGBAFormat, THREE.HalfFloatType);
+  texture.internalFormat = "RGBA16F";
+  texture.minFilter = texture.magFilter = THREE.NearestFilter;
+  texture.generateMipmaps = false;
+  texture.needsUpdate = true;
+  return texture;
+}
+
 // Table rows per splat (float32 x 24), written by geoavatar/web/pack.py:
 //   t0 local mean (face-scale units) xyz, face index | t1 local rotation x y z w (unit) |
 //   t2 local scale (linear) xyz, opacity | t3 colour rgb (SH-0), F[2][2] | t4 F[0][0..2], F[1][0] | t5 F[1][1..2], F[2][0..1]
 // F: the normal-shading matrix (colour += F n, n the world face normal); zeros when the avatar has none.
+// Pose table rows (float16 x 36, only when the hair follows the head): M [3][6] then C [3][6] row-major; with the
+// frame's head pose code c = (head rotation, neck) the local mean takes M c and the colour C c (avatar/model.py).
 const PLACE_GLSL = `
 ivec2 gaTexel(int i) { return ivec2(i & ${TEXTURE_WIDTH - 1}, i >> ${Math.log2(TEXTURE_WIDTH)}); }
-void gaPlaceSplat(sampler2D table, sampler2D faces, int index, bool shading, out Gsplat g) {
+// A row of six weights applied to the code (head, neck): starting at a texel's x (aligned) or at its z (mid).
+float gaRowAligned(vec4 a, vec4 b, vec3 head, vec3 neck) { return dot(a.xyz, head) + dot(vec3(a.w, b.xy), neck); }
+float gaRowMid(vec4 a, vec4 b, vec3 head, vec3 neck) { return dot(vec3(a.zw, b.x), head) + dot(b.yzw, neck); }
+void gaPlaceSplat(sampler2D table, sampler2D faces, sampler2D poses, int index, bool shading, bool follows,
+                  vec3 head, vec3 neck, out Gsplat g) {
   int base = ${SPLAT_TEXELS} * index;
   vec4 t0 = texelFetch(table, gaTexel(base), 0);
   vec4 t1 = texelFetch(table, gaTexel(base + 1), 0);
   vec4 t2 = texelFetch(table, gaTexel(base + 2), 0);
   vec4 t3 = texelFetch(table, gaTexel(base + 3), 0);
+  vec3 localMean = t0.xyz;
+  vec3 colour = t3.rgb;
+  if (follows) {
+    int row = ${POSE_TEXELS} * index;
+    vec4 p0 = texelFetch(poses, gaTexel(row), 0), p1 = texelFetch(poses, gaTexel(row + 1), 0);
+    vec4 p2 = texelFetch(poses, gaTexel(row + 2), 0), p3 = texelFetch(poses, gaTexel(row + 3), 0);
+    vec4 p4 = texelFetch(poses, gaTexel(row + 4), 0), p5 = texelFetch(poses, gaTexel(row + 5), 0);
+    vec4 p6 = texelFetch(poses, gaTexel(row + 6), 0), p7 = texelFetch(poses, gaTexel(row + 7), 0);
+    vec4 p8 = texelFetch(poses, gaTexel(row + 8), 0);
+    localMean += vec3(gaRowAligned(p0, p1, head, neck), gaRowMid(p1, p2, head, neck), gaRowAligned(p3, p4, head, neck));
+    colour += vec3(gaRowMid(p4, p5, head, neck), gaRowAligned(p6, p7, head, neck), gaRowMid(p7, p8, head, neck));
+  }
   int face = int(t0.w + 0.5);
   vec4 centreScale = texelFetch(faces, gaTexel(${FACE_TEXELS} * face), 0);
   vec4 faceQuat = texelFetch(faces, gaTexel(${FACE_TEXELS} * face + 1), 0);
-  g.center = centreScale.w * quatVec(faceQuat, t0.xyz) + centreScale.xyz;
+  g.center = centreScale.w * quatVec(faceQuat, localMean) + centreScale.xyz;
   g.quaternion = quatQuat(faceQuat, t1);
   g.scales = centreScale.w * t2.xyz;
-  vec3 colour = t3.rgb;
   if (shading) {
     vec4 t4 = texelFetch(table, gaTexel(base + 4), 0);
     vec4 t5 = texelFetch(table, gaTexel(base + 5), 0);
@@ -50,22 +80,37 @@ void gaPlaceSplat(sampler2D table, sampler2D faces, int index, bool shading, out
 }
 `;
 
-// A SplatGenerator of `count` splats; call .updateVersion() after the face texture changed.
-export function avatarGenerator({ count, table, faces, shading }) {
+// A SplatGenerator of `count` splats; call .updateVersion() after the face texture or the pose code changed.
+// poses: the pose table's half-float texture when the hair follows the head (null: it does not); the returned
+// generator's setPoseCode(code) takes the frame's head pose code [6].
+export function avatarGenerator({ count, table, faces, shading, poses }) {
+  const follows = Boolean(poses);
   const tableUniform = dyno.dynoSampler2D(table, "gaTable");
   const faceUniform = dyno.dynoSampler2D(faces, "gaFaces");
+  const poseUniform = dyno.dynoSampler2D(poses ?? halfTexture(1), "gaPoses");
   const shadingUniform = dyno.dynoBool(Boolean(shading));
+  const followsUniform = dyno.dynoBool(follows);
+  const headUniform = dyno.dynoVec3(new THREE.Vector3(), "gaHead");
+  const neckUniform = dyno.dynoVec3(new THREE.Vector3(), "gaNeck");
   const generator = dyno.dynoBlock({ index: "int" }, { gsplat: dyno.Gsplat }, ({ index }) => {
     const placed = dyno.dyno({
-      inTypes: { index: "int", table: "sampler2D", faces: "sampler2D", shading: "bool" },
+      inTypes: { index: "int", table: "sampler2D", faces: "sampler2D", poses: "sampler2D", shading: "bool",
+        follows: "bool", head: "vec3", neck: "vec3" },
       outTypes: { gsplat: dyno.Gsplat },
-      inputs: { index, table: tableUniform, faces: faceUniform, shading: shadingUniform },
+      inputs: { index, table: tableUniform, faces: faceUniform, poses: poseUniform, shading: shadingUniform,
+        follows: followsUniform, head: headUniform, neck: neckUniform },
       globals: () => [dyno.defineGsplat, PLACE_GLSL],
-      statements: ({ inputs, outputs }) => [
-        `gaPlaceSplat(${inputs.table}, ${inputs.faces}, ${inputs.index}, ${inputs.shading}, ${outputs.gsplat});`,
+      statements: ({ inputs: i, outputs }) => [
+        `gaPlaceSplat(${i.table}, ${i.faces}, ${i.poses}, ${i.index}, ${i.shading}, ${i.follows}, ${i.head}, ` +
+        `${i.neck}, ${outputs.gsplat});`,
       ],
     });
     return { gsplat: placed.outputs.gsplat };
   });
-  return new SplatGenerator({ numSplats: count, generator });
+  const splats = new SplatGenerator({ numSplats: count, generator });
+  splats.setPoseCode = (code) => {
+    headUniform.value.set(code[0], code[1], code[2]);
+    neckUniform.value.set(code[3], code[4], code[5]);
+  };
+  return splats;
 }

@@ -1,7 +1,8 @@
 // The websocket link of a live player (`geoavatar view`, `geoavatar drive --view`).
 //
 // Server -> page, binary: a 16-byte header (uint32 kind = 1, uint32 sequence number, float64 send time in Unix
-// seconds) and float32 posed vertices [V * 3]. Page -> server, text JSON: {"type": "edit", "frame": clip frame,
+// seconds) and float32 posed vertices [V * 3], then the head pose code [6] when the avatar's hair follows the head
+// (geoavatar/web/pack.py). Page -> server, text JSON: {"type": "edit", "frame": clip frame,
 // "expr": [...], "jaw": radians, "yaw", "pitch": degrees} (view's sliders; all zero = no edit: the page plays its clip
 // again).
 const HEADER_BYTES = 16;
@@ -27,13 +28,16 @@ export class LiveLink {
     if (header.getUint32(0, true) !== KIND_VERTICES) return;
     const sequence = header.getUint32(4, true);
     const sent = header.getFloat64(8, true);
-    const vertices = new Float32Array(data, HEADER_BYTES);
-    if (vertices.length !== this.player.vertexCount * 3) return;
+    const count = this.player.vertexCount * 3;
+    const follows = Boolean(this.player.manifest.avatar.followsHead);
+    if (data.byteLength !== HEADER_BYTES + 4 * (count + (follows ? 6 : 0))) return;
+    const vertices = new Float32Array(data, HEADER_BYTES, count);
+    const code = follows ? new Float32Array(data, HEADER_BYTES + 4 * count, 6) : null;
     this.stats.received += 1;
     this.stats.lastReceived = sequence;
     this.stats.transportMs.push(Date.now() - sent * 1000);
     if (this.stats.transportMs.length > 1000) this.stats.transportMs.shift();
-    if (this.player.manifest.live === "drive" || this.editing) this.player.showLive(vertices);
+    if (this.player.manifest.live === "drive" || this.editing) this.player.showLive(vertices, code);
   }
 
   // view's sliders: ask Python for the shown clip frame with these edits (none: back to the clip).

@@ -10,7 +10,7 @@
 import * as THREE from "three";
 import { SparkRenderer } from "@sparkjsdev/spark";
 import { faceFrames, dequantiseFrame, FACE_STRIDE } from "./binding.js";
-import { avatarGenerator, floatTexture, FACE_TEXELS, SPLAT_TEXELS } from "./generator.js";
+import { avatarGenerator, floatTexture, halfTexture, FACE_TEXELS, POSE_TEXELS, SPLAT_TEXELS } from "./generator.js";
 import { clamp, fittedIntrinsics, orbitWorld, placeCamera, projectionFromIntrinsics, worldFromViewmat } from "./camera.js";
 import { LiveLink } from "./live.js";
 import { buildControls } from "./controls.js";
@@ -33,12 +33,19 @@ async function loadAvatar(base) {
     fetchBytes(new URL(manifest.avatar.file, base)),
     fetchBytes(new URL(manifest.clip.file, base)),
   ]);
-  const { splats, faces, vertices } = manifest.avatar;
+  const { splats, faces, vertices, followsHead } = manifest.avatar;
+  const poseBytes = followsHead ? splats * POSE_TEXELS * 8 : 0; // float16 x 36 a splat
+  if (avatarBytes.byteLength !== splats * SPLAT_TEXELS * 16 + faces * 12 + poseBytes) {
+    throw new Error("avatar.bin: unexpected size");
+  }
   const table = new Float32Array(avatarBytes, 0, splats * SPLAT_TEXELS * 4);
   const faceIds = new Uint32Array(avatarBytes, table.byteLength, faces * 3);
+  const poses = followsHead ? new Uint16Array(avatarBytes, table.byteLength + faceIds.byteLength, splats * POSE_TEXELS * 4)
+    : null;
   const clip = new Uint16Array(clipBytes);
   if (clip.length !== manifest.clip.frames * vertices * 3) throw new Error("clip.bin: unexpected size");
-  return { manifest, table, faceIds, clip };
+  if (followsHead && manifest.clip.pose?.length !== manifest.clip.frames) throw new Error("avatar.json: clip.pose missing");
+  return { manifest, table, faceIds, poses, clip };
 }
 
 function readOptions() {
@@ -52,7 +59,7 @@ function readOptions() {
 }
 
 class Player {
-  constructor({ manifest, table, faceIds, clip }, options) {
+  constructor({ manifest, table, faceIds, poses, clip }, options) {
     this.manifest = manifest;
     this.options = options;
     this.clip = clip;
@@ -65,10 +72,11 @@ class Player {
     this.playing = !options.paused && this.frameCount > 1;
     this.orbit = { yaw: 0, pitch: 0, distance: 1, free: false };
     this.liveVertices = null; // the newest streamed mesh, shown instead of the clip while set
+    this.liveCode = null; // its head pose code [6] when the hair follows the head
     this.needsDraw = true;
     this.dirtyFrame = true;
     this.setupRenderer();
-    this.setupSplats(table);
+    this.setupSplats(table, poses);
   }
 
   setupRenderer() {
@@ -95,13 +103,18 @@ class Player {
     window.addEventListener("resize", () => this.resize());
   }
 
-  setupSplats(table) {
+  setupSplats(table, poses) {
     const { splats, faces, shading } = this.manifest.avatar;
     this.tableTexture = floatTexture(splats * SPLAT_TEXELS);
     this.tableTexture.image.data.set(table);
     this.faceTexture = floatTexture(faces * FACE_TEXELS);
     this.faceData = this.faceTexture.image.data.subarray(0, faces * FACE_STRIDE);
-    this.generator = avatarGenerator({ count: splats, table: this.tableTexture, faces: this.faceTexture, shading });
+    if (poses) {
+      this.poseTexture = halfTexture(splats * POSE_TEXELS);
+      this.poseTexture.image.data.set(poses);
+    }
+    this.generator = avatarGenerator({ count: splats, table: this.tableTexture, faces: this.faceTexture, shading,
+      poses: this.poseTexture });
     this.generator.frustumCulled = false;
     this.scene.add(this.generator);
   }
@@ -161,6 +174,7 @@ class Player {
     const mesh = this.liveVertices ?? dequantiseFrame(this.clip, this.frame, this.vertexCount,
       this.manifest.clip.offset, this.manifest.clip.step, this.vertices);
     faceFrames(mesh, this.faceIds, this.faceData);
+    if (this.poseTexture) this.generator.setPoseCode(this.liveVertices ? this.liveCode : this.manifest.clip.pose[this.frame]);
     this.faceTexture.needsUpdate = true;
     this.renderer.initTexture(this.faceTexture); // upload now, inside the measured span
     this.generator.updateVersion();
@@ -180,8 +194,9 @@ class Player {
     if (this.live?.editing) this.live.resendEdit(); // the edit follows the shown frame
   }
 
-  showLive(vertices) {
+  showLive(vertices, code = null) {
     this.liveVertices = vertices;
+    this.liveCode = code;
     this.dirtyFrame = true;
   }
 
