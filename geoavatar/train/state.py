@@ -22,7 +22,7 @@ from geoavatar.geometry import camera_centre
 from geoavatar.head.regions import face_parts
 from geoavatar.runtime import resolve_device
 from geoavatar.train.checkpoint import load_head_for
-from geoavatar.train.frame_params import FrameParams
+from geoavatar.train.frame_params import FrameParams, RowAdam
 from geoavatar.train.options import RunOptions
 from geoavatar.train.randomness import seed_everything
 
@@ -112,7 +112,7 @@ def build_optimizers(
     lr = config.lr
     # fused: one kernel per tensor (CPU and CUDA), a third of the per-op version's time at 100k Gaussians
     gaussians = torch.optim.Adam(gaussian_param_groups(avatar.params, lr, extent), lr=0.0, eps=lr.adam_eps, fused=True)
-    tracking = (torch.optim.Adam(frames.param_groups(lr), lr=0.0, eps=lr.adam_eps, fused=True) if frames.refine else None)
+    tracking = RowAdam(frames.param_groups(lr), lr=0.0) if frames.refine else None  # one step per visit of a frame
     mouth = (torch.optim.Adam(deformer.parameters(), lr=lr.mouth_deform, eps=MLP_ADAM_EPS, fused=True)
              if deformer is not None else None)
     return {"gaussians": gaussians, "tracking": tracking, "deformer": mouth}
