@@ -8,29 +8,21 @@ export const SPLAT_TEXELS = 6; // RGBA texels per splat in the avatar table (see
 export const FACE_TEXELS = 2; // RGBA texels per face: C, k | q (binding.js FACE_STRIDE)
 export const POSE_TEXELS = 9; // RGBA16F texels per splat in the pose table (hair that follows the head, pack.py)
 
-// A float RGBA texture holding `texels` texels of `data` (padded to whole rows).
-export function floatTexture(texels) {
+// An RGBA texture of `texels` texels (padded to whole rows), nearest sampling, its data zeroed: float32 or half.
+function rgbaTexture(texels, ArrayType, type, internalFormat) {
   const rows = Math.max(1, Math.ceil(texels / TEXTURE_WIDTH));
-  const data = new Float32Array(rows * TEXTURE_WIDTH * 4);
-  const texture = new THREE.DataTexture(data, TEXTURE_WIDTH, rows, THREE.RGBAFormat, THREE.FloatType);
-  texture.internalFormat = "RGBA32F";
+  const texture = new THREE.DataTexture(new ArrayType(rows * TEXTURE_WIDTH * 4), TEXTURE_WIDTH, rows, THREE.RGBAFormat,
+    type);
+  texture.internalFormat = internalFormat;
   texture.minFilter = texture.magFilter = THREE.NearestFilter;
   texture.generateMipmaps = false;
   texture.needsUpdate = true;
   return texture;
 }
 
-// A half-float RGBA texture holding `texels` texels (uint16 IEEE halves, padded to whole rows).
-export function halfTexture(texels) {
-  const rows = Math.max(1, Math.ceil(texels / TEXTURE_WIDTH));
-  const data = new Uint16Array(rows * TEXTURE_WIDTH * 4);
-  const texture = new THREE.DataTexture(data, TEXTURE_WIDTH, rows, THREE.RGBAFormat, THREE.HalfFloatType);
-  texture.internalFormat = "RGBA16F";
-  texture.minFilter = texture.magFilter = THREE.NearestFilter;
-  texture.generateMipmaps = false;
-  texture.needsUpdate = true;
-  return texture;
-}
+export const floatTexture = (texels) => rgbaTexture(texels, Float32Array, THREE.FloatType, "RGBA32F");
+// uint16 IEEE halves (the pose table: numpy float16)
+export const halfTexture = (texels) => rgbaTexture(texels, Uint16Array, THREE.HalfFloatType, "RGBA16F");
 
 // Table rows per splat (float32 x 24), written by geoavatar/web/pack.py:
 //   t0 local mean (face-scale units) xyz, face index | t1 local rotation x y z w (unit) |
