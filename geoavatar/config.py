@@ -17,8 +17,9 @@ Sources of the defaults:
   densification (every 2000 steps from 10k, gradient threshold 2e-4, percent_dense 0.01, prune
   opacity 0.005, opacity reset every 60k, screen size limit 20 px after the first reset, world size
   limit 0.1 x scene extent), scale loss (lambda 1, threshold 0.6), position loss (lambda 1e-2,
-  threshold 1.0, a mean over the visible Gaussians), tracking refinement (expr 1e-3, pose 1e-5,
-  translation 1e-6), position lr decay span 600k steps (kept on GeoAvatar's 200k schedule: 3x the run).
+  threshold 1.0, a mean over the visible Gaussians), position lr decay span 600k steps (kept on GeoAvatar's
+  200k schedule: 3x the run). Its tracking refinement (expr 1e-3, pose 1e-5, translation 1e-6 under torch's Adam)
+  is replaced by ours (issue #27): one Adam step per visit of a frame at the avatar-tracking rates (LearningRates).
 
 How L_reg is weighted (the paper writes L = L_rgb + L_reg with L_reg a *sum* over Gaussians): we use
 GaussianAvatars' form, a *mean* over the visible Gaussians with weight 1e-2, and the per-set

@@ -62,9 +62,10 @@ class PosedClip:
         return PosedClip(self.vertices[rows], None if self.codes is None else self.codes[rows])
 
 
-def _posed_clip(run: LoadedRun, frames: list[tuple[HeadParams, int | None]]) -> PosedClip:
+def _posed_clip(run: LoadedRun, frames: list[tuple[HeadParams, int | None]], show_progress: bool) -> PosedClip:
     """The head posed (the one posing path: apps/common.posed_head_vertices) for each (parameters, T)."""
-    vertices = torch.stack([posed_head_vertices(run, params, t) for params, t in frames]).cpu()
+    vertices = torch.stack([posed_head_vertices(run, params, t)
+                            for params, t in progress(frames, enabled=show_progress, desc="pose")]).cpu()
     codes = [browser_pose_code(run, params) for params, _ in frames]
     return PosedClip(vertices, None if codes[0] is None else torch.stack(codes).cpu())
 
@@ -72,15 +73,14 @@ def _posed_clip(run: LoadedRun, frames: list[tuple[HeadParams, int | None]]) -> 
 @torch.no_grad()
 def split_clip(run: LoadedRun, frames: RunFrames, timesteps: list[int], show_progress: bool) -> PosedClip:
     """Each timestep posed with its parameters and T (RunFrames: the T rule)."""
-    return _posed_clip(run, [frames.params(t) for t in progress(timesteps, enabled=show_progress, desc="pose")])
+    return _posed_clip(run, [frames.params(t) for t in timesteps], show_progress)
 
 
 @torch.no_grad()
 def driven_posed_clip(run: LoadedRun, params: dict[str, Tensor], show_progress: bool) -> PosedClip:
     """The head posed by driven parameters [T, ...] (T = 0: a new animation)."""
     count = int(params["expr"].shape[0])
-    return _posed_clip(run, [(frame_of(params, row), None)
-                             for row in progress(range(count), enabled=show_progress, desc="pose")])
+    return _posed_clip(run, [(frame_of(params, row), None) for row in range(count)], show_progress)
 
 
 def orbit_limits(run: LoadedRun, data: Path | None, vertices: Tensor, viewmats: Tensor,

@@ -264,7 +264,7 @@ def restore_state(payload: dict, data: "TrainingData", config: TrainConfig, wher
         if frames.num_rows != data.subject.num_timesteps:
             raise RunError(f"{where}: the checkpoint has parameters of {frames.num_rows} frames, the dataset "
                            f"{data.subject.root} has {data.subject.num_timesteps}")
-        optimizers = build_optimizers(avatar, deformer, frames, config, float(payload["extent"]))
+        optimizers = build_optimizers(avatar, deformer, frames, config, float(payload["extent"]), payload["optimizers"])
         for name, opt in optimizers.items():
             saved = payload["optimizers"].get(name)
             if (opt is None) != (saved is None):

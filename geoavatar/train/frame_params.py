@@ -1,14 +1,14 @@
-"""Per-frame head-model parameters, optionally refined during training (GaussianAvatars' tracking
-fine-tuning: expression, pose and translation of every timestep are learnable tensors).
+"""Per-frame head-model parameters, optionally refined during training (as GaussianAvatars' tracking
+fine-tuning: expression, pose and translation of every timestep are learnable tensors), by RowAdam.
 
     frames = FrameParams(subject.params, refine=True)
     params = frames(row)            # HeadParams: per-frame keys [1, ...], shape [S]
+    optimizer = RowAdam(frames.param_groups(config.lr), lr=0.0)
 
 Only the rows of training frames ever receive a gradient (the trainer only renders training frames),
-so test frames keep their tracked values: Adam leaves a parameter row whose gradient has always been
-zero exactly where it is (both moments stay 0). Rows that did get gradients keep drifting a little on
-their momentum when other frames are drawn, as in GaussianAvatars where the same dense tensors are
-optimised.
+so test frames keep their tracked values. RowAdam (ours, issue #27) moves a row only on the steps that
+drew its frame, one Adam step per visit; GaussianAvatars' torch Adam over the dense table kept moving
+every row on its momentum between visits, which is why its rates had to be tiny.
 """
 
 from __future__ import annotations
@@ -92,7 +92,8 @@ class RowAdam(torch.optim.Optimizer):
     (d3: training frames 22.6 dB, held-out 15.8, docs/REJECTED.md). Here a visit is one Adam step of that row alone
     (the first moves it by exactly the learning rate), so the rates mean "per visit", as in the per-frame fit against
     the avatar (train/avatar_tracking.py, whose rates they are), and a row that was not drawn stays where it is.
-    A run trained with torch's Adam resumes with fresh per-row moments."""
+    Given a torch Adam state it starts fresh per-row moments (a run trained with torch's Adam resumes with torch's
+    Adam, train/state.tracking_optimizer)."""
 
     def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
         super().__init__(params, {"lr": lr, "betas": betas, "eps": eps})

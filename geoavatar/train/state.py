@@ -106,13 +106,26 @@ def open_training_data(options: RunOptions, config: TrainConfig) -> TrainingData
     )
 
 
+def tracking_optimizer(frames: FrameParams, lr, saved: dict | None = None) -> torch.optim.Optimizer | None:
+    """The refinement's optimiser: RowAdam, one step per visit of a frame; torch's Adam over the table when `saved`
+    (a checkpoint's state of it) was written by one, a run trained before issue #27, which resumes as it was trained."""
+    if not frames.refine:
+        return None
+    states = (saved or {}).get("state") or {}
+    if states and not any("row_steps" in state for state in states.values()):
+        return torch.optim.Adam(frames.param_groups(lr), lr=0.0, eps=lr.adam_eps, fused=True)
+    return RowAdam(frames.param_groups(lr), lr=0.0)
+
+
 def build_optimizers(
-    avatar: GaussianAvatar, deformer: MouthDeformer | None, frames: FrameParams, config: TrainConfig, extent: float
+    avatar: GaussianAvatar, deformer: MouthDeformer | None, frames: FrameParams, config: TrainConfig, extent: float,
+    saved: dict | None = None,
 ) -> dict[str, torch.optim.Optimizer | None]:
+    """The run's optimisers; `saved`: a checkpoint's optimiser states by name (which tracking optimiser to rebuild)."""
     lr = config.lr
     # fused: one kernel per tensor (CPU and CUDA), a third of the per-op version's time at 100k Gaussians
     gaussians = torch.optim.Adam(gaussian_param_groups(avatar.params, lr, extent), lr=0.0, eps=lr.adam_eps, fused=True)
-    tracking = RowAdam(frames.param_groups(lr), lr=0.0) if frames.refine else None  # one step per visit of a frame
+    tracking = tracking_optimizer(frames, lr, (saved or {}).get("tracking"))
     mouth = (torch.optim.Adam(deformer.parameters(), lr=lr.mouth_deform, eps=MLP_ADAM_EPS, fused=True)
              if deformer is not None else None)
     return {"gaussians": gaussians, "tracking": tracking, "deformer": mouth}
@@ -153,5 +166,5 @@ def training_views(data: TrainingData, frames: FrameParams, count: int = INIT_CO
         yield vertices, item["image"], item["mask"], item["viewmat"], item["K"]
 
 
-__all__ = ["INIT_COLOUR_FRAMES", "MLP_ADAM_EPS", "TrainingData", "TrainingState", "build_optimizers", "new_state",
+__all__ = ["INIT_COLOUR_FRAMES", "MLP_ADAM_EPS", "TrainingData", "TrainingState", "build_optimizers", "new_state", "tracking_optimizer",
            "open_training_data", "training_views"]
