@@ -21,9 +21,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
 def error_panel(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """[H, W, 3] uint8: the mean absolute error over the channels, x3, grey."""
-    error = np.clip(np.abs(render.astype(float) - truth.astype(float)).mean(-1) * 3, 0, 255).astype(np.uint8)
-    return np.repeat(error[..., None], 3, axis=-1)
+    """[H, W, 3] uint8: the error map of eval's and render's stills (apps/common.error_map) of two uint8 images."""
+    from geoavatar.apps.common import error_map
+    from geoavatar.imaging import to_uint8
+
+    render_rgb, truth_rgb = (torch.from_numpy(image).float() / 255.0 for image in (render, truth))  # [H, W, 3]
+    return to_uint8(error_map(render_rgb, truth_rgb))
 
 
 def main() -> None:

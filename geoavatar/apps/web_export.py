@@ -2,8 +2,8 @@
 
 Python poses the head, the one posing path of every command (apps/common.py: RunFrames' parameters and T rule,
 avatar.posed_head with the mouth deformer), and the clip stores each frame's posed vertices, quantised, with its
-head pose code when the avatar's hair follows the head's turn (web/pack.py); the page turns them into face frames and places, rotates, scales and shades every splat on the
-GPU (web/src). The clip is
+head pose code when the avatar's hair follows the head's turn (web/pack.py); the page turns them into face frames
+and places, rotates, scales and shades every splat on the GPU (web/src). The clip is
 
     --split S (default test)          the run's frames of that split, as `geoavatar render` poses them
     --driver DATA / --driver-video F  the driver's motion on the avatar, reenact's rules (--transfer as there);

@@ -166,5 +166,5 @@ def training_views(data: TrainingData, frames: FrameParams, count: int = INIT_CO
         yield vertices, item["image"], item["mask"], item["viewmat"], item["K"]
 
 
-__all__ = ["INIT_COLOUR_FRAMES", "MLP_ADAM_EPS", "TrainingData", "TrainingState", "build_optimizers", "new_state", "tracking_optimizer",
-           "open_training_data", "training_views"]
+__all__ = ["INIT_COLOUR_FRAMES", "MLP_ADAM_EPS", "TrainingData", "TrainingState", "build_optimizers", "new_state",
+           "open_training_data", "tracking_optimizer", "training_views"]

@@ -40,11 +40,13 @@ async function loadAvatar(base) {
   }
   const table = new Float32Array(avatarBytes, 0, splats * SPLAT_TEXELS * 4);
   const faceIds = new Uint32Array(avatarBytes, table.byteLength, faces * 3);
-  const poses = followsHead ? new Uint16Array(avatarBytes, table.byteLength + faceIds.byteLength, splats * POSE_TEXELS * 4)
-    : null;
+  const poseStart = table.byteLength + faceIds.byteLength;
+  const poses = followsHead ? new Uint16Array(avatarBytes, poseStart, splats * POSE_TEXELS * 4) : null;
   const clip = new Uint16Array(clipBytes);
   if (clip.length !== manifest.clip.frames * vertices * 3) throw new Error("clip.bin: unexpected size");
-  if (followsHead && manifest.clip.pose?.length !== manifest.clip.frames) throw new Error("avatar.json: clip.pose missing");
+  if (followsHead && manifest.clip.pose?.length !== manifest.clip.frames) {
+    throw new Error("avatar.json: clip.pose missing");
+  }
   return { manifest, table, faceIds, poses, clip };
 }
 
@@ -174,7 +176,9 @@ class Player {
     const mesh = this.liveVertices ?? dequantiseFrame(this.clip, this.frame, this.vertexCount,
       this.manifest.clip.offset, this.manifest.clip.step, this.vertices);
     faceFrames(mesh, this.faceIds, this.faceData);
-    if (this.poseTexture) this.generator.setPoseCode(this.liveVertices ? this.liveCode : this.manifest.clip.pose[this.frame]);
+    if (this.poseTexture) {
+      this.generator.setPoseCode(this.liveVertices ? this.liveCode : this.manifest.clip.pose[this.frame]);
+    }
     this.faceTexture.needsUpdate = true;
     this.renderer.initTexture(this.faceTexture); // upload now, inside the measured span
     this.generator.updateVersion();
