@@ -77,6 +77,28 @@ def test_the_moving_faces_are_the_hair_ears_and_neck_not_the_face_or_mouth():
     assert moving[parts.faces_of("ears")].all()
 
 
+def test_codes_beyond_the_training_frames_range_are_clamped_and_older_runs_load_without_a_range():
+    verts, faces = grid_mesh()
+    avatar = GaussianAvatar(faces, moving=torch.ones(len(faces), dtype=torch.bool))
+    with torch.no_grad():
+        avatar.params["means_pose"].copy_(torch.randn(len(faces), 3 * POSE_CODE_DIM) * 0.1)
+    older = avatar.state_dict()  # a run trained before the range was kept
+    codes = torch.tensor([[-0.1, 0.0, 0.0, 0.0, 0.0, 0.0], [0.2, 0.1, 0.1, 0.05, 0.05, 0.05]])  # [M, 6] training frames
+    avatar.set_pose_range(codes)
+    assert torch.equal(avatar.pose_range, torch.stack([codes.min(0).values, codes.max(0).values]))
+    inside, beyond = torch.tensor([0.1, 0.05, 0.0, 0.0, 0.02, 0.01]), torch.tensor([0.6, -0.3, 0.1, 0.0, 0.2, 0.0])
+    clamped = torch.tensor([0.2, 0.0, 0.1, 0.0, 0.05, 0.0])
+    assert torch.equal(avatar.clamp_pose_code(beyond), clamped) and torch.equal(avatar.clamp_pose_code(inside), inside)
+    assert torch.equal(avatar(verts, beyond).means, avatar(verts, clamped).means)
+    assert not torch.allclose(avatar(verts, inside).means, avatar(verts, clamped).means)
+    fresh = GaussianAvatar(faces, moving=torch.ones(len(faces), dtype=torch.bool))
+    fresh.load_state_dict(avatar.state_dict())
+    assert torch.equal(fresh.pose_range, avatar.pose_range)
+    fresh.load_state_dict(older)
+    assert fresh.pose_range is None and torch.equal(fresh.clamp_pose_code(beyond), beyond)
+    assert not torch.allclose(fresh(verts, beyond).means, fresh(verts, clamped).means)
+
+
 def test_a_run_follows_the_head_by_default_reloads_poses_and_exports_each_frames_code(tmp_path, capsys):
     import json
     import warnings
@@ -86,6 +108,7 @@ def test_a_run_follows_the_head_by_default_reloads_poses_and_exports_each_frames
     from apps_fixtures import make_subject
     from geoavatar import cli
     from geoavatar.apps.web_export import export_web
+    from geoavatar.data import open_subject
     from geoavatar.avatar.render import pose_avatar
     from geoavatar.data.splits import ShortVideoWarning
     from geoavatar.train.checkpoint import open_run
@@ -104,6 +127,11 @@ def test_a_run_follows_the_head_by_default_reloads_poses_and_exports_each_frames
 
     run = train("run")
     assert run.config.model.hair_follows_head and run.avatar.follows_head  # the default
+    # the box of the training frames' codes as tracked, to which every code is clamped
+    tracked = open_subject(data).params
+    train_rows = [run.info.timesteps["all"].index(t) for t in run.info.timesteps["train"]]
+    codes = torch.cat([tracked["rotation"][train_rows], tracked["neck_pose"][train_rows]], 1)  # [M, 6]
+    assert torch.allclose(run.avatar.pose_range, torch.stack([codes.min(0).values, codes.max(0).values]))
     frames = RunFrames(run)
     params, timestep = frames.params(frames.timesteps[0])
     turned = pose_avatar(run.avatar, run.head, params.replace(rotation=params.rotation + 0.2), timestep, run.deformer)
@@ -111,7 +139,8 @@ def test_a_run_follows_the_head_by_default_reloads_poses_and_exports_each_frames
     manifest = json.loads((export_web(run, tmp_path / "web", show_progress=False) / pack.MANIFEST).read_text())
     assert manifest["avatar"]["followsHead"] and len(manifest["clip"]["pose"]) == manifest["clip"]["frames"]
     first = frames.params(manifest["clip"]["timesteps"][0])[0]
-    np.testing.assert_allclose(manifest["clip"]["pose"][0], head_pose_code(first).numpy(), atol=1e-6)
+    clamped = run.avatar.clamp_pose_code(head_pose_code(first))  # the browser gets the code the CPU renderer poses by
+    np.testing.assert_allclose(manifest["clip"]["pose"][0], clamped.numpy(), atol=1e-6)
 
     rigid = train("rigid", "--config.model.no-hair-follows-head")  # GaussianAvatars' rigging
     assert not rigid.avatar.follows_head

@@ -126,8 +126,8 @@ def posed_head_vertices(run: LoadedRun, params: HeadParams, timestep: int | None
 
 def browser_pose_code(run: LoadedRun, params: HeadParams) -> Tensor | None:
     """[6] the frame's head pose code when the run's hair follows the head's turn (the browser player moves the hair
-    by it, web/pack.py), else None."""
-    return head_pose_code(params) if run.avatar.follows_head else None
+    by it, web/pack.py), clamped to the training frames' range as the avatar clamps it, else None."""
+    return run.avatar.clamp_pose_code(head_pose_code(params)) if run.avatar.follows_head else None
 
 
 def pose_gaussians(run: LoadedRun, params: HeadParams, timestep: int | None = None) -> GlobalGaussians:

@@ -17,7 +17,9 @@ Parameters (a ParameterDict `params`, every entry [N, ...], names as in the stan
     means_pose [N, 18] only with hair_follows_head: local mean += M c, M = means_pose as [3, 6], in the
                        face-scale units of `means` (long hair swinging with the head's turn)
 Buffers: binding [N] (face index, int64), faces [F, 3]; with hair_follows_head moving [F] bool (the faces
-whose Gaussians take the pose code).
+whose Gaussians take the pose code) and pose_range [2, 6] (the training frames' smallest and largest code, to which
+every code is clamped: M and C were fitted inside that box, and beyond it the linear offsets would carry the hair
+off the head; absent in runs trained before it, whose codes are used as they are).
 """
 
 from __future__ import annotations
@@ -86,6 +88,7 @@ class GaussianAvatar(nn.Module):
         self.register_buffer("binding", torch.arange(faces.shape[0], dtype=torch.long))  # [N]
         # [F] bool: the faces whose Gaussians follow the head's turn (avatar/hair_motion.moving_faces); None: none
         self.register_buffer("moving", None if moving is None else torch.as_tensor(moving, dtype=torch.bool).reshape(-1))
+        self.register_buffer("pose_range", None)  # [2, 6] set by set_pose_range (training); None: codes unclamped
 
     @classmethod
     def for_model(cls, head, model) -> "GaussianAvatar":
@@ -144,12 +147,25 @@ class GaussianAvatar(nn.Module):
         """Whether the Gaussians off the face move with the head pose code (model.hair_follows_head)."""
         return "f_pose" in self.params
 
+    def set_pose_range(self, codes: Tensor) -> None:
+        """Keep the smallest and largest of the training frames' head pose codes [M, 6] (pose_range)."""
+        codes = codes.detach().reshape(-1, POSE_CODE_DIM).to(self.binding.device, torch.float32)  # [M, 6]
+        self.pose_range = torch.stack([codes.min(0).values, codes.max(0).values])  # [2, 6]
+
+    def clamp_pose_code(self, code: Tensor) -> Tensor:
+        """code [6] clamped to the training frames' range (pose_range); unchanged when the run has none."""
+        if self.pose_range is None:
+            return code
+        low, high = self.pose_range.to(code)
+        return torch.minimum(torch.maximum(code, low), high)
+
     def pose_offsets(self, code: Tensor) -> tuple[Tensor, Tensor]:
         """code [6] -> the local mean and colour offsets [N, 3] each: sum_k code_k basis[:, :, k] of means_pose and
-        f_pose for the moving faces' Gaussians, 0 elsewhere."""
+        f_pose for the moving faces' Gaussians, 0 elsewhere, the code clamped to pose_range."""
         if code.shape != (POSE_CODE_DIM,):
             raise ValueError(f"GaussianAvatar: the head pose code must be [{POSE_CODE_DIM}] (one frame), got "
                              f"{tuple(code.shape)}")
+        code = self.clamp_pose_code(code)
         moving = self.moving[self.binding][:, None]  # [N, 1]
         return tuple(self.params[name].view(-1, 3, POSE_CODE_DIM) @ code.to(self.params[name].dtype) * moving
                      for name in ("means_pose", "f_pose"))
@@ -160,7 +176,9 @@ class GaussianAvatar(nn.Module):
 
     # --- checkpoints: the number of Gaussians changes during training ---------------------------
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """Resize the parameters to the checkpoint's number of Gaussians, then load as usual."""
+        """Resize the parameters to the checkpoint's number of Gaussians, then load as usual (a run trained before
+        pose_range loads without it)."""
+        self.pose_range = torch.empty(2, POSE_CODE_DIM, device=self.binding.device) if "pose_range" in state_dict else None
         key = "binding"
         if key in state_dict:
             n = int(state_dict[key].shape[0])

@@ -13,6 +13,7 @@ from torch import Tensor
 from geoavatar.avatar import APSState, GaussianAvatar, MouthDeformer, gaussian_param_groups, posed_head
 from geoavatar.avatar import densify as densify_ops
 from geoavatar.avatar.colour_init import face_colours
+from geoavatar.avatar.hair_motion import head_pose_codes
 from geoavatar.avatar.model import rgb_to_sh_dc
 from geoavatar.config import TrainConfig
 from geoavatar.data import DataConfig, DatasetError, HeadAvatarDataset, open_subject
@@ -144,6 +145,9 @@ def new_state(data: TrainingData, config: TrainConfig, seed: int) -> TrainingSta
         colour, _ = face_colours(data.head.faces, training_views(data, frames))  # [F, 3]
         with torch.no_grad():
             avatar.params["f_dc"].copy_(rgb_to_sh_dc(colour.to(device))[avatar.binding])
+    if avatar.follows_head:  # the box of the training frames' head pose codes, as tracked
+        rows = [frame.row for frame in data.train_set.frames]
+        avatar.set_pose_range(head_pose_codes(frames.values["rotation"][rows], frames.values["neck_pose"][rows]))
     aps = APSState(part_names=data.part_names)
     generator = torch.Generator(device=device)
     generator.manual_seed(seed)
