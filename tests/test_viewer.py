@@ -75,9 +75,11 @@ def test_view_serves_the_player_and_streams_slider_edits(run):
         params, _ = RunFrames(run).params(RunFrames(run).timesteps[1])
         edited = view_app.edited_params(run.head, params, [0.8, 0.0, 0.0], 0.3, 20.0, 0.0, viewer.centre)
         np.testing.assert_allclose(mesh, posed_head_vertices(run, edited, None).detach().numpy(), atol=1e-5)
-        # the default avatar's hair follows the head: the turned head's pose code travels with its mesh
-        np.testing.assert_allclose(code, head_pose_code(edited).numpy(), atol=1e-6)
-        assert np.abs(code - head_pose_code(params).numpy()).max() > 0.1
+        # the default avatar's hair follows the head: the turned head's pose code travels with its mesh, clamped to the
+        # training frames' box as the CPU renderer clamps it (a 20 degree turn leaves the box)
+        np.testing.assert_allclose(code, run.avatar.clamp_pose_code(head_pose_code(edited)).numpy(), atol=1e-6)
+        assert np.abs(code - head_pose_code(edited).numpy()).max() > 0.1
+        assert np.abs(code - head_pose_code(params).numpy()).max() > 0.01
         unedited = posed_head_vertices(run, *RunFrames(run).params(RunFrames(run).timesteps[1])).detach().numpy()
         assert np.abs(mesh - unedited).max() > 1e-3  # the jaw opened, the head turned
     finally:
