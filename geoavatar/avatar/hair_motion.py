@@ -14,7 +14,7 @@ the frame's head pose (on by default; the web player applies the same offsets on
 The code is clamped to the box of the training frames' codes (`GaussianAvatar.pose_range`): M and C were fitted
 inside it, and a held-out frame or a driver that turns the head further would carry the hair off linearly (d3.mp4:
 54 of 71 held-out frames lie outside the box, by up to 2.5 degrees; clamped, held-out PSNR +0.13 dB on two seeds,
-LPIPS lower; duda and wojtek within 0.06 dB).
+LPIPS lower; duda and wojtek within 0.13 dB, LPIPS lower).
 
 The face's skin and the mouth take none: driven by the expression (the leading modes, jaw and eyes) they learned
 the training frames' faces (+4.6 dB) and lost 1.7 dB on held-out faces (docs/REJECTED.md). The code holds only
