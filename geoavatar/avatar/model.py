@@ -178,7 +178,8 @@ class GaussianAvatar(nn.Module):
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Resize the parameters to the checkpoint's number of Gaussians, then load as usual (a run trained before
         pose_range loads without it)."""
-        self.pose_range = torch.empty(2, POSE_CODE_DIM, device=self.binding.device) if "pose_range" in state_dict else None
+        has_range = "pose_range" in state_dict
+        self.pose_range = torch.empty(2, POSE_CODE_DIM, device=self.binding.device) if has_range else None
         key = "binding"
         if key in state_dict:
             n = int(state_dict[key].shape[0])
