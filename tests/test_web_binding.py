@@ -98,6 +98,43 @@ def test_the_committed_bundle_is_built_from_the_current_source(tmp_path):
     assert (tmp_path / "player.js").read_bytes() == committed.read_bytes(), "web/src changed: run make web"
 
 
+def test_avatar_bin_holds_the_splats_in_export_order_with_pose_rows_for_the_moving_ones():
+    """avatar.bin decoded as web/src/player.js reads it: anchors (float32), rows (float16) and pose rows all follow
+    one order, the splats on moving faces first, and only those P carry pose rows."""
+    from geoavatar.avatar.model import GaussianAvatar
+    from geoavatar.render.camera import Camera
+    from geoavatar.web.pack import ANCHOR_FLOATS, player_assets, pose_table, splat_order, splat_table
+
+    vertices, faces = posed_heads()
+    moving = torch.zeros(len(faces), dtype=torch.bool)
+    moving[torch.randperm(len(faces), generator=torch.Generator().manual_seed(2))[: len(faces) // 2]] = True
+    avatar = GaussianAvatar(faces, normal_shading=True, moving=moving)
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for param in avatar.params.values():
+            param.copy_(torch.randn(param.shape, generator=g) * 0.3)
+    camera = Camera(torch.eye(4), torch.tensor([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]]), 64, 64)
+    assets = player_assets(avatar, quantise_clip(vertices), 25.0, camera, {}, (1.0, 1.0, 1.0), [0, 1], "test",
+                           pose_codes=torch.zeros(2, 6))
+    n, f, posed = avatar.num_gaussians, len(faces), assets.manifest["avatar"]["posed"]
+    on_moving = moving[avatar.binding].numpy()  # [N]
+    assert posed == on_moving.sum() and 0 < posed < n
+    data = assets.avatar_bytes
+    assert len(data) == n * 16 + n * 40 + f * 12 + posed * 72
+    anchors = np.frombuffer(data, "<f4", n * 4).reshape(n, 4)
+    rows = np.frombuffer(data, "<f2", n * 20, offset=n * 16).reshape(n, 20).astype(np.float64)
+    face_ids = np.frombuffer(data, "<u4", f * 3, offset=n * 56).reshape(f, 3)
+    poses = np.frombuffer(data, "<f2", posed * 36, offset=n * 56 + f * 12).reshape(posed, 36)
+    order = splat_order(avatar)
+    assert on_moving[order[:posed]].all() and not on_moving[order[posed:]].any()
+    assert (np.diff(order[:posed]) > 0).all() and (np.diff(order[posed:]) > 0).all()  # stable within each part
+    table = splat_table(avatar)[order]  # [N, 24]
+    np.testing.assert_array_equal(anchors, table[:, :ANCHOR_FLOATS])  # face indices and local means exact
+    np.testing.assert_allclose(rows, table[:, ANCHOR_FLOATS:], rtol=1e-3, atol=1e-4)  # float16
+    np.testing.assert_array_equal(poses, pose_table(avatar)[order[:posed]])
+    np.testing.assert_array_equal(face_ids, faces.numpy())
+
+
 def test_the_splat_table_holds_what_the_gpu_needs_to_place_the_avatar():
     """The table's layout read back the way web/src/generator.js reads it (face frames of binding.py) gives the
     model's own global Gaussians: means, rotations, scales, opacities and shaded colours."""

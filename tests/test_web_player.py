@@ -54,7 +54,9 @@ def test_export_writes_the_player_folder(run, player):
     avatar = manifest["avatar"]
     assert (avatar["splats"], avatar["faces"], avatar["vertices"]) == (SPLATS, run.avatar.num_faces, run.head.num_vertices)
     assert avatar["followsHead"] and len(manifest["clip"]["pose"]) == len(test_steps)  # the default: the hair follows
-    assert (player / pack.AVATAR_FILE).stat().st_size == SPLATS * 24 * 4 + run.avatar.num_faces * 12 + SPLATS * 36 * 2
+    posed = int(run.avatar.moving[run.avatar.binding].sum())  # the splats that carry pose rows
+    assert avatar["posed"] == posed and manifest["format"] == pack.FORMAT_VERSION
+    assert (player / pack.AVATAR_FILE).stat().st_size == SPLATS * (16 + 40) + run.avatar.num_faces * 12 + posed * 72
     assert (player / pack.CLIP_FILE).stat().st_size == len(test_steps) * run.head.num_vertices * 6
     yaw, pitch = manifest["orbit"]["yaw"], manifest["orbit"]["pitch"]
     assert yaw[0] <= 0 <= yaw[1] and pitch[0] <= 0 <= pitch[1] and yaw[1] - yaw[0] < 180

@@ -4,31 +4,36 @@ A player folder (`geoavatar export RUN --format web`) holds
 
     index.html, player.js   the page and its bundle (three.js + Spark + web/src), copied from static/
     avatar.json             the manifest below
-    avatar.bin              float32 splat table [N, 24] (little-endian), then uint32 faces [F, 3], then, when the
-                            avatar's hair follows the head's turn, float16 pose table [N, 36]
+    avatar.bin              the splats in export order (below): float32 anchors [N, 4] (little-endian), float16
+                            splat rows [N, 20], uint32 faces [F, 3], then, when the avatar's hair follows the head's
+                            turn, float16 pose rows [P, 36] of the first P splats
     clip.bin                uint16 posed vertices [T, V, 3]: v = offset + code * step per axis
 
-Splat table row (what web/src/generator.js reads as 6 RGBA texels):
-    local mean xyz (face-scale units), face index | local rotation x y z w (unit) | local scale (linear) xyz,
-    opacity | colour rgb (0.5 + C0 f_dc), F[2][2] | F[0][0..2], F[1][0] | F[1][1..2], F[2][0..1]
+Splat (what web/src/generator.js reads as one RGBA32F texel and five RGBA16F texels):
+    anchor: local mean xyz (face-scale units), face index (float32: float16 holds integers only to 2048) |
+    row: local rotation x y z w (unit) | local scale (linear) xyz, opacity | colour rgb (0.5 + C0 f_dc), F[2][2] |
+    F[0][0..2], F[1][0] | F[1][1..2], F[2][0..1]
 F is the normal-shading matrix of model.normal_shading (colour += F n, n the world normal of the splat's face;
 zeros without it). The browser computes each face's frame from the clip's vertices (web/src/binding.js, the
 maths of avatar/binding.py) and places every splat as avatar/model.py does: mu = k R mu_l + C,
-q = q_face (x) q_l, s = k s_l, colour = max(colour + F n, 0).
+q = q_face (x) q_l, s = k s_l, colour = max(colour + F n, 0). float16 keeps three significant digits of the row,
+below what a splat's shape, colour and shading show (the fidelity test holds the page to the CPU renderer).
 
 Hair that follows the head's turn (model.hair_follows_head, avatar/hair_motion.py): each frame of the clip carries
-its head pose code c [6] (head rotation, neck; "clip.pose" [T][6]), and the pose table row of a splat holds
-M [3, 6] then C [3, 6] row-major (zeros for the splats on the face): the page adds M c to the local mean before
-placing the splat and C c to its colour before shading, as avatar/model.py does.
+its head pose code c [6] (head rotation, neck; "clip.pose" [T][6]). Only the splats on the moving faces have pose
+offsets, so the export puts them first (`splat_order`: moving splats, then the rest, each in the avatar's order) and
+the pose row i, M [3, 6] then C [3, 6] row-major, belongs to splat i < P ("avatar.posed"): the page adds M c to its
+local mean before placing it and C c to its colour before shading, as avatar/model.py does. A real avatar's
+moving splats are two thirds to three quarters of them.
 
 Only posed vertices and the triangle list leave Python: a FLAME avatar ships no FLAME model file or basis.
 
-avatar.json: {"format", "avatar": {splats, faces, vertices, shading, file}, "clip": {frames, fps, offset, step,
+avatar.json: {"format" (2), "avatar": {splats, faces, vertices, shading, file}, "clip": {frames, fps, offset, step,
 timesteps, file, source}, "camera": {viewmat [4][4] OpenCV world-to-camera, K [3][3], width, height},
 "viewmats": per-frame viewmats when the clip's cameras differ, "orbit": {centre, yaw [lo, hi], pitch [lo, hi]}
 (degrees about the dataset camera; the turns the training video covered plus a margin), "background",
 "live" (absent, "view" or "drive"), "edit" (view's sliders)}; avatar.followsHead and clip.pose with hair that
-follows the head.
+follows the head, and avatar.posed (P).
 """
 
 from __future__ import annotations
@@ -47,13 +52,14 @@ from geoavatar.avatar.hair_motion import POSE_CODE_DIM
 from geoavatar.avatar.model import SH_C0
 from geoavatar.io.atomic import atomic_folder
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: anchors float32 + rows float16, pose rows of the moving splats only
 MANIFEST = "avatar.json"
 AVATAR_FILE = "avatar.bin"
 CLIP_FILE = "clip.bin"
 PLAYER_FILES = ("index.html", "player.js")
-SPLAT_FLOATS = 24  # 6 RGBA32F texels per splat
-POSE_FLOATS = 36  # 9 RGBA16F texels per splat: M [3, 6], C [3, 6] of the hair's pose offsets
+SPLAT_FLOATS = 24  # what splat_table holds per splat: the anchor texel, then five row texels
+ANCHOR_FLOATS = 4  # 1 RGBA32F texel per splat: local mean, face index
+POSE_FLOATS = 36  # 9 RGBA16F texels per moving splat: M [3, 6], C [3, 6] of the hair's pose offsets
 CODE_MAX = 65535  # uint16 codes of the clip
 
 
@@ -90,9 +96,27 @@ def pose_table(avatar) -> np.ndarray | None:
     moving = avatar.moving[avatar.binding].to("cpu", torch.float64)[:, None]  # [N, 1]
     table = torch.cat([avatar.params[name].detach().to("cpu", torch.float64) * moving
                        for name in ("means_pose", "f_pose")], dim=1)  # [N, 36]
-    if not torch.isfinite(table).all() or table.abs().max() > np.finfo(np.float16).max:
-        raise ValueError("pose_table: the avatar's pose offsets are not finite in float16")
-    return table.numpy().astype(np.float16)
+    return _half(table.numpy(), "pose offsets")
+
+
+def splat_order(avatar) -> np.ndarray:
+    """[N] int64: the export order of the splats, those on moving faces (hair that follows the head) first, then the
+    rest, each in the avatar's order; the identity when the avatar's Gaussians do not follow the head."""
+    if not avatar.follows_head:
+        return np.arange(avatar.num_gaussians)
+    moving = avatar.moving[avatar.binding].cpu().numpy()  # [N] bool
+    return np.concatenate([np.flatnonzero(moving), np.flatnonzero(~moving)])
+
+
+def posed_count(avatar) -> int:
+    """How many splats (the first of splat_order) carry a pose row: those on the moving faces."""
+    return int(avatar.moving[avatar.binding].sum()) if avatar.follows_head else 0
+
+
+def _half(values: np.ndarray, what: str) -> np.ndarray:
+    if not np.isfinite(values).all() or np.abs(values).max(initial=0.0) > np.finfo(np.float16).max:
+        raise ValueError(f"web export: the avatar's {what} are not finite in float16")
+    return values.astype("<f2")
 
 
 @dataclass
@@ -147,8 +171,10 @@ def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, 
                   edit: dict | None = None, pose_codes: Tensor | np.ndarray | None = None) -> PlayerAssets:
     """The manifest and binaries of `avatar` playing `clip` (see the module docstring); camera: render.camera.Camera;
     pose_codes [T, 6]: each frame's head pose code, needed when the avatar's hair follows the head."""
-    table = splat_table(avatar)
+    order = splat_order(avatar)  # [N]
+    table = splat_table(avatar)[order]  # [N, 24]
     poses = pose_table(avatar)
+    posed = posed_count(avatar)
     codes = None if pose_codes is None else _array(pose_codes)  # [T, 6]
     faces = avatar.faces.detach().cpu().numpy().astype("<u4")  # [F, 3]
     frames, vertex_count, _ = clip.codes.shape
@@ -168,6 +194,7 @@ def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, 
     }
     if poses is not None:
         manifest["avatar"]["followsHead"] = True
+        manifest["avatar"]["posed"] = posed
         manifest["clip"]["pose"] = codes.tolist()
     if viewmats is not None:
         manifest["viewmats"] = [_listed(v) for v in viewmats]
@@ -175,9 +202,10 @@ def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, 
         manifest["live"] = live
     if edit is not None:
         manifest["edit"] = edit
-    avatar_bytes = table.astype("<f4").tobytes() + faces.tobytes()
+    avatar_bytes = (table[:, :ANCHOR_FLOATS].astype("<f4").tobytes()
+                    + _half(table[:, ANCHOR_FLOATS:], "splat rows").tobytes() + faces.tobytes())
     if poses is not None:
-        avatar_bytes += poses.astype("<f2").tobytes()
+        avatar_bytes += poses[order[:posed]].astype("<f2").tobytes()  # [P, 36]: the moving splats' rows
     return PlayerAssets(manifest, avatar_bytes, clip.codes.tobytes())
 
 
@@ -196,4 +224,5 @@ def write_player_folder(out: str | Path, assets: PlayerAssets) -> Path:
 
 
 __all__ = ["AVATAR_FILE", "CLIP_FILE", "MANIFEST", "PLAYER_FILES", "PlayerAssets", "QuantisedClip", "player_assets",
-           "pose_table", "quantise_clip", "splat_table", "static_dir", "write_player_folder"]
+           "pose_table", "posed_count", "quantise_clip", "splat_order", "splat_table", "static_dir",
+           "write_player_folder"]

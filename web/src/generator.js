@@ -1,12 +1,12 @@
 // The avatar as a Spark splat generator: every splat is placed, rotated, scaled and shaded on the GPU from
-// two float textures, the avatar's local Gaussians (uploaded once) and the face frames (uploaded per frame).
+// float textures: the avatar's local Gaussians (anchors and rows, uploaded once) and the face frames (per frame).
 import * as THREE from "three";
 import { SplatGenerator, dyno } from "@sparkjsdev/spark";
 
 export const TEXTURE_WIDTH = 2048; // texels per row of both textures (a linear index i is texel (i & 2047, i >> 11))
-export const SPLAT_TEXELS = 6; // RGBA texels per splat in the avatar table (see geoavatar/web/pack.py)
+export const ROW_TEXELS = 5; // RGBA16F texels per splat in the row table; its anchor is one RGBA32F texel (pack.py)
 export const FACE_TEXELS = 2; // RGBA texels per face: C, k | q (binding.js FACE_STRIDE)
-export const POSE_TEXELS = 9; // RGBA16F texels per splat in the pose table (hair that follows the head, pack.py)
+export const POSE_TEXELS = 9; // RGBA16F texels per moving splat in the pose table (hair that follows the head)
 
 // An RGBA texture of `texels` texels (padded to whole rows), nearest sampling, its data zeroed: float32 or half.
 function rgbaTexture(texels, ArrayType, type, internalFormat) {
@@ -21,30 +21,31 @@ function rgbaTexture(texels, ArrayType, type, internalFormat) {
 }
 
 export const floatTexture = (texels) => rgbaTexture(texels, Float32Array, THREE.FloatType, "RGBA32F");
-// uint16 IEEE halves (the pose table: numpy float16)
+// uint16 IEEE halves (the row and pose tables: numpy float16)
 export const halfTexture = (texels) => rgbaTexture(texels, Uint16Array, THREE.HalfFloatType, "RGBA16F");
 
-// Table rows per splat (float32 x 24), written by geoavatar/web/pack.py:
-//   t0 local mean (face-scale units) xyz, face index | t1 local rotation x y z w (unit) |
-//   t2 local scale (linear) xyz, opacity | t3 colour rgb (SH-0), F[2][2] | t4 F[0][0..2], F[1][0] | t5 F[1][1..2], F[2][0..1]
+// Per splat, written by geoavatar/web/pack.py: the anchor (float32) t0 local mean (face-scale units) xyz, face index;
+// the row (float16) t1 local rotation x y z w (unit) | t2 local scale (linear) xyz, opacity |
+// t3 colour rgb (SH-0), F[2][2] | t4 F[0][0..2], F[1][0] | t5 F[1][1..2], F[2][0..1]
 // F: the normal-shading matrix (colour += F n, n the world face normal); zeros when the avatar has none.
-// Pose table rows (float16 x 36, only when the hair follows the head): M [3][6] then C [3][6] row-major; with the
-// frame's head pose code c = (head rotation, neck) the local mean takes M c and the colour C c (avatar/model.py).
+// Pose rows (float16 x 36, only when the hair follows the head, for the first `posed` splats: the export puts the
+// moving ones first): M [3][6] then C [3][6] row-major; with the frame's head pose code c = (head rotation, neck)
+// the local mean takes M c and the colour C c (avatar/model.py).
 const PLACE_GLSL = `
 ivec2 gaTexel(int i) { return ivec2(i & ${TEXTURE_WIDTH - 1}, i >> ${Math.log2(TEXTURE_WIDTH)}); }
 // A row of six weights applied to the code (head, neck): starting at a texel's x (aligned) or at its z (mid).
 float gaRowAligned(vec4 a, vec4 b, vec3 head, vec3 neck) { return dot(a.xyz, head) + dot(vec3(a.w, b.xy), neck); }
 float gaRowMid(vec4 a, vec4 b, vec3 head, vec3 neck) { return dot(vec3(a.zw, b.x), head) + dot(b.yzw, neck); }
-void gaPlaceSplat(sampler2D table, sampler2D faces, sampler2D poses, int index, bool shading, bool follows,
-                  vec3 head, vec3 neck, out Gsplat g) {
-  int base = ${SPLAT_TEXELS} * index;
-  vec4 t0 = texelFetch(table, gaTexel(base), 0);
-  vec4 t1 = texelFetch(table, gaTexel(base + 1), 0);
-  vec4 t2 = texelFetch(table, gaTexel(base + 2), 0);
-  vec4 t3 = texelFetch(table, gaTexel(base + 3), 0);
+void gaPlaceSplat(sampler2D anchors, sampler2D rows, sampler2D faces, sampler2D poses, int index, bool shading,
+                  int posed, vec3 head, vec3 neck, out Gsplat g) {
+  int base = ${ROW_TEXELS} * index;
+  vec4 t0 = texelFetch(anchors, gaTexel(index), 0);
+  vec4 t1 = texelFetch(rows, gaTexel(base), 0);
+  vec4 t2 = texelFetch(rows, gaTexel(base + 1), 0);
+  vec4 t3 = texelFetch(rows, gaTexel(base + 2), 0);
   vec3 localMean = t0.xyz;
   vec3 colour = t3.rgb;
-  if (follows) {
+  if (index < posed) {
     int row = ${POSE_TEXELS} * index;
     vec4 p0 = texelFetch(poses, gaTexel(row), 0), p1 = texelFetch(poses, gaTexel(row + 1), 0);
     vec4 p2 = texelFetch(poses, gaTexel(row + 2), 0), p3 = texelFetch(poses, gaTexel(row + 3), 0);
@@ -61,8 +62,8 @@ void gaPlaceSplat(sampler2D table, sampler2D faces, sampler2D poses, int index, 
   g.quaternion = quatQuat(faceQuat, t1);
   g.scales = centreScale.w * t2.xyz;
   if (shading) {
-    vec4 t4 = texelFetch(table, gaTexel(base + 4), 0);
-    vec4 t5 = texelFetch(table, gaTexel(base + 5), 0);
+    vec4 t4 = texelFetch(rows, gaTexel(base + 3), 0);
+    vec4 t5 = texelFetch(rows, gaTexel(base + 4), 0);
     vec3 normal = quatVec(faceQuat, vec3(0.0, 1.0, 0.0));
     colour += vec3(dot(t4.xyz, normal), dot(vec3(t4.w, t5.xy), normal), dot(vec3(t5.zw, t3.w), normal));
   }
@@ -73,28 +74,29 @@ void gaPlaceSplat(sampler2D table, sampler2D faces, sampler2D poses, int index, 
 `;
 
 // A SplatGenerator of `count` splats; call .updateVersion() after the face texture or the pose code changed.
-// poses: the pose table's half-float texture when the hair follows the head (null: it does not); the returned
-// generator's setPoseCode(code) takes the frame's head pose code [6].
-export function avatarGenerator({ count, table, faces, shading, poses }) {
-  const follows = Boolean(poses);
-  const tableUniform = dyno.dynoSampler2D(table, "gaTable");
+// anchors: float texture, rows: half-float texture (pack.py); poses: the pose table's half-float texture of the
+// first `posed` splats when the hair follows the head (null: it does not); the returned generator's
+// setPoseCode(code) takes the frame's head pose code [6].
+export function avatarGenerator({ count, anchors, rows, faces, shading, poses, posed }) {
+  const anchorUniform = dyno.dynoSampler2D(anchors, "gaAnchors");
+  const rowUniform = dyno.dynoSampler2D(rows, "gaRows");
   const faceUniform = dyno.dynoSampler2D(faces, "gaFaces");
   const poseUniform = dyno.dynoSampler2D(poses ?? halfTexture(1), "gaPoses");
   const shadingUniform = dyno.dynoBool(Boolean(shading));
-  const followsUniform = dyno.dynoBool(follows);
+  const posedUniform = dyno.dynoInt(poses ? posed : 0);
   const headUniform = dyno.dynoVec3(new THREE.Vector3(), "gaHead");
   const neckUniform = dyno.dynoVec3(new THREE.Vector3(), "gaNeck");
   const generator = dyno.dynoBlock({ index: "int" }, { gsplat: dyno.Gsplat }, ({ index }) => {
     const placed = dyno.dyno({
-      inTypes: { index: "int", table: "sampler2D", faces: "sampler2D", poses: "sampler2D", shading: "bool",
-        follows: "bool", head: "vec3", neck: "vec3" },
+      inTypes: { index: "int", anchors: "sampler2D", rows: "sampler2D", faces: "sampler2D", poses: "sampler2D",
+        shading: "bool", posed: "int", head: "vec3", neck: "vec3" },
       outTypes: { gsplat: dyno.Gsplat },
-      inputs: { index, table: tableUniform, faces: faceUniform, poses: poseUniform, shading: shadingUniform,
-        follows: followsUniform, head: headUniform, neck: neckUniform },
+      inputs: { index, anchors: anchorUniform, rows: rowUniform, faces: faceUniform, poses: poseUniform,
+        shading: shadingUniform, posed: posedUniform, head: headUniform, neck: neckUniform },
       globals: () => [dyno.defineGsplat, PLACE_GLSL],
       statements: ({ inputs: i, outputs }) => [
-        `gaPlaceSplat(${i.table}, ${i.faces}, ${i.poses}, ${i.index}, ${i.shading}, ${i.follows}, ${i.head}, ` +
-        `${i.neck}, ${outputs.gsplat});`,
+        `gaPlaceSplat(${i.anchors}, ${i.rows}, ${i.faces}, ${i.poses}, ${i.index}, ${i.shading}, ${i.posed}, ` +
+        `${i.head}, ${i.neck}, ${outputs.gsplat});`,
       ],
     });
     return { gsplat: placed.outputs.gsplat };

@@ -10,7 +10,7 @@
 import * as THREE from "three";
 import { SparkRenderer } from "@sparkjsdev/spark";
 import { faceFrames, dequantiseFrame, FACE_STRIDE } from "./binding.js";
-import { avatarGenerator, floatTexture, halfTexture, FACE_TEXELS, POSE_TEXELS, SPLAT_TEXELS } from "./generator.js";
+import { avatarGenerator, floatTexture, halfTexture, FACE_TEXELS, POSE_TEXELS, ROW_TEXELS } from "./generator.js";
 import { clamp, fittedIntrinsics, orbitWorld, placeCamera, projectionFromIntrinsics, worldFromViewmat } from "./camera.js";
 import { LiveLink } from "./live.js";
 import { buildControls } from "./controls.js";
@@ -18,6 +18,7 @@ import { buildControls } from "./controls.js";
 const FREE_YAW = [-180, 180];
 const FREE_PITCH = [-89, 89];
 const COST_WINDOW = 120; // frames in the rolling mean of the per-frame cost
+const FORMAT = 2; // the avatar.json / avatar.bin layout this page reads (geoavatar/web/pack.py FORMAT_VERSION)
 
 async function fetchBytes(url) {
   const response = await fetch(url);
@@ -29,25 +30,30 @@ async function loadAvatar(base) {
   const manifestResponse = await fetch(new URL("avatar.json", base));
   if (!manifestResponse.ok) throw new Error(`avatar.json: HTTP ${manifestResponse.status}`);
   const manifest = await manifestResponse.json();
+  if (manifest.format !== FORMAT) {
+    throw new Error(`avatar.json: format ${manifest.format}, this player reads ${FORMAT}: export the avatar again`);
+  }
   const [avatarBytes, clipBytes] = await Promise.all([
     fetchBytes(new URL(manifest.avatar.file, base)),
     fetchBytes(new URL(manifest.clip.file, base)),
   ]);
   const { splats, faces, vertices, followsHead } = manifest.avatar;
-  const poseBytes = followsHead ? splats * POSE_TEXELS * 8 : 0; // float16 x 36 a splat
-  if (avatarBytes.byteLength !== splats * SPLAT_TEXELS * 16 + faces * 12 + poseBytes) {
-    throw new Error("avatar.bin: unexpected size");
-  }
-  const table = new Float32Array(avatarBytes, 0, splats * SPLAT_TEXELS * 4);
-  const faceIds = new Uint32Array(avatarBytes, table.byteLength, faces * 3);
-  const poseStart = table.byteLength + faceIds.byteLength;
-  const poses = followsHead ? new Uint16Array(avatarBytes, poseStart, splats * POSE_TEXELS * 4) : null;
+  const posed = followsHead ? manifest.avatar.posed : 0; // the first `posed` splats carry a pose row
+  if (!Number.isInteger(posed) || posed < 0 || posed > splats) throw new Error("avatar.json: avatar.posed invalid");
+  const rowStart = splats * 16; // float32 x 4 a splat
+  const faceStart = rowStart + splats * ROW_TEXELS * 8; // float16 x 20 a splat
+  const poseStart = faceStart + faces * 12;
+  if (avatarBytes.byteLength !== poseStart + posed * POSE_TEXELS * 8) throw new Error("avatar.bin: unexpected size");
+  const anchors = new Float32Array(avatarBytes, 0, splats * 4);
+  const rows = new Uint16Array(avatarBytes, rowStart, splats * ROW_TEXELS * 4);
+  const faceIds = new Uint32Array(avatarBytes, faceStart, faces * 3);
+  const poses = followsHead ? new Uint16Array(avatarBytes, poseStart, posed * POSE_TEXELS * 4) : null;
   const clip = new Uint16Array(clipBytes);
   if (clip.length !== manifest.clip.frames * vertices * 3) throw new Error("clip.bin: unexpected size");
   if (followsHead && manifest.clip.pose?.length !== manifest.clip.frames) {
     throw new Error("avatar.json: clip.pose missing");
   }
-  return { manifest, table, faceIds, poses, clip };
+  return { manifest, anchors, rows, faceIds, poses, clip };
 }
 
 function readOptions() {
@@ -61,7 +67,7 @@ function readOptions() {
 }
 
 class Player {
-  constructor({ manifest, table, faceIds, poses, clip }, options) {
+  constructor({ manifest, anchors, rows, faceIds, poses, clip }, options) {
     this.manifest = manifest;
     this.options = options;
     this.clip = clip;
@@ -78,7 +84,7 @@ class Player {
     this.needsDraw = true;
     this.dirtyFrame = true;
     this.setupRenderer();
-    this.setupSplats(table, poses);
+    this.setupSplats(anchors, rows, poses);
   }
 
   setupRenderer() {
@@ -105,18 +111,20 @@ class Player {
     window.addEventListener("resize", () => this.resize());
   }
 
-  setupSplats(table, poses) {
-    const { splats, faces, shading } = this.manifest.avatar;
-    this.tableTexture = floatTexture(splats * SPLAT_TEXELS);
-    this.tableTexture.image.data.set(table);
+  setupSplats(anchors, rows, poses) {
+    const { splats, faces, shading, posed } = this.manifest.avatar;
+    this.anchorTexture = floatTexture(splats);
+    this.anchorTexture.image.data.set(anchors);
+    this.rowTexture = halfTexture(splats * ROW_TEXELS);
+    this.rowTexture.image.data.set(rows);
     this.faceTexture = floatTexture(faces * FACE_TEXELS);
     this.faceData = this.faceTexture.image.data.subarray(0, faces * FACE_STRIDE);
     if (poses) {
-      this.poseTexture = halfTexture(splats * POSE_TEXELS);
+      this.poseTexture = halfTexture(Math.max(1, posed) * POSE_TEXELS);
       this.poseTexture.image.data.set(poses);
     }
-    this.generator = avatarGenerator({ count: splats, table: this.tableTexture, faces: this.faceTexture, shading,
-      poses: this.poseTexture });
+    this.generator = avatarGenerator({ count: splats, anchors: this.anchorTexture, rows: this.rowTexture,
+      faces: this.faceTexture, shading, poses: this.poseTexture, posed });
     this.generator.frustumCulled = false;
     this.scene.add(this.generator);
   }
