@@ -9,6 +9,7 @@ placement is exercised on 64 px frames."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -107,6 +108,21 @@ def test_player_plays_scrubs_and_limits_the_orbit(player):
         page.fill("#background", "#ff0000")
         page.dispatch_event("#background", "input")
         assert page.evaluate("window.geoavatar.player.background") == [1.0, 0.0, 0.0]
+
+
+@pytestmark_browser
+def test_a_folder_of_another_format_version_is_refused_in_one_line(player, tmp_path):
+    """An older export (format 1: float32 rows, pose rows for every splat) must not be read with the new layout."""
+    old = tmp_path / "old"
+    shutil.copytree(player, old)
+    manifest = json.loads((old / pack.MANIFEST).read_text())
+    (old / pack.MANIFEST).write_text(json.dumps({**manifest, "format": pack.FORMAT_VERSION - 1}))
+    with static_server(old) as url, chromium_page(320, 240) as page:
+        page.goto(url + "index.html")
+        page.wait_for_function("document.body.dataset.error !== undefined", timeout=60_000)
+        error = page.evaluate("document.body.dataset.error")
+        assert f"format {pack.FORMAT_VERSION - 1}" in error and "export the avatar again" in error
+        assert error in page.inner_text("#status")
 
 
 def test_bad_input_is_one_line(run_dir, tmp_path, capsys):
