@@ -3,7 +3,7 @@
 import * as THREE from "three";
 import { SplatGenerator, dyno } from "@sparkjsdev/spark";
 
-export const TEXTURE_WIDTH = 2048; // texels per row of both textures (a linear index i is texel (i & 2047, i >> 11))
+export const TEXTURE_WIDTH = 2048; // texels per row of every texture (a linear index i is texel (i & 2047, i >> 11))
 export const ROW_TEXELS = 5; // RGBA16F texels per splat in the row table; its anchor is one RGBA32F texel (pack.py)
 export const FACE_TEXELS = 2; // RGBA texels per face: C, k | q (binding.js FACE_STRIDE)
 export const POSE_TEXELS = 9; // RGBA16F texels per moving splat in the pose table (hair that follows the head)
