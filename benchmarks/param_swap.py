@@ -19,6 +19,7 @@ import torch
 
 from geoavatar.avatar import render_avatar
 from geoavatar.data.dataset import item_camera, item_to
+from geoavatar.eval import metrics
 from geoavatar.head.params import HeadParams
 from geoavatar.render import composite_target
 from geoavatar.train.checkpoint import open_run, open_run_dataset
@@ -32,11 +33,6 @@ GROUPS = {
     "eyes": ("eyes_pose",),
 }
 ALL_KEYS = tuple(key for keys in GROUPS.values() for key in keys)
-
-
-def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
-    mse = float(((pred.clamp(0.0, 1.0) - target) ** 2).mean())
-    return 10.0 * np.log10(1.0 / max(mse, 1e-12))
 
 
 def swap_scores(run_dir: Path, tracked: Path, data: Path | None, every: int) -> dict[str, float]:
@@ -59,7 +55,7 @@ def swap_scores(run_dir: Path, tracked: Path, data: Path | None, every: int) -> 
             params = written.replace(**{key: getattr(fitted, key) for key in keys})
             frame = render_avatar(run.avatar, run.head, params, item_camera(item), timestep, run.deformer,
                                   item["background"])
-            scores[name].append(psnr(frame.result.rgb, target))
+            scores[name].append(metrics.psnr(frame.result.rgb.clamp(0.0, 1.0), target))  # as eval scores
     return {name: float(np.mean(values)) for name, values in scores.items()}
 
 

@@ -125,8 +125,8 @@ def test_avatar_bin_holds_the_splats_in_export_order_with_pose_rows_for_the_movi
     rows = np.frombuffer(data, "<f2", n * 20, offset=n * 16).reshape(n, 20)
     face_ids = np.frombuffer(data, "<u4", f * 3, offset=n * 56).reshape(f, 3)
     poses = np.frombuffer(data, "<f2", posed * 36, offset=n * 56 + f * 12).reshape(posed, 36)
-    order = splat_order(avatar)
-    assert on_moving[order[:posed]].all() and not on_moving[order[posed:]].any()
+    order, order_posed = splat_order(avatar)
+    assert order_posed == posed and on_moving[order[:posed]].all() and not on_moving[order[posed:]].any()
     assert (np.diff(order[:posed]) > 0).all() and (np.diff(order[posed:]) > 0).all()  # stable within each part
     table = splat_table(avatar)[order]  # [N, 24]
     np.testing.assert_array_equal(anchors, table[:, :ANCHOR_FLOATS])  # face indices and local means exact

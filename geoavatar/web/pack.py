@@ -93,24 +93,24 @@ def pose_table(avatar) -> np.ndarray | None:
     None when the avatar's Gaussians do not follow the head's turn."""
     if not avatar.follows_head:
         return None
-    moving = avatar.moving[avatar.binding].to("cpu", torch.float64)[:, None]  # [N, 1]
+    moving = torch.from_numpy(moving_splats(avatar)).to(torch.float64)[:, None]  # [N, 1]
     table = torch.cat([avatar.params[name].detach().to("cpu", torch.float64) * moving
                        for name in ("means_pose", "f_pose")], dim=1)  # [N, 36]
     return _half(table.numpy(), "pose offsets")
 
 
-def splat_order(avatar) -> np.ndarray:
-    """[N] int64: the export order of the splats, those on moving faces (hair that follows the head) first, then the
-    rest, each in the avatar's order; the identity when the avatar's Gaussians do not follow the head."""
+def moving_splats(avatar) -> np.ndarray:
+    """[N] bool: the splats on moving faces (hair that follows the head); none when the avatar's do not follow it."""
     if not avatar.follows_head:
-        return np.arange(avatar.num_gaussians)
-    moving = avatar.moving[avatar.binding].cpu().numpy()  # [N] bool
-    return np.concatenate([np.flatnonzero(moving), np.flatnonzero(~moving)])
+        return np.zeros(avatar.num_gaussians, dtype=bool)
+    return avatar.moving[avatar.binding].cpu().numpy()
 
 
-def posed_count(avatar) -> int:
-    """How many splats (the first of splat_order) carry a pose row: those on the moving faces."""
-    return int(avatar.moving[avatar.binding].sum()) if avatar.follows_head else 0
+def splat_order(avatar) -> tuple[np.ndarray, int]:
+    """(order [N] int64, P): the export order of the splats, the P on moving faces first, then the rest, each in the
+    avatar's order (the identity, P = 0, when the avatar's Gaussians do not follow the head)."""
+    moving = moving_splats(avatar)  # [N]
+    return np.concatenate([np.flatnonzero(moving), np.flatnonzero(~moving)]), int(moving.sum())
 
 
 def _half(values: np.ndarray, what: str) -> np.ndarray:
@@ -171,10 +171,9 @@ def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, 
                   edit: dict | None = None, pose_codes: Tensor | np.ndarray | None = None) -> PlayerAssets:
     """The manifest and binaries of `avatar` playing `clip` (see the module docstring); camera: render.camera.Camera;
     pose_codes [T, 6]: each frame's head pose code, needed when the avatar's hair follows the head."""
-    order = splat_order(avatar)  # [N]
+    order, posed = splat_order(avatar)  # [N], P
     table = splat_table(avatar)[order]  # [N, 24]
     poses = pose_table(avatar)
-    posed = posed_count(avatar)
     codes = None if pose_codes is None else _array(pose_codes)  # [T, 6]
     faces = avatar.faces.detach().cpu().numpy().astype("<u4")  # [F, 3]
     frames, vertex_count, _ = clip.codes.shape
@@ -224,5 +223,5 @@ def write_player_folder(out: str | Path, assets: PlayerAssets) -> Path:
 
 
 __all__ = ["AVATAR_FILE", "CLIP_FILE", "MANIFEST", "PLAYER_FILES", "PlayerAssets", "QuantisedClip", "player_assets",
-           "pose_table", "posed_count", "quantise_clip", "splat_order", "splat_table", "static_dir",
+           "moving_splats", "pose_table", "quantise_clip", "splat_order", "splat_table", "static_dir",
            "write_player_folder"]
