@@ -109,7 +109,7 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
 
     from geoavatar.data.dataset import DataConfig, HeadAvatarDataset
     from geoavatar.prep.photometric import residual_report
-    from geoavatar.train.avatar_tracking import track_frames
+    from geoavatar.train.avatar_tracking import dataset_frames, track_frames
     from geoavatar.train.checkpoint import open_run
 
     run = open_run(run_dir, device, flame_dir=flame_dir)
@@ -131,7 +131,7 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
               "fitted": [int(dataset.timesteps[index]) for index in to_fit], "l1": residual_report(nothing, nothing)}
     if to_fit:
         with tqdm(total=len(to_fit), desc="track (avatar)", unit="frame", disable=not progress) as bar:
-            result = track_frames(run.avatar, run.head, run.deformer, _avatar_frames(dataset, to_fit, run), config,
+            result = track_frames(run.avatar, run.head, run.deformer, dataset_frames(dataset, to_fit, run.device), config,
                                   progress=bar.update)
         for i, index in enumerate(to_fit):
             for key in FRAME_KEYS:
@@ -165,59 +165,20 @@ def _start_rows(subject, run, trained: set[int]) -> dict:
     return rows
 
 
-def _avatar_frames(dataset, indices: list[int], run):
-    """AvatarFrames of the dataset's items `indices` on the run's device (decoded one at a time)."""
-    from geoavatar.data.dataset import item_camera, item_to
-    from geoavatar.train.avatar_tracking import AvatarFrame
-
-    for index in indices:
-        item = item_to(dataset[index], run.device)
-        yield AvatarFrame(HeadParams.from_npz(item["params"]), item_camera(item), item["image"], item["mask"],
-                          item["background"])
-
-
-def _in_width_of(like: np.ndarray, values: np.ndarray, dtype=None) -> np.ndarray:
-    """`values` [K] in an array shaped like `like` [..., W] (its dtype unless given): the leading
-    min(K, W) entries, zeros after them, so a dataset keeps its own widths (e.g. FLAME's 100
-    expressions for 23 fitted)."""
-    out = np.zeros(like.shape, dtype or like.dtype)
-    n = min(like.shape[-1], values.shape[-1])
-    out[..., :n] = values[:n]
-    return out
-
-
 def write_tracked_copy(subject, params: HeadParams, out: Path, report: dict) -> Path:
     """Copy the dataset folder to `out` (atomically) with flame_param/ rewritten from `params` [T]
     (every other key of each npz kept; shape in each npz and in canonical_flame_param.npz from `params`)."""
-    from geoavatar.data.layout import CANONICAL_FILE
+    from geoavatar.data.layout import CANONICAL_FILE, rewrite_frame_params, rewrite_npz_rows
     from geoavatar.io.atomic import atomic_folder
 
-    root = Path(subject.root)
     fitted = {k: v.detach().cpu().numpy() for k, v in params.to_npz().items() if k in FRAME_KEYS or k == "shape"}
-    paths = {}
-    for name in ("transforms.json", "transforms_train.json", "transforms_val.json", "transforms_test.json"):
-        if (root / name).is_file():
-            for frame in json.loads((root / name).read_text()).get("frames", []):
-                paths.setdefault(int(frame["timestep_index"]), frame["flame_param_path"])
     with atomic_folder(out) as folder:
-        shutil.copytree(root, folder, dirs_exist_ok=True)
-        for row, timestep in enumerate(subject.timesteps):
-            path = folder / paths[timestep]
-            with np.load(path, allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-            for key in FRAME_KEYS:
-                width = arrays[key].shape[-1] if key in arrays else fitted[key].shape[-1]
-                arrays[key] = _in_width_of(np.empty((1, width)), fitted[key][row], np.float32)
-            if "shape" in arrays:
-                arrays["shape"] = _in_width_of(arrays["shape"], fitted["shape"])
-            np.savez(path, **arrays)
-        canonical = folder / CANONICAL_FILE
-        if canonical.is_file():
-            with np.load(canonical, allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-            if "shape" in arrays:
-                arrays["shape"] = _in_width_of(arrays["shape"], fitted["shape"])
-                np.savez(canonical, **arrays)
+        shutil.copytree(subject.root, folder, dirs_exist_ok=True)
+        rewrite_frame_params(folder, {timestep: {key: values[row] if key != "shape" else values
+                                                 for key, values in fitted.items()}
+                                      for row, timestep in enumerate(subject.timesteps)}, optional=("shape",))
+        if (folder / CANONICAL_FILE).is_file():
+            rewrite_npz_rows(folder / CANONICAL_FILE, {"shape": fitted["shape"]}, optional=("shape",))
         (folder / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
     return out
 

@@ -68,7 +68,7 @@ from geoavatar.data.subject import (
 from geoavatar.errors import DiskFullError
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
 from geoavatar.imaging import to_uint8
-from geoavatar.io.atomic import disk_full_as_error, replace_folder, temporary_folder_for
+from geoavatar.io.atomic import atomic_write_npz, disk_full_as_error, replace_folder, temporary_folder_for
 from geoavatar.render.camera import field_of_view, focal_length, opengl_c2w_to_viewmat, viewmat_to_opengl_c2w
 
 log = logging.getLogger(__name__)
@@ -322,6 +322,45 @@ def _load_params(path: Path, where: str) -> dict[str, np.ndarray]:
 
 
 # --- writing -------------------------------------------------------------------------------------
+
+
+def frame_param_files(root: str | os.PathLike) -> dict[int, Path]:
+    """Each timestep's flame_param file, from the dataset's transforms files (transforms.json and the splits)."""
+    root, files = Path(root), {}
+    for name in (ALL_FILE, *SPLIT_FILES.values()):
+        if (root / name).is_file():
+            for frame in _read_json(root / name).get("frames", []):
+                files.setdefault(int(frame["timestep_index"]), root / frame["flame_param_path"])
+    return files
+
+
+def rewrite_npz_rows(path: str | os.PathLike, rows: Mapping[str, np.ndarray], optional: Sequence[str] = ()) -> None:
+    """Replace keys of one parameter npz: `rows[key]` is a row [W]. Every other key is kept, and so is each key's
+    width in the file (the leading entries written, zeros after them: FLAME's 100 expressions stay 100 when 23 are
+    given); a key the file lacks is written [1, W], unless it is one of `optional`. The file is replaced atomically."""
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    for key, row in rows.items():
+        if key in optional and key not in arrays:
+            continue
+        row = np.asarray(row, np.float32).reshape(-1)
+        like = arrays.get(key, np.empty((1, row.shape[0]), np.float32))
+        out = np.zeros(like.shape, like.dtype)
+        n = min(like.shape[-1], row.shape[0])
+        out[..., :n] = row[:n]
+        arrays[key] = out
+    atomic_write_npz(path, **arrays)
+
+
+def rewrite_frame_params(root: str | os.PathLike, values: Mapping[int, Mapping[str, np.ndarray]],
+                         optional: Sequence[str] = ()) -> None:
+    """Replace keys of a dataset's flame_param files in place: `values[timestep][key]` is a row [W] (a per-frame key,
+    or shape), written by `rewrite_npz_rows`."""
+    files = frame_param_files(root)
+    for timestep, rows in values.items():
+        if timestep not in files:
+            raise DatasetError(f"{root}: no flame_param file for timestep {timestep} in its transforms files")
+        rewrite_npz_rows(files[timestep], rows, optional)
 
 
 class LayoutWriter:

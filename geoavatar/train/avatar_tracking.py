@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, NamedTuple
+from typing import Callable, Iterable, Iterator, NamedTuple
 
 import numpy as np
 import torch
@@ -135,5 +135,15 @@ def track_frames(avatar: GaussianAvatar, head: HeadModel, deformer: MouthDeforme
     return AvatarTrackingResult(fitted[0].replace(**stacked), np.asarray(before), np.asarray(after))
 
 
-__all__ = ["AvatarFrame", "AvatarTrackingConfig", "AvatarTrackingResult", "frozen", "image_loss", "track_frame",
-           "track_frames"]
+def dataset_frames(dataset, indices: Iterable[int], device: torch.device | str) -> Iterator[AvatarFrame]:
+    """AvatarFrames of a HeadAvatarDataset's items `indices` on `device`, decoded one at a time."""
+    from geoavatar.data.dataset import item_camera, item_to
+
+    for index in indices:
+        item = item_to(dataset[index], device)
+        yield AvatarFrame(HeadParams.from_npz(item["params"]), item_camera(item), item["image"], item["mask"],
+                          item["background"])
+
+
+__all__ = ["AvatarFrame", "AvatarTrackingConfig", "AvatarTrackingResult", "dataset_frames", "frozen", "image_loss",
+           "track_frame", "track_frames"]
