@@ -62,12 +62,12 @@ def prepare(
             model rendered with the CPU rasterizer against the masked crops, landmarks kept as a term);
             --no-photometric writes the landmark fit as is (faster). Re-running with it on over a
             --no-photometric folder reuses every earlier stage and adds the photometric one.
-        gaussian_refit: Last, train a quick Gaussian head on every frame (3000 steps at 256 px: about 7 minutes on 2
-            CPU cores, seconds on a GPU) and refit every frame's head parameters against it: the training frames get
-            those its training refined, the test frames a fit of their own. The photometric stage cannot see the
-            hair's outline; on an expressive video this put the test frames' heads ~1° and 4 mm off and cost them
-            2.5 dB (docs/expressive_video.md). --no-gaussian-refit keeps the photometric fit (faster; re-running with
-            it on reuses every earlier stage).
+        gaussian_refit: Last, train a quick Gaussian head on every frame (3000 steps at 256 px) and refit every
+            frame's head parameters against it: the training frames get those its training refined, the test frames a
+            fit of their own (12 minutes for 354 frames on 2 CPU cores). The photometric stage cannot see the hair's
+            outline; on an expressive video this put the test frames' heads ~1° and 4 mm off and cost them 2.5 dB
+            (docs/expressive_video.md). --no-gaussian-refit keeps the photometric fit (faster; re-running with it on
+            reuses every earlier stage).
         overlay: Write OUT/overlay.mp4.
         workers: Worker processes (default: one per core this process may use, at most 8; each holds up to
             0.9 GB). The dataset does not depend on it.
