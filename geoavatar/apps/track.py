@@ -131,8 +131,8 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
               "fitted": [int(dataset.timesteps[index]) for index in to_fit], "l1": residual_report(nothing, nothing)}
     if to_fit:
         with tqdm(total=len(to_fit), desc="track (avatar)", unit="frame", disable=not progress) as bar:
-            result = track_frames(run.avatar, run.head, run.deformer, dataset_frames(dataset, to_fit, run.device), config,
-                                  progress=bar.update)
+            frames = dataset_frames(dataset, to_fit, run.device)
+            result = track_frames(run.avatar, run.head, run.deformer, frames, config, progress=bar.update)
         for i, index in enumerate(to_fit):
             for key in FRAME_KEYS:
                 rows[key][dataset.frames[index].row] = getattr(result.params, key)[i].cpu()

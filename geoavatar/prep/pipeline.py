@@ -126,8 +126,8 @@ class PrepareConfig:
     photometric: bool = _stage_field("photometric", True)  # False (--no-photometric): the landmark fit is written
     photometric_epochs: tuple[int, int] = _stage_field("photometric", (16, 12))  # at 64 px, at 128 px (PhotometricConfig's)
     overlay: bool = _stage_field("write", True)
-    # every frame's parameters refitted against a quick Gaussian head of the whole video (train/gaussian_refit.py),
-    # by `gaussian_runner`, which the caller passes: it trains, a layer beside this one. `geoavatar prepare` turns it on.
+    # every frame's parameters refitted against a quick Gaussian head of the whole video (train/gaussian_refit.py), by
+    # `gaussian_runner`, which the caller passes: it trains, a layer beside this one. `geoavatar prepare` turns it on.
     gaussian_refit: bool = _stage_field("gaussian", False)
     gaussian_steps: int = _stage_field("gaussian", 3000)  # the head's training steps
     gaussian_resolution: int = _stage_field("gaussian", 256)  # and its image side

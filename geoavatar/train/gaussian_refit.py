@@ -61,7 +61,8 @@ def train_head(dataset: Path, run_dir: Path, config: GaussianRefitConfig, device
     width, height = open_subject(dataset).info.image_size or (config.resolution, config.resolution)
     options = RunOptions(out=run_dir, data=dataset, preset="E", resolution=min(config.resolution, max(width, height)),
                          seed=config.seed, device=device, test_frames=0, progress=progress)
-    train(options, None if resume else preset("E", config.steps), resume=resume)
+    if train(options, None if resume else preset("E", config.steps), resume=resume).status != "finished":
+        raise KeyboardInterrupt  # Ctrl-C: saved; a re-run of prepare resumes the head
     return run_dir
 
 
@@ -87,13 +88,15 @@ def refit_dataset(dataset: Path, work: Path, config: GaussianRefitConfig = Gauss
               "test_frames": len(test)}
     if len(test):
         with tqdm(total=len(test), desc="prepare: gaussian refit", unit="frame", disable=not progress) as bar:
-            result = track_frames(run.avatar, run.head, run.deformer, dataset_frames(test, range(len(test)), run.device),
-                                  AvatarTrackingConfig(steps=config.fit_steps), progress=bar.update)
+            frames = dataset_frames(test, range(len(test)), run.device)
+            fit = AvatarTrackingConfig(steps=config.fit_steps)
+            result = track_frames(run.avatar, run.head, run.deformer, frames, fit, progress=bar.update)
         rows = [test.frames[index].row for index in range(len(test))]
         for key in FRAME_KEYS:
             refined[key][rows] = getattr(result.params, key).cpu().float()
         moved = (refined["translation"][rows] - written["translation"][rows]).norm(dim=-1) * 1000.0  # [N] mm
-        report.update(l1={"mean_before": float(np.nanmean(result.loss_before)), "mean": float(np.nanmean(result.loss_after))},
+        l1 = {"mean_before": float(np.nanmean(result.loss_before)), "mean": float(np.nanmean(result.loss_after))}
+        report.update(l1=l1,
                       test_head_moved_mm={"mean": float(moved.mean()), "max": float(moved.max())})
     rewrite_frame_params(dataset, {timestep: {key: refined[key][row].numpy() for key in FRAME_KEYS}
                                    for row, timestep in enumerate(subject.timesteps)})
