@@ -18,6 +18,7 @@ from apps_fixtures import make_subject, make_untrained_run
 from geoavatar import cli
 from geoavatar.apps import reenact as reenact_app
 from geoavatar.errors import OptionError
+from geoavatar.prep.pipeline import STAGES
 from geoavatar.io.video import Mp4Writer
 from geoavatar.prep.errors import PrepareError
 
@@ -89,7 +90,7 @@ def test_driver_video_is_tracked_cached_and_reenacted(run_dir, clip, tmp_path, c
     assert reenact_app.reenact(run_dir, driver_video=clip, driver_size=64, out=second, max_frames=3, device="cpu",
                                progress=False) == 0
     printed = capsys.readouterr().out
-    assert printed.count("is complete, skipped") == 6, printed
+    assert printed.count("is complete, skipped") == len(STAGES), printed  # the gaussian refit's too: off for a driver
     assert (cache / "dataset" / "transforms.json").stat().st_mtime_ns == written
     assert len(decode(second)) == 3
 
