@@ -73,6 +73,7 @@ def test_turning_the_refit_off_gives_the_written_parameters_back(refitted):
     for key in FRAME_KEYS:
         np.testing.assert_allclose(rows[key], written[key], atol=1e-6)
     assert not (out / ".prepare" / "gaussian.applied").exists()
+    assert not list((out / ".prepare").glob("gaussian-*"))  # the head's log and pictures go with it
 
 
 def test_the_stage_refuses_to_run_without_its_runner(tmp_path):

@@ -659,17 +659,17 @@ def stage_gaussian(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
         rewrite_frame_params(dataset, {t: {key: fit[f"param_{key}"][t] for key in FRAME_KEYS}
                                        for t in range(len(fit["param_rotation"]))})
         applied.unlink()
+    head = work / f"gaussian-{_stage_keys(config)['gaussian'][:12]}"
+    for old in work.glob("gaussian-*"):  # a head trained with other settings or data, or the refit is off
+        if old != head or not config.gaussian_refit:
+            shutil.rmtree(old, ignore_errors=True)
     if not config.gaussian_refit:
         return {"gaussian_refit": False}
     if config.gaussian_runner is None:
         raise PrepareError("the gaussian refit needs its runner (PrepareConfig.gaussian_runner); geoavatar prepare "
                            "passes it")
-    key = _stage_keys(config)["gaussian"][:12]
-    for old in work.glob("gaussian-*"):  # a head trained with other settings or data
-        if old.name != f"gaussian-{key}":
-            shutil.rmtree(old, ignore_errors=True)
     applied.touch()  # before the first parameter file changes
-    info = config.gaussian_runner(dataset, work / f"gaussian-{key}", config)
+    info = config.gaussian_runner(dataset, head, config)
     report_path = Path(config.out) / "report.json"
     atomic_write_json(report_path, {**json.loads(report_path.read_text()), "gaussian_refit": info})
     return info
