@@ -600,6 +600,18 @@ def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> di
             "median_error": float(np.median(errors)), "log": log}
 
 
+def _fit_params(fit: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The head-model parameters of a fit file (its param_<key> arrays, [T, ...] or [S], by key)."""
+    return {k[len("param_"):]: fit[k] for k in fit if k.startswith("param_")}
+
+
+def _written_frame(params: dict[str, np.ndarray], t: int) -> dict[str, np.ndarray]:
+    """Dataset timestep t's per-frame parameters as the write stage writes them."""
+    from geoavatar.head.params import FRAME_KEYS
+
+    return {key: params[key][t] for key in FRAME_KEYS}
+
+
 def stage_write(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     from geoavatar.data.layout import LayoutWriter
     from geoavatar.data.splits import SplitConfig
@@ -611,15 +623,14 @@ def stage_write(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     count = len(keep)
     test = max(1, math.ceil(config.test_fraction * count)) if config.test_fraction > 0 else 0
     dataset = Path(config.out) / "dataset"
-    params = {k[len("param_"):]: fit[k] for k in fit if k.startswith("param_")}
+    params = _fit_params(fit)
     with LayoutWriter(dataset, head_model=config.head, image_size=(config.size, config.size), shape=params["shape"],
                       static_offset=params.get("static_offset"),
                       background=(1.0, 1.0, 1.0), source=str(Path(config.video).name),
                       split=SplitConfig(test_frames=test), overwrite=True) as writer, _bar(config, count, "write") as bar:
         for t, k in enumerate(keep):  # the crops and masks are PNGs already: linked into the dataset, not re-encoded
-            frame = {name: params[name][t] for name in ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")}
-            writer.add_frame(t, work / "frames" / f"{k:05d}.png", frame, fit["viewmat"], fit["K"][t],
-                             mask=work / "masks" / f"{k:05d}.png")
+            writer.add_frame(t, work / "frames" / f"{k:05d}.png", _written_frame(params, t), fit["viewmat"],
+                             fit["K"][t], mask=work / "masks" / f"{k:05d}.png")
             bar.update(1)
     (work / GAUSSIAN_APPLIED).unlink(missing_ok=True)  # the new dataset holds the written rows
     if config.overlay:
@@ -651,13 +662,11 @@ def stage_gaussian(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     """Every frame's parameters refitted against a quick Gaussian head (config.gaussian_runner); with the refit off,
     the dataset gets the written rows back if an earlier run refitted them."""
     from geoavatar.data.layout import rewrite_frame_params
-    from geoavatar.head.params import FRAME_KEYS
 
     dataset, applied = Path(config.out) / "dataset", work / GAUSSIAN_APPLIED
     if applied.is_file():  # refitted by an earlier run with other settings: start again from the written rows
-        fit = dict(np.load(fit_file(config, work)))
-        rewrite_frame_params(dataset, {t: {key: fit[f"param_{key}"][t] for key in FRAME_KEYS}
-                                       for t in range(len(fit["param_rotation"]))})
+        params = _fit_params(dict(np.load(fit_file(config, work))))
+        rewrite_frame_params(dataset, {t: _written_frame(params, t) for t in range(len(params["rotation"]))})
         applied.unlink()
     head = work / f"gaussian-{_stage_keys(config)['gaussian'][:12]}"
     for old in work.glob("gaussian-*"):  # a head trained with other settings or data, or the refit is off

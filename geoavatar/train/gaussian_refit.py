@@ -47,10 +47,11 @@ class GaussianRefitConfig:
                              f"{self.resolution}, {self.fit_steps}")
 
 
-def train_head(dataset: Path, run_dir: Path, config: GaussianRefitConfig, device: str, progress: bool) -> Path:
-    """Train (or resume, or keep a finished) throwaway head on every frame of `dataset`; returns its run folder."""
+def train_head(dataset: Path, image_side: int, run_dir: Path, config: GaussianRefitConfig, device: str,
+               progress: bool) -> Path:
+    """Train (or resume, or keep a finished) throwaway head on every frame of `dataset`, whose images' longer side is
+    `image_side` pixels; returns its run folder."""
     from geoavatar.config import preset
-    from geoavatar.data.dataset import open_subject
     from geoavatar.train.checkpoint import run_checkpoint_path
     from geoavatar.train.options import RunOptions
     from geoavatar.train.trainer import train
@@ -58,8 +59,7 @@ def train_head(dataset: Path, run_dir: Path, config: GaussianRefitConfig, device
     if run_checkpoint_path(run_dir, "final").is_file():
         return run_dir
     resume = run_checkpoint_path(run_dir, "last").is_file()
-    width, height = open_subject(dataset).info.image_size or (config.resolution, config.resolution)
-    options = RunOptions(out=run_dir, data=dataset, preset="E", resolution=min(config.resolution, max(width, height)),
+    options = RunOptions(out=run_dir, data=dataset, preset="E", resolution=min(config.resolution, image_side),
                          seed=config.seed, device=device, test_frames=0, progress=progress)
     if train(options, None if resume else preset("E", config.steps), resume=resume).status != "finished":
         raise KeyboardInterrupt  # Ctrl-C: saved; a re-run of prepare resumes the head
@@ -77,10 +77,11 @@ def refit_dataset(dataset: Path, work: Path, config: GaussianRefitConfig = Gauss
     from geoavatar.train.avatar_tracking import AvatarTrackingConfig, dataset_frames, track_frames
     from geoavatar.train.checkpoint import open_run
 
-    run_dir = train_head(Path(dataset), Path(work) / HEAD_RUN, config, device, progress)
-    run = open_run(run_dir, device)
     subject = open_subject(dataset)
-    written = {key: subject.params[key].float().clone() for key in FRAME_KEYS}  # [T, ...]
+    image_side = max(subject.info.image_size or (config.resolution, config.resolution))
+    run_dir = train_head(Path(dataset), image_side, Path(work) / HEAD_RUN, config, device, progress)
+    run = open_run(run_dir, device)
+    written = subject.params["translation"].float()  # [T, 3] before the refit
     refined = {key: run.info.frame_params[key].float().clone() for key in FRAME_KEYS}  # [T, ...], rows = timesteps
     test = HeadAvatarDataset(replace(subject, params={**subject.params, **refined}), "test",
                              DataConfig(resolution=run.info.resolution, cache="none"))
@@ -94,7 +95,7 @@ def refit_dataset(dataset: Path, work: Path, config: GaussianRefitConfig = Gauss
         rows = [test.frames[index].row for index in range(len(test))]
         for key in FRAME_KEYS:
             refined[key][rows] = getattr(result.params, key).cpu().float()
-        moved = (refined["translation"][rows] - written["translation"][rows]).norm(dim=-1) * 1000.0  # [N] mm
+        moved = (refined["translation"][rows] - written[rows]).norm(dim=-1) * 1000.0  # [N] mm
         l1 = {"mean_before": float(np.nanmean(result.loss_before)), "mean": float(np.nanmean(result.loss_after))}
         report.update(l1=l1,
                       test_head_moved_mm={"mean": float(moved.mean()), "max": float(moved.max())})
