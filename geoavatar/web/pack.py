@@ -8,6 +8,7 @@ A player folder (`geoavatar export RUN --format web`) holds
                             splat rows [N, 20], uint32 faces [F, 3], then, when the avatar's hair follows the head's
                             turn, float16 pose rows [P, 36] of the first P splats
     clip.bin                uint16 posed vertices [T, V, 3]: v = offset + code * step per axis
+    audio.wav               only with a sound track: 16-bit PCM mono at the track's rate (manifest clip.audio)
 
 Splat (what web/src/generator.js reads as one RGBA32F texel and five RGBA16F texels):
     anchor: local mean xyz (face-scale units), face index (float32: float16 holds integers only to 2048) |
@@ -29,17 +30,24 @@ moving splats are two thirds to three quarters of them.
 Only posed vertices and the triangle list leave Python: a FLAME avatar ships no FLAME model file or basis.
 
 avatar.json: {"format" (2), "avatar": {splats, faces, vertices, shading, file}, "clip": {frames, fps, offset, step,
-timesteps, file, source}, "camera": {viewmat [4][4] OpenCV world-to-camera, K [3][3], width, height},
+timesteps, file, source, audio}, "camera": {viewmat [4][4] OpenCV world-to-camera, K [3][3], width, height},
 "viewmats": per-frame viewmats when the clip's cameras differ, "orbit": {centre, yaw [lo, hi], pitch [lo, hi]}
 (degrees about the dataset camera; the turns the training video covered plus a margin), "background",
-"live" (absent, "view" or "drive"), "edit" (view's sliders)}; avatar.followsHead and clip.pose with hair that
-follows the head, and avatar.posed (P).
+"live" (absent, "view", "drive" or "speak": the page is the microphone, web/live.py), "edit" (view's sliders)};
+avatar.followsHead and clip.pose with hair that follows the head, and avatar.posed (P).
+
+A clip with sound (player_assets(..., audio=)) has clip.audio = {"file": "audio.wav", "rate": Hz, "seconds": S}:
+the page plays the sound and takes the shown frame from its clock, floor(seconds played * fps) clamped to the clip,
+and the clip ends (or loops) where the sound does. A folder without clip.audio (older ones) plays as before, on the
+page's own clock: the format version is unchanged.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
+import wave
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -56,11 +64,13 @@ FORMAT_VERSION = 2  # 2: anchors float32 + rows float16, pose rows of the moving
 MANIFEST = "avatar.json"
 AVATAR_FILE = "avatar.bin"
 CLIP_FILE = "clip.bin"
+AUDIO_FILE = "audio.wav"
 PLAYER_FILES = ("index.html", "player.js")
 SPLAT_FLOATS = 24  # what splat_table holds per splat: the anchor texel, then five row texels
 ANCHOR_FLOATS = 4  # 1 RGBA32F texel per splat: local mean, face index
 POSE_FLOATS = 36  # 9 RGBA16F texels per moving splat: M [3, 6], C [3, 6] of the hair's pose offsets
 CODE_MAX = 65535  # uint16 codes of the clip
+PCM_MAX = 32767  # 16-bit PCM of audio.wav: sample = round(s * 32767), s clipped to [-1, 1]
 
 
 def static_dir() -> Path:
@@ -144,18 +154,62 @@ def quantise_clip(vertices: Tensor | np.ndarray) -> QuantisedClip:
 
 
 @dataclass
+class SoundTrack:
+    """A clip's sound: mono samples in [-1, 1] at `rate` Hz. player_assets takes any object with `.samples` and
+    `.rate` (geoavatar.sound's Sound too)."""
+
+    samples: np.ndarray  # [n] float32
+    rate: int  # Hz
+
+
+def wav_bytes(sound) -> bytes:
+    """audio.wav's contents: `sound` (.samples [n] in [-1, 1], .rate Hz) as 16-bit PCM mono; ValueError naming what
+    is wrong (not mono, empty, not finite, a rate that is not a positive integer)."""
+    samples = _array(sound.samples)
+    if samples.ndim != 1 or samples.size == 0:
+        raise ValueError(f"player_assets: the sound must be mono samples [n], n >= 1, got shape {samples.shape}")
+    if not np.isfinite(samples).all():
+        raise ValueError("player_assets: the sound's samples hold NaN or Inf")
+    rate = sound.rate
+    if isinstance(rate, bool) or not float(rate).is_integer() or not 0 < int(rate) < 2**31:
+        raise ValueError(f"player_assets: the sound's rate must be a positive integer (Hz), got {rate!r}")
+    pcm = np.rint(np.clip(samples, -1.0, 1.0) * PCM_MAX).astype("<i2")
+    out = io.BytesIO()
+    with wave.open(out, "wb") as wav:
+        wav.setnchannels(1)
+        wav.setsampwidth(2)
+        wav.setframerate(int(rate))
+        wav.writeframes(pcm.tobytes())
+    return out.getvalue()
+
+
+def read_wav(data: bytes) -> SoundTrack:
+    """audio.wav's contents back as a SoundTrack (float32 samples / 32767); ValueError when it is not 16-bit mono."""
+    with wave.open(io.BytesIO(data), "rb") as wav:
+        if wav.getnchannels() != 1 or wav.getsampwidth() != 2:
+            raise ValueError(f"audio.wav: 16-bit mono expected, got {wav.getnchannels()} channels of "
+                             f"{8 * wav.getsampwidth()} bits")
+        pcm = np.frombuffer(wav.readframes(wav.getnframes()), dtype="<i2")
+        return SoundTrack((pcm / PCM_MAX).astype(np.float32), wav.getframerate())
+
+
+@dataclass
 class PlayerAssets:
-    """Everything a player serves besides the page: the manifest and the two binary files."""
+    """Everything a player serves besides the page: the manifest and the binary files (audio.wav with a sound)."""
 
     manifest: dict
     avatar_bytes: bytes
     clip_bytes: bytes
     extra: dict = field(default_factory=dict)
+    audio_bytes: bytes | None = None  # audio.wav (manifest clip.audio), or None: a clip without sound
 
     def files(self) -> dict[str, bytes]:
         """name -> contents of the data files (page and bundle not included)."""
-        return {MANIFEST: json.dumps(self.manifest, indent=1).encode(), AVATAR_FILE: self.avatar_bytes,
-                CLIP_FILE: self.clip_bytes}
+        files = {MANIFEST: json.dumps(self.manifest, indent=1).encode(), AVATAR_FILE: self.avatar_bytes,
+                 CLIP_FILE: self.clip_bytes}
+        if self.audio_bytes is not None:
+            files[AUDIO_FILE] = self.audio_bytes
+        return files
 
 
 def _array(values: Tensor | np.ndarray) -> np.ndarray:
@@ -168,9 +222,12 @@ def _listed(matrix: Tensor | np.ndarray) -> list:
 
 def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, background, timesteps: list[int],
                   source: str, viewmats: list | None = None, live: str | None = None,
-                  edit: dict | None = None, pose_codes: Tensor | np.ndarray | None = None) -> PlayerAssets:
+                  edit: dict | None = None, pose_codes: Tensor | np.ndarray | None = None,
+                  audio=None) -> PlayerAssets:
     """The manifest and binaries of `avatar` playing `clip` (see the module docstring); camera: render.camera.Camera;
-    pose_codes [T, 6]: each frame's head pose code, needed when the avatar's hair follows the head."""
+    pose_codes [T, 6]: each frame's head pose code, needed when the avatar's hair follows the head; audio: the clip's
+    sound (.samples [n] float in [-1, 1], mono, .rate Hz: a SoundTrack or geoavatar.sound's Sound), written as
+    audio.wav and played by the page as the clip's clock."""
     order, posed = splat_order(avatar)  # [N], P
     table = splat_table(avatar)[order]  # [N, 24]
     poses = pose_table(avatar)
@@ -201,11 +258,16 @@ def player_assets(avatar, clip: QuantisedClip, fps: float, camera, orbit: dict, 
         manifest["live"] = live
     if edit is not None:
         manifest["edit"] = edit
+    audio_bytes = None
+    if audio is not None:
+        audio_bytes = wav_bytes(audio)
+        rate, count = int(audio.rate), int(_array(audio.samples).size)
+        manifest["clip"]["audio"] = {"file": AUDIO_FILE, "rate": rate, "seconds": count / rate}
     avatar_bytes = (table[:, :ANCHOR_FLOATS].astype("<f4").tobytes()
                     + _half(table[:, ANCHOR_FLOATS:], "splat rows").tobytes() + faces.tobytes())
     if poses is not None:
         avatar_bytes += poses[order[:posed]].astype("<f2").tobytes()  # [P, 36]: the moving splats' rows
-    return PlayerAssets(manifest, avatar_bytes, clip.codes.tobytes())
+    return PlayerAssets(manifest, avatar_bytes, clip.codes.tobytes(), audio_bytes=audio_bytes)
 
 
 def write_player_folder(out: str | Path, assets: PlayerAssets) -> Path:
@@ -222,6 +284,6 @@ def write_player_folder(out: str | Path, assets: PlayerAssets) -> Path:
     return Path(out)
 
 
-__all__ = ["AVATAR_FILE", "CLIP_FILE", "MANIFEST", "PLAYER_FILES", "PlayerAssets", "QuantisedClip", "player_assets",
-           "moving_splats", "pose_table", "quantise_clip", "splat_order", "splat_table", "static_dir",
-           "write_player_folder"]
+__all__ = ["AUDIO_FILE", "AVATAR_FILE", "CLIP_FILE", "MANIFEST", "PLAYER_FILES", "PlayerAssets", "QuantisedClip",
+           "SoundTrack", "moving_splats", "player_assets", "pose_table", "quantise_clip", "read_wav", "splat_order",
+           "splat_table", "static_dir", "wav_bytes", "write_player_folder"]
