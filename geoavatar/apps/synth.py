@@ -20,6 +20,7 @@ def synth(
     novel_views: bool = False,
     novel_every: int = 2,
     still_head: bool = False,
+    sound: bool = False,
     progress: bool = True,
 ) -> None:
     """Generate a synthetic monocular head video with known ground truth, in the VHAP layout.
@@ -45,13 +46,16 @@ def synth(
         novel_every: Every this many test frames get the novel views.
         still_head: The head never turns or nods (the face, the eyes and a slight sway still move): a video
             that `geoavatar coverage` should find lacking.
+        sound: Also give the subject a voice: audio.wav / audio.json whose sound is a known function of its mouth
+            (loudness and first formant from the jaw, second formant from the lips), so `geoavatar train` learns a
+            voice model from it and `geoavatar speak` can make it say something new.
         progress: Show progress bars.
     """
     get_subject(subject)  # OptionError for --subject outside 0..NUM_SUBJECTS-1 (bad options: one line at the CLI)
     config = SynthConfig(
         subject=subject, frames=frames, size=size, seed=seed,
         tracking_noise=TrackingNoise(enabled=tracking_noise), novel_views=novel_views, novel_every=novel_every,
-        still_head=still_head,
+        still_head=still_head, sound=sound,
     )
     generate_dataset(Path(out), config, preview=preview, progress=progress)
     print(f"wrote {out}" + (f" (preview: {Path(out) / PREVIEW_FILE})" if preview else ""))

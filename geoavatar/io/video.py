@@ -1,8 +1,12 @@
-"""The one mp4 writer: frames -> H.264 (PyAV, libx264, yuv420p), written atomically.
+"""The one mp4 writer: frames -> H.264 (PyAV, libx264, yuv420p), written atomically, with an optional sound track.
 
     with Mp4Writer(path, fps=25) as video:
         video.write(frame)                   # uint8 RGB [H, W, 3]
     write_mp4(path, frames, fps=25)          # the same for an iterable of frames
+    Mp4Writer(path, fps=25, audio=sound)     # + AAC from a geoavatar.sound.Sound: frame k shows time k / fps of it
+
+With a sound, the sound is muxed beside the frames as they come (interleaved): sample 0 plays with frame 0, and
+the sound written never runs past the frames written by more than a frame, so neither drifts from the other.
 
 yuv420p needs even sizes: a frame with an odd height or width gets its last row / column repeated
 (nothing is cropped away). Every frame must have the size of the first.
@@ -36,7 +40,8 @@ class Mp4Writer:
     `path` is either the old file or the complete new one. A full disk raises DiskFullError.
     """
 
-    def __init__(self, path: str | os.PathLike, fps: float = 25.0, crf: int = 18, preset: str = "medium"):
+    def __init__(self, path: str | os.PathLike, fps: float = 25.0, crf: int = 18, preset: str = "medium",
+                 audio=None, audio_bitrate: int = 96000):
         if fps <= 0:
             raise OptionError(f"--fps must be positive, got {fps}")
         if not 0 <= crf <= 51:
@@ -45,6 +50,9 @@ class Mp4Writer:
         if self.path.suffix.lower() != ".mp4":
             raise OptionError(f"{self.path}: the video file name must end in .mp4")
         self.fps, self.crf, self.preset = fps, crf, preset
+        self.audio, self.audio_bitrate = audio, audio_bitrate  # a Sound (samples [n] float32, rate) or None
+        self._audio_stream = None
+        self._audio_written = 0  # samples of `audio` encoded so far
         self.frames = 0
         self._container = self._stream = None
         self._files: contextlib.ExitStack | None = None
@@ -76,6 +84,10 @@ class Mp4Writer:
             self._stream.width, self._stream.height = width, height
             self._stream.pix_fmt = "yuv420p"
             self._stream.options = {"crf": str(self.crf), "preset": self.preset}
+            if self.audio is not None:
+                self._audio_stream = self._container.add_stream("aac", rate=int(self.audio.rate))
+                self._audio_stream.layout = "mono"
+                self._audio_stream.bit_rate = self.audio_bitrate
         elif frame.shape[:2] != self._size:
             raise ValueError(f"Mp4Writer: frame {self.frames} has size {frame.shape[1]}x{frame.shape[0]}, the first "
                              f"{self._size[1]}x{self._size[0]}; every frame of a video needs one size")
@@ -83,6 +95,24 @@ class Mp4Writer:
         for packet in self._stream.encode(video_frame):
             self._container.mux(packet)
         self.frames += 1
+        if self._audio_stream is not None:  # the sound up to the end of this frame
+            self._write_audio(int(round(self.frames / self.fps * self.audio.rate)))
+
+    def _write_audio(self, until: int) -> None:
+        """Encode the sound's samples up to sample `until` (those not encoded yet)."""
+        import av
+
+        samples = self.audio.samples
+        stop = min(until, len(samples))
+        if stop > self._audio_written:
+            from geoavatar.sound.track import to_pcm16
+
+            chunk = to_pcm16(samples[self._audio_written:stop])[None]  # [1, n]
+            frame = av.AudioFrame.from_ndarray(chunk, format="s16", layout="mono")
+            frame.rate, frame.pts = int(self.audio.rate), self._audio_written
+            for packet in self._audio_stream.encode(frame):
+                self._container.mux(packet)
+            self._audio_written = stop
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         files, self._files = self._files, None
@@ -93,6 +123,9 @@ class Mp4Writer:
                         raise ValueError(f"{self.path}: no frames to write")
                     for packet in self._stream.encode():  # flush the encoder
                         self._container.mux(packet)
+                    if self._audio_stream is not None:  # the sound ends with the last frame: flush its encoder
+                        for packet in self._audio_stream.encode(None):
+                            self._container.mux(packet)
             finally:
                 self._container.close()
         except BaseException:

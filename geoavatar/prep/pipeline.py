@@ -21,6 +21,9 @@ holds the key it would have now, and redoes it and every stage that depends on i
     photometric  every frame refined against its crop (geoavatar.prep.photometric); with --no-photometric it only
                records that it was skipped and the dataset is written from the landmark fit
     write      the dataset through LayoutWriter, then the overlay video, the capture check and the report
+    sound      the video's sound track resampled once into the dataset, each frame timed on it, and where the speech is
+               (geoavatar.data.sound); a video without sound, or without speech, prepares as before and says so
+    gaussian   every frame's parameters refitted against a quick Gaussian head (with --gaussian-refit; see below)
 
 Every stage splits its frames into tasks for a WorkerPool (geoavatar.prep.workers: spawned processes, one torch
 thread each, `workers` of them, by default one per core): decoding + face detection and the crops one range of the
@@ -60,10 +63,11 @@ from geoavatar.io.atomic import atomic_write_json, atomic_write_npz, atomic_writ
 from geoavatar.prep.errors import PrepareError
 from geoavatar.prep.workers import WorkerPool, default_workers, report_progress, split_range, worker_cache
 
-STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write", "gaussian")
+STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write", "sound", "gaussian")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
 # ones depending on it) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 3, "write": 5, "gaussian": 1}
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 3, "write": 5, "sound": 1,
+                  "gaussian": 1}
 # The stages whose outputs a stage reads: a rerun of one redoes these dependants.
 DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "frames": (),
@@ -72,6 +76,7 @@ DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "tracking": ("frames", "landmarks"),
     "photometric": ("frames", "landmarks", "masks", "tracking"),
     "write": ("frames", "landmarks", "masks", "tracking", "photometric"),
+    "sound": ("frames", "landmarks", "write"),  # the write stage replaces the dataset folder, sound files included
     "gaussian": ("frames", "landmarks", "masks", "tracking", "photometric", "write"),
 }
 WORK = ".prepare"
@@ -658,6 +663,46 @@ def stage_write(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     return {"dataset": str(dataset), "frames": int(count), "test_frames": int(test)}
 
 
+def stage_sound(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
+    """The video's sound into the dataset (audio.wav, audio.json: each timestep's time on it, the speech segments)
+    and report.json's "sound"; one line for the user either way."""
+    from geoavatar.data.sound import remove_dataset_sound, write_dataset_sound
+    from geoavatar.prep.video import frame_times
+    from geoavatar.sound import SoundError, has_sound_track, read_sound
+    from geoavatar.sound.activity import speech_activity
+
+    dataset = Path(config.out) / "dataset"
+    remove_dataset_sound(dataset)
+    if not has_sound_track(config.video):
+        info = {"track": False}
+        config.log("prepare: the video has no sound track (an avatar learns to speak only from a video with speech)")
+    else:
+        try:
+            sound = read_sound(config.video, what="video")
+        except SoundError as err:
+            raise PrepareError(str(err)) from err
+        frames = np.load(work / "frames.npz")
+        source = frames["source_index"][np.load(work / "landmarks.npz")["keep"]]  # [T] source frame of each timestep
+        times = frame_times(config.video)
+        times = times[np.minimum(source, len(times) - 1)] - sound.start  # [T] seconds on the sound
+        # the sound under the frames kept (--max-frames, a video cut short): up to the last one's end
+        sound = sound.segment(0.0, float(times[-1]) + 1.0 / float(frames["fps"]))
+        activity = speech_activity(sound)
+        write_dataset_sound(dataset, sound, {t: float(s) for t, s in enumerate(times)}, activity,
+                            source=Path(config.video).name)
+        info = {"track": True, "seconds": round(sound.seconds, 3), "speech_seconds": round(activity.speech_seconds, 3),
+                "has_speech": activity.has_speech, "rate": sound.rate}
+        if activity.has_speech:
+            config.log(f"prepare: sound track: {activity.speech_seconds:.1f} s of speech in {sound.seconds:.1f} s "
+                       "(its avatar learns the voice)")
+        else:
+            config.log(f"prepare: the sound track holds {activity.speech_seconds:.1f} s of speech (an avatar learns "
+                       "to speak only from a video with speech)")
+    report_path = Path(config.out) / "report.json"
+    atomic_write_json(report_path, {**json.loads(report_path.read_text()), "sound": info})
+    return info
+
+
 def stage_gaussian(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     """Every frame's parameters refitted against a quick Gaussian head (config.gaussian_runner); with the refit off,
     the dataset gets the written rows back if an earlier run refitted them."""
@@ -789,7 +834,7 @@ def write_overlay(config: PrepareConfig, work: Path, path: Path, pool: WorkerPoo
 # --- the run ----------------------------------------------------------------------------------------
 
 _RUNNERS = {"frames": stage_frames, "landmarks": stage_landmarks, "masks": stage_masks, "tracking": stage_tracking,
-            "photometric": stage_photometric, "write": stage_write, "gaussian": stage_gaussian}
+            "photometric": stage_photometric, "write": stage_write, "sound": stage_sound, "gaussian": stage_gaussian}
 
 
 def run_prepare(config: PrepareConfig) -> Path:

@@ -82,6 +82,22 @@ def upright(image: np.ndarray, rotation: int) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(image, k)) if k else image
 
 
+def frame_times(path: str | Path) -> np.ndarray:
+    """[N] presentation time in seconds of every frame of the first video stream, in the order decode_frames yields
+    them (source index order), read from the packets' timestamps without decoding a picture."""
+    container = _open(Path(path))
+    try:
+        stream = container.streams.video[0]
+        fps = float(stream.average_rate or stream.guessed_rate or 25.0)
+        stamps = [packet.pts for packet in container.demux(stream) if packet.size > 0]
+    finally:
+        container.close()
+    if stamps and all(p is not None for p in stamps):
+        return np.sort(np.array(stamps, np.float64)) * float(stream.time_base)
+    start = float(stream.start_time * stream.time_base) if stream.start_time is not None else 0.0
+    return start + np.arange(len(stamps)) / fps  # no timestamps: the nominal rate
+
+
 def decode_frames(path: str | Path, fps: float | None = None, max_frames: int | None = None, start: int = 0,
                   stop: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """(source frame index, upright RGB [H, W, 3] uint8), optionally subsampled to `fps`, at most max_frames.

@@ -117,6 +117,7 @@ class SynthConfig:
     novel_views: bool = False  # also render test timesteps from the NOVEL_VIEWS cameras (transforms_novel.json)
     novel_every: int = 2  # every this many test timesteps get the novel views
     still_head: bool = False  # the head never turns or nods (motion.script_motion's still_head)
+    sound: bool = False  # a voice whose sound is a known function of the mouth (synth/sound.py)
 
 
 def check_output_folder(out: Path) -> bool:
@@ -321,6 +322,8 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
         if preview:
             sheet = contact_sheet(actor, renderer, motion, gt, kept)
             sheet.save(writer.tmp / PREVIEW_FILE, optimize=True)
+        if config.sound:
+            meta["sound"] = _write_sound(writer.tmp, motion, config)
         (writer.tmp / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
         with warnings.catch_warnings():
             # A short video holds out its last 25 %: expected here, the motion script is built for it.
@@ -336,6 +339,18 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
         raise
     log.info("synthetic dataset written to %s in %.1f s", out, time.perf_counter() - started)
     return out
+
+
+def _write_sound(folder: Path, motion: Motion, config: SynthConfig) -> dict:
+    """The subject's voice into the dataset (data/sound.py's files): frame t shown at t / fps of it."""
+    from geoavatar.data.sound import write_dataset_sound
+    from geoavatar.data.synth.sound import speech_sound
+
+    sound, activity = speech_sound(motion, config.seed)
+    write_dataset_sound(folder, sound, {t: t / config.fps for t in range(config.frames)}, activity,
+                        source=f"{SOURCE_PREFIX} voice subject={config.subject} seed={config.seed}")
+    return {"file": "audio.wav", "speech_seconds": round(activity.speech_seconds, 2),
+            "model": "source-filter voice: loudness and F1 from the jaw, F2 from the lips (data/synth/sound.py)"}
 
 
 def novel_jobs(actor: Actor, camera: Camera, params: dict[str, np.ndarray], test_start: int,
