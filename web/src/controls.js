@@ -1,5 +1,7 @@
-// The page's controls: play/pause, scrub, background colour, the orbit (drag to turn, wheel to zoom, limited to
-// the head turns the training video covered unless "free orbit" is ticked), and view's edit sliders.
+// The page's controls: play/pause, scrub (both move the clip's sound too, player.js), background colour, the orbit
+// (drag to turn, wheel to zoom, limited to the head turns the training video covered unless "free orbit" is
+// ticked), a one-line status (#live-status: "press Play for sound", the live stream's and the microphone's state),
+// and view's edit sliders.
 const DRAG_DEGREES_PER_PIXEL = 0.3;
 
 function element(tag, attributes = {}, parent = null) {
@@ -30,8 +32,8 @@ export function buildControls(player) {
   const free = element("input", { id: "free-orbit", type: "checkbox" }, freeLabel);
   freeLabel.append(" free orbit");
   const reset = element("button", { id: "reset-view", textContent: "Reset view" }, bar);
-  const status = element("span", { id: "live-status" }, bar);
-  const single = player.frameCount < 2 || manifest.live === "drive";
+  const status = element("span", { id: "live-status", textContent: player.statusText }, bar); // one line
+  const single = player.frameCount < 2 || manifest.live === "drive" || manifest.live === "speak";
   play.disabled = scrub.disabled = single;
 
   const controls = {

@@ -4,9 +4,16 @@
 // Per frame the CPU only turns the posed mesh into face frames (binding.js) and uploads them; the splats are
 // placed, rotated, scaled and shaded by the generator (generator.js) and sorted by Spark.
 //
+// A clip with sound (manifest clip.audio) plays it and takes the shown frame from it (sound.js): while playing, frame
+// = floor(audio.currentTime * fps), clamped to the clip. When the browser refuses to start the sound without a click
+// (autoplay), the page says "press Play for sound" and waits, paused, on frame 0.
+//
 // Deep link: index.html?frame=N&paused=1&view=dataset draws clip frame N from the dataset camera at the dataset
 // image size; document.body.dataset.drawnFrame = "N" once that frame is drawn with its splats sorted.
-// window.geoavatar.stats: counters for tests and benchmarks (docs/web_player.md).
+// window.geoavatar.stats: counters for tests and benchmarks (docs/web_player.md): drawn, received, frameCostMs,
+// costs, transportMs; with sound audioTime (the sound's clock, seconds), audioFrame (the frame shown for it),
+// audioBlocked; live "speak" microphoneChunks, microphoneError, soundToPictureMs and soundToPicture {count, p50,
+// p95} (ms from a sound chunk's capture to the drawing of the first mesh posed from it).
 import * as THREE from "three";
 import { SparkRenderer } from "@sparkjsdev/spark";
 import { faceFrames, dequantiseFrame, FACE_STRIDE } from "./binding.js";
@@ -14,10 +21,12 @@ import { avatarGenerator, floatTexture, halfTexture, FACE_TEXELS, POSE_TEXELS, R
 import { clamp, fittedIntrinsics, orbitWorld, placeCamera, projectionFromIntrinsics, worldFromViewmat } from "./camera.js";
 import { LiveLink } from "./live.js";
 import { buildControls } from "./controls.js";
+import { ClipSound } from "./sound.js";
 
 const FREE_YAW = [-180, 180];
 const FREE_PITCH = [-89, 89];
 const COST_WINDOW = 120; // frames in the rolling mean of the per-frame cost
+const LATENCY_WINDOW = 1000; // drawn speech meshes in stats.soundToPictureMs
 const FORMAT = 2; // the avatar.json / avatar.bin layout this page reads (geoavatar/web/pack.py FORMAT_VERSION)
 
 async function fetchBytes(url) {
@@ -33,9 +42,14 @@ async function loadAvatar(base) {
   if (manifest.format !== FORMAT) {
     throw new Error(`avatar.json: format ${manifest.format}, this player reads ${FORMAT}: export the avatar again`);
   }
-  const [avatarBytes, clipBytes] = await Promise.all([
+  const audio = manifest.clip.audio; // absent: a clip without sound (and every folder written before sound)
+  if (audio && !(audio.rate > 0 && audio.seconds > 0 && typeof audio.file === "string")) {
+    throw new Error("avatar.json: clip.audio invalid");
+  }
+  const [avatarBytes, clipBytes, audioBytes] = await Promise.all([
     fetchBytes(new URL(manifest.avatar.file, base)),
     fetchBytes(new URL(manifest.clip.file, base)),
+    audio ? fetchBytes(new URL(audio.file, base)) : null,
   ]);
   const { splats, faces, vertices, followsHead } = manifest.avatar;
   const posed = followsHead ? manifest.avatar.posed : 0; // the first `posed` splats carry a pose row
@@ -53,7 +67,7 @@ async function loadAvatar(base) {
   if (followsHead && manifest.clip.pose?.length !== manifest.clip.frames) {
     throw new Error("avatar.json: clip.pose missing");
   }
-  return { manifest, anchors, rows, faceIds, poses, clip };
+  return { manifest, anchors, rows, faceIds, poses, clip, audioBytes };
 }
 
 function readOptions() {
@@ -67,7 +81,7 @@ function readOptions() {
 }
 
 class Player {
-  constructor({ manifest, anchors, rows, faceIds, poses, clip }, options) {
+  constructor({ manifest, anchors, rows, faceIds, poses, clip, audioBytes }, options) {
     this.manifest = manifest;
     this.options = options;
     this.clip = clip;
@@ -81,6 +95,16 @@ class Player {
     this.orbit = { yaw: 0, pitch: 0, distance: 1, free: false };
     this.liveVertices = null; // the newest streamed mesh, shown instead of the clip while set
     this.liveCode = null; // its head pose code [6] when the hair follows the head
+    this.liveCapture = null; // the capture time (Unix s) of the sound its mesh was posed from, until it is drawn
+    this.statusText = "";
+    this.sound = audioBytes ? new ClipSound(audioBytes, { fps: manifest.clip.fps, frames: this.frameCount,
+      seconds: manifest.clip.audio.seconds }) : null;
+    if (this.sound) {
+      Object.assign(this.stats, { audioTime: 0, audioFrame: this.frame, audioBlocked: false });
+      this.sound.element.addEventListener("pause", () => { // paused from outside the page (media keys, ...)
+        if (this.playing) this.setPlaying(false);
+      });
+    }
     this.needsDraw = true;
     this.dirtyFrame = true;
     this.setupRenderer();
@@ -202,14 +226,32 @@ class Player {
     this.frame = ((frame % this.frameCount) + this.frameCount) % this.frameCount;
     this.dirtyFrame = true;
     this.controls?.showFrame(this.frame);
+    if (this.sound && !this.playing) this.sound.seek(this.frame); // Play goes on from here
     if (this.options.datasetView && this.manifest.viewmats) this.placeDatasetCamera();
     if (this.live?.editing) this.live.resendEdit(); // the edit follows the shown frame
   }
 
-  showLive(vertices, code = null) {
+  showLive(vertices, code = null, capture = null) {
     this.liveVertices = vertices;
     this.liveCode = code;
+    this.liveCapture = capture;
     this.dirtyFrame = true;
+  }
+
+  // A mesh posed from sound is drawn: how long after its newest sound chunk was captured.
+  recordSoundLatency(capture) {
+    const ms = performance.timeOrigin + performance.now() - capture * 1000;
+    const window_ = this.stats.soundToPictureMs;
+    window_.push(ms);
+    if (window_.length > LATENCY_WINDOW) window_.shift();
+    const sorted = [...window_].sort((a, b) => a - b);
+    const at = (q) => sorted[Math.min(sorted.length - 1, Math.floor(q * sorted.length))];
+    this.stats.soundToPicture = { count: sorted.length, p50: at(0.5), p95: at(0.95) };
+  }
+
+  setStatus(text) {
+    this.statusText = text;
+    this.controls?.setStatus(text);
   }
 
   // Draw once the generated splats are sorted: Spark's update() generates and awaits its sort.
@@ -224,6 +266,7 @@ class Player {
   }
 
   async start() {
+    this.sound?.seek(this.frame);
     this.uploadFrame();
     await this.drawSettled();
     document.body.dataset.drawnFrame = String(this.frame);
@@ -231,13 +274,40 @@ class Player {
     this.controls = buildControls(this);
     this.clockOrigin = performance.now() - (this.frame / this.manifest.clip.fps) * 1000;
     requestAnimationFrame((t) => this.tick(t));
+    if (this.sound && this.playing) this.playSound();
+  }
+
+  // Start the sound (the clip's clock); refused (no click yet): paused on frame 0 with a status line.
+  async playSound() {
+    const refusal = await this.sound.play();
+    if (refusal === null) {
+      this.stats.audioBlocked = false;
+      if (this.statusText === "press Play for sound") this.setStatus("");
+    } else if (refusal === "NotAllowedError") {
+      this.stats.audioBlocked = true;
+      this.setPlaying(false);
+      this.showFrame(0);
+      this.setStatus("press Play for sound");
+      console.info("GeoAvatar player: the browser starts sound only after a click: press Play for sound");
+    } else if (refusal !== "AbortError") { // AbortError: paused again before it started
+      this.setPlaying(false);
+      this.setStatus(`sound: ${refusal}`);
+    }
   }
 
   tick(now) {
     requestAnimationFrame((t) => this.tick(t));
     if (this.settling) return;
     if (this.playing && !this.liveVertices) {
-      const frame = Math.floor(((now - this.clockOrigin) / 1000) * this.manifest.clip.fps) % this.frameCount;
+      let frame;
+      if (this.sound) { // the sound is the clock: it loops, and so does the clip
+        const time = this.sound.time;
+        frame = this.sound.frameAt(time);
+        this.stats.audioTime = time;
+        this.stats.audioFrame = frame;
+      } else {
+        frame = Math.floor(((now - this.clockOrigin) / 1000) * this.manifest.clip.fps) % this.frameCount;
+      }
       if (frame !== this.frame) this.showFrame(frame);
     }
     if (!this.playing && this.dirtyFrame && !this.liveVertices) {
@@ -255,13 +325,33 @@ class Player {
       this.needsDraw = false;
       this.renderer.render(this.scene, this.camera);
       this.stats.drawn += 1;
+      if (this.liveCapture !== null && this.liveVertices) {
+        this.recordSoundLatency(this.liveCapture);
+        this.liveCapture = null;
+      }
     }
   }
 
   setPlaying(playing) {
+    const wasPlaying = this.playing;
     this.playing = playing && this.frameCount > 1;
     this.clockOrigin = performance.now() - (this.frame / this.manifest.clip.fps) * 1000;
     this.controls?.showPlaying(this.playing);
+    if (!this.sound) return;
+    if (this.playing) {
+      if (this.sound.frameAt() !== this.frame) this.sound.seek(this.frame);
+      this.playSound();
+    } else {
+      this.sound.pause(); // where the sound stopped: its frame is shown, and Play goes on from there
+      const frame = this.sound.frameAt();
+      if (wasPlaying && frame !== this.frame && !this.liveVertices) {
+        this.frame = frame;
+        this.dirtyFrame = true;
+        this.controls?.showFrame(frame);
+      }
+      this.stats.audioTime = this.sound.time;
+      this.stats.audioFrame = this.frame;
+    }
   }
 }
 
@@ -271,7 +361,7 @@ async function main() {
     const options = readOptions();
     const player = new Player(await loadAvatar(window.location.href), options);
     window.geoavatar = { player, stats: player.stats, faceFrames };
-    if (player.manifest.live) player.live = new LiveLink(player);
+    if (player.manifest.live) player.live = new LiveLink(player, player.manifest.live === "speak");
     await player.start();
     status.textContent = "";
   } catch (error) {
