@@ -51,3 +51,46 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR in dB of two uint8 images."""
     mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
     return 10.0 * float(np.log10(255.0 ** 2 / max(mse, 1e-12)))
+
+
+def small_player(frames: int = 20, fps: float = 10.0, size: int = 64, splats: int = 300, audio=None,
+                 live: str | None = None, seed: int = 0):
+    """(PlayerAssets, posed vertices [T, V, 3] float32) of a small player with no run behind it: OpenHead (its
+    mouth included) whose jaw opens and closes and whose head turns a little over `frames` frames, an avatar of
+    `splats` Gaussians (varied_avatar, normal shading, hair that does not follow the head), seen from a camera 0.6 m in
+    front at size x size px; `audio` and `live` as pack.player_assets takes them."""
+    from geoavatar.avatar.model import GaussianAvatar
+    from geoavatar.head import load_head_model
+    from geoavatar.head.params import HeadParams
+    from geoavatar.render.camera import Camera, look_at
+    from geoavatar.web.pack import player_assets, quantise_clip
+
+    head = load_head_model("openhead", mouth="geoavatar")
+    phase = torch.linspace(0.0, 2.0 * np.pi, frames)
+    zeros = torch.zeros(frames, 3)
+    params = HeadParams(shape=torch.zeros(head.num_shape), expr=torch.zeros(frames, head.num_expr),
+                        rotation=torch.stack([zeros[:, 0], 0.2 * torch.sin(phase), zeros[:, 0]], 1), neck_pose=zeros,
+                        jaw_pose=torch.stack([0.15 * (1 - torch.cos(phase)), zeros[:, 0], zeros[:, 0]], 1),
+                        eyes_pose=torch.zeros(frames, 6), translation=zeros)
+    with torch.no_grad():
+        vertices = head.forward_params(params).vertices.float()  # [T, V, 3]
+    avatar = GaussianAvatar(head.faces, normal_shading=True)
+    varied_avatar(avatar, splats, seed)
+    centre = vertices[0].mean(0)
+    camera = Camera(look_at(centre + torch.tensor([0.0, 0.0, 0.6]), centre),
+                    torch.tensor([[1.5 * size, 0.0, size / 2], [0.0, 1.5 * size, size / 2], [0.0, 0.0, 1.0]]),
+                    size, size)
+    orbit = {"yaw": [-30.0, 30.0], "pitch": [-20.0, 20.0], "centre": centre.tolist()}
+    assets = player_assets(avatar, quantise_clip(vertices), fps, camera, orbit, (1.0, 1.0, 1.0), list(range(frames)),
+                           "test", live=live, audio=audio)
+    return assets, vertices.numpy()
+
+
+def on_off_tone(seconds: float, rate: int = 16000, frequency: float = 440.0, switch: float = 0.25,
+                amplitude: float = 0.5):
+    """pack.SoundTrack of a tone switched on and off every `switch` seconds (on first)."""
+    from geoavatar.web.pack import SoundTrack
+
+    t = np.arange(int(round(seconds * rate))) / rate
+    on = (np.floor(t / switch) % 2) == 0
+    return SoundTrack((amplitude * np.sin(2 * np.pi * frequency * t) * on).astype(np.float32), rate)

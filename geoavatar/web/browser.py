@@ -7,7 +7,9 @@ software WebGL2 (SwiftShader) where there is no GPU, and a local static file ser
 
 Playwright's own browser download is never used (executable_path); the background-networking flags keep
 Chromium from calling out (this machine has no network). The GPU flags give software GL; `hardware=True`
-leaves GL to Chromium (a machine with a GPU)."""
+leaves GL to Chromium (a machine with a GPU). `args` adds launch flags: AUTOPLAY (sound may start without a click),
+REFUSE_AUTOPLAY (it may not, whatever Chromium's default), fake_microphone(wav) (getUserMedia granted without asking
+and fed from a WAV file, looped)."""
 
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ from pathlib import Path
 from typing import Iterator
 
 SOFTWARE_GL = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+AUTOPLAY = ["--autoplay-policy=no-user-gesture-required"]
+REFUSE_AUTOPLAY = ["--autoplay-policy=user-gesture-required"]
 QUIET = ["--no-sandbox", "--no-first-run", "--disable-background-networking", "--disable-component-update",
          "--disable-sync", "--disable-quic", "--disable-default-apps", "--metrics-recording-only"]
 
@@ -33,6 +37,12 @@ def chromium_path() -> str | None:
         if path:
             return path
     return None
+
+
+def fake_microphone(wav: str | Path) -> list[str]:
+    """Launch flags for a microphone that plays `wav` (looped) with permission granted without a prompt."""
+    return ["--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+            f"--use-file-for-fake-audio-capture={Path(wav).resolve()}"]
 
 
 def browser_missing() -> str | None:
@@ -76,14 +86,15 @@ def _niced(executable: str, nice: int) -> Iterator[str]:
 
 @contextlib.contextmanager
 def chromium_page(width: int = 640, height: int = 480, hardware: bool = False, console: list | None = None,
-                  nice: int = 0):
+                  nice: int = 0, args: list[str] | None = None):
     """A Playwright page in headless Chromium (device scale 1); `console` collects the page's console lines;
-    `nice` > 0 runs the browser at a lower CPU priority (a benchmark sharing 2 cores with the live pipeline)."""
+    `nice` > 0 runs the browser at a lower CPU priority (a benchmark sharing 2 cores with the live pipeline);
+    `args`: more launch flags (AUTOPLAY, REFUSE_AUTOPLAY, fake_microphone(wav))."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright, _niced(chromium_path(), nice) as executable:  # a fresh profile per launch
-        args = QUIET + ([] if hardware else SOFTWARE_GL)
-        browser = playwright.chromium.launch(executable_path=executable, headless=True, args=args)
+        flags = QUIET + ([] if hardware else SOFTWARE_GL) + list(args or [])
+        browser = playwright.chromium.launch(executable_path=executable, headless=True, args=flags)
         try:
             page = browser.new_page(viewport={"width": width, "height": height}, device_scale_factor=1)
             if console is not None:
@@ -135,4 +146,5 @@ def canvas_rgb(page):
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
 
 
-__all__ = ["browser_missing", "canvas_rgb", "chromium_page", "chromium_path", "static_server", "wait_drawn"]
+__all__ = ["AUTOPLAY", "REFUSE_AUTOPLAY", "browser_missing", "canvas_rgb", "chromium_page", "chromium_path",
+           "fake_microphone", "static_server", "wait_drawn"]
