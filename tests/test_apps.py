@@ -20,14 +20,17 @@ from plyfile import PlyData
 
 from apps_fixtures import SIZE, make_run, make_subject, make_untrained_run
 from geoavatar import cli
+from geoavatar.animation.expression_transfer import TRANSFER_MODES
+from geoavatar.animation.posing import pose_gaussians, record_camera, render_params
+from geoavatar.animation.sinks import mp4 as mp4_sink
+from geoavatar.animation.transfer import driven_params, reference_frame
 from geoavatar.apps import bench as bench_app
 from geoavatar.apps import export as export_app
 from geoavatar.apps import orbit as orbit_app
 from geoavatar.apps import reenact as reenact_app
 from geoavatar.apps import render_video
 from geoavatar.apps import view as view_app
-from geoavatar.apps.common import colormap_lut, error_map, pose_gaussians, record_camera, render_params, torch_threads
-from geoavatar.apps.expression_transfer import TRANSFER_MODES
+from geoavatar.apps.common import colormap_lut, error_map, torch_threads
 from geoavatar.apps.track import write_tracked_copy
 from geoavatar.data import open_subject
 from geoavatar.errors import OptionError
@@ -245,34 +248,34 @@ def test_driven_params_absolute_and_relative_rules(run, driver):
     subject = open_subject(driver)
     values = subject.params
     timesteps = list(subject.timesteps)
-    driver_ref = reenact_app.reference_frame(values, timesteps, "first")
-    avatar_ref = reenact_app.reference_frame(frames.values.to_npz(), frames.timesteps, "first")
+    driver_ref = reference_frame(values, timesteps, "first")
+    avatar_ref = reference_frame(frames.values.to_npz(), frames.timesteps, "first")
     identity = frames.identity()
 
-    absolute = reenact_app.driven_params(identity, avatar_ref, values, driver_ref, "absolute")
+    absolute = driven_params(identity, avatar_ref, values, driver_ref, "absolute")
     assert torch.equal(absolute["expr"], values["expr"]) and torch.equal(absolute["jaw_pose"], values["jaw_pose"])
     assert torch.equal(absolute["shape"], frames.values.shape)  # the avatar's identity
     assert torch.allclose(absolute["translation"][0], avatar_ref["translation"][0])  # neutral frame: avatar's place
     moved = values["translation"][2] - values["translation"][0]
     assert torch.allclose(absolute["translation"][2] - absolute["translation"][0], moved, atol=1e-6)
 
-    relative = reenact_app.driven_params(identity, avatar_ref, values, driver_ref, "relative")
-    assert all(torch.equal(relative[k], v) for k, v in reenact_app.driven_params(identity, avatar_ref, values,
-                                                                                 driver_ref, True).items())
+    relative = driven_params(identity, avatar_ref, values, driver_ref, "relative")
+    assert all(torch.equal(relative[k], v) for k, v in driven_params(identity, avatar_ref, values,
+                                                                     driver_ref, True).items())
     for key in ("expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose"):  # the driver's neutral -> the avatar's
         assert torch.allclose(relative[key][0], avatar_ref[key][0], atol=1e-5), key
     delta = values["expr"][2] - values["expr"][0]
     assert torch.allclose(relative["expr"][2] - relative["expr"][0], delta, atol=1e-5)
     # Driving the avatar with its own sequence, relative to its own first frame, gives that sequence back.
     own = {k: v for k, v in frames.values.to_npz().items()}
-    same = reenact_app.driven_params(identity, avatar_ref, own, avatar_ref, "relative")
+    same = driven_params(identity, avatar_ref, own, avatar_ref, "relative")
     for key in ("expr", "rotation", "jaw_pose", "translation"):
         assert torch.allclose(same[key], own[key], atol=1e-5), key
-    mean = reenact_app.reference_frame(values, timesteps, "mean")
+    mean = reference_frame(values, timesteps, "mean")
     assert torch.allclose(mean["expr"][0], values["expr"].mean(0))
-    assert torch.equal(reenact_app.reference_frame(values, timesteps, str(timesteps[1]))["expr"], values["expr"][1:2])
+    assert torch.equal(reference_frame(values, timesteps, str(timesteps[1]))["expr"], values["expr"][1:2])
     with pytest.raises(ValueError, match="--driver-neutral"):
-        reenact_app.reference_frame(values, timesteps, "middle")
+        reference_frame(values, timesteps, "middle")
 
 
 # --- orbit ---------------------------------------------------------------------------------------
@@ -326,7 +329,7 @@ def test_video_loops_run_on_threads_asked_and_restore_the_process_count(run_dir,
     """--threads (default 1) holds inside the frame loops of render, reenact and orbit, the process's count after;
     the frames do not depend on it."""
     seen: list[int] = []
-    real, real_frames = reenact_app.render_params, render_video.render_run_frames
+    real, real_frames = mp4_sink.rasterize_gaussians, render_video.render_run_frames
 
     def spy(*args, **kwargs):
         seen.append(torch.get_num_threads())
@@ -338,7 +341,7 @@ def test_video_loops_run_on_threads_asked_and_restore_the_process_count(run_dir,
             yield frame
 
     monkeypatch.setattr(render_video, "render_run_frames", frames_spy)
-    monkeypatch.setattr(reenact_app, "render_params", spy)
+    monkeypatch.setattr(mp4_sink, "rasterize_gaussians", spy)
     before = torch.get_num_threads()
     with torch_threads(3):
         assert torch.get_num_threads() == 3

@@ -15,7 +15,7 @@ import torch
 
 from apps_fixtures import make_subject, make_untrained_run
 from geoavatar import cli
-from geoavatar.apps.reenact import DrivenAvatar
+from geoavatar.animation.sources.driver import DrivenAvatar
 from geoavatar.eval.cross import cross_dir
 
 SIZE = 64

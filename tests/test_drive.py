@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from apps_fixtures import make_subject, make_untrained_run
-from geoavatar.apps.drive import NewestFrame, Source, drive_avatar, open_video
+from geoavatar.animation.sources.capture import NewestFrame, open_video
+from geoavatar.animation.sources.capture import VideoInput as Source
+from geoavatar.apps.drive import drive_avatar
 from geoavatar.cli import main
 
 VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "wojtek.mp4"
@@ -185,7 +187,7 @@ def test_view_mode_streams_every_online_frame_to_the_browser(run, clip):
 
 
 def test_a_source_too_short_for_the_identity_stage_is_an_error(run):
-    from geoavatar.apps.drive import DriveError
+    from geoavatar.animation.sources.capture import DriveError
 
     blank = Source("--video blank", 25.0, lambda: iter([np.zeros((64, 64, 3), np.uint8)] * 3), live=False)
     with pytest.raises(DriveError, match="identity stage"):

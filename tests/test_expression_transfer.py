@@ -1,4 +1,4 @@
-"""Expression transfer modes of #30 (apps/expression_transfer.py through reenact's driven_params): statistics maps the
+"""Expression transfer modes of #30 (animation/expression_transfer.py through driven_params): statistics maps the
 driver's range onto the avatar's, subspace keeps the avatar inside the expressions it was trained on, the options
 resolve as documented. Plain tensors: no run, no rendering."""
 
@@ -7,10 +7,11 @@ from __future__ import annotations
 import pytest
 import torch
 
+from geoavatar.animation.expression_transfer import (DEFAULT_TRANSFER, PRIOR_FRAMES, TRANSFER_MODES,
+                                                     TransferStatistics, expression_statistics, expression_subspace,
+                                                     resolve_transfer, statistics_transfer, subspace_projection)
+from geoavatar.animation.transfer import driven_params
 from geoavatar.apps import reenact as reenact_app
-from geoavatar.apps.expression_transfer import (DEFAULT_TRANSFER, PRIOR_FRAMES, TRANSFER_MODES, TransferStatistics,
-                                                expression_statistics, expression_subspace, resolve_transfer,
-                                                statistics_transfer, subspace_projection)
 from geoavatar.errors import OptionError
 
 FRAMES, MODES = 200, 10
@@ -90,7 +91,7 @@ def test_driven_params_in_each_mode(avatar):
     avatar_ref = {k: v[:1] for k, v in avatar.items()}
     driver_ref = {k: v[:1] for k, v in driver.items()}
     learned = learned_from(avatar, driver)
-    out = {mode: reenact_app.driven_params(identity, avatar_ref, driver, driver_ref, mode, learned=learned)
+    out = {mode: driven_params(identity, avatar_ref, driver, driver_ref, mode, learned=learned)
            for mode in TRANSFER_MODES}
     assert torch.equal(out["absolute"]["expr"], driver["expr"])
     for mode in ("statistics", "subspace"):  # the head turns as in relative transfer; the expression is mapped
@@ -99,7 +100,7 @@ def test_driven_params_in_each_mode(avatar):
     assert torch.allclose(out["subspace"]["expr"], subspace_projection(out["relative"], learned)["expr"])
     assert torch.allclose(out["subspace"]["jaw_pose"], subspace_projection(out["relative"], learned)["jaw_pose"])
     with pytest.raises(ValueError, match="needs the statistics"):
-        reenact_app.driven_params(identity, avatar_ref, driver, driver_ref, "subspace")
+        driven_params(identity, avatar_ref, driver, driver_ref, "subspace")
 
 
 def test_transfer_options():

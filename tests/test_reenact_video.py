@@ -16,6 +16,7 @@ import pytest
 
 from apps_fixtures import make_subject, make_untrained_run
 from geoavatar import cli
+from geoavatar.animation.sources.driver_video import driver_cache_dir
 from geoavatar.apps import reenact as reenact_app
 from geoavatar.errors import OptionError
 from geoavatar.prep.pipeline import STAGES
@@ -75,7 +76,7 @@ def test_driver_video_is_tracked_cached_and_reenacted(run_dir, clip, tmp_path, c
     assert frames[0].shape[1] == 2 * frames[0].shape[0]
     with av.open(str(out)) as container:
         assert float(container.streams.video[0].average_rate) == 20.0  # the driver video's own rate
-    cache = reenact_app.driver_cache_dir(run_dir, clip)
+    cache = driver_cache_dir(run_dir, clip)
     assert cache.parent == run_dir / "drivers" and cache.name.startswith("talk-")
     report = json.loads((cache / "report.json").read_text())
     assert report["frames"] == FRAMES and report["size"] == 64 and report["fps"] == 20.0

@@ -16,8 +16,9 @@ import torch
 
 from apps_fixtures import make_subject, make_untrained_run
 from geoavatar import cli
+from geoavatar.animation.posing import head_centre, posed_head_vertices
+from geoavatar.animation.sinks.browser import edited_params
 from geoavatar.apps import view as view_app
-from geoavatar.apps.common import head_centre, posed_head_vertices
 from geoavatar.avatar.hair_motion import head_pose_code
 from geoavatar.geometry import axis_angle_to_matrix
 from geoavatar.train.checkpoint import open_run
@@ -73,7 +74,7 @@ def test_view_serves_the_player_and_streams_slider_edits(run):
             socket_.send("not json")  # ignored
             socket_.send(json.dumps({"type": "edit", "frame": 99, "expr": [], "jaw": 0.0}))  # out of range: ignored
         params, _ = RunFrames(run).params(RunFrames(run).timesteps[1])
-        edited = view_app.edited_params(run.head, params, [0.8, 0.0, 0.0], 0.3, 20.0, 0.0, viewer.centre)
+        edited = edited_params(run.head, params, [0.8, 0.0, 0.0], 0.3, 20.0, 0.0, viewer.centre)
         np.testing.assert_allclose(mesh, posed_head_vertices(run, edited, None).detach().numpy(), atol=1e-5)
         # the default avatar's hair follows the head: the turned head's pose code travels with its mesh, clamped to the
         # training frames' box as the CPU renderer clamps it (a 20 degree turn leaves the box)
@@ -92,7 +93,7 @@ def test_head_turn_edit_turns_the_head_about_its_centre(run):
     frames = RunFrames(run)
     params, _ = frames.params(frames.timesteps[0])
     centre = head_centre(run, params)
-    turned = view_app.edited_params(run.head, params, [0.0], 0.0, 30.0, -10.0, centre)
+    turned = edited_params(run.head, params, [0.0], 0.0, 30.0, -10.0, centre)
     # Every posed point x' moves to T (x' - c) + c, T = yaw(30 deg about +y) pitch(-10 deg about +x).
     turn = axis_angle_to_matrix(torch.tensor([0.0, math.radians(30.0), 0.0])) @ axis_angle_to_matrix(
         torch.tensor([math.radians(-10.0), 0.0, 0.0]))
@@ -100,9 +101,9 @@ def test_head_turn_edit_turns_the_head_about_its_centre(run):
     after = run.head.forward_params(turned).vertices[0]
     assert torch.allclose(after, (before - centre) @ turn.T + centre, atol=1e-5)
     assert float((after - before).norm(dim=-1).max()) > 0.01
-    same = view_app.edited_params(run.head, params, [0.0, 0.0], 0.0, 0.0, 0.0, centre)
+    same = edited_params(run.head, params, [0.0, 0.0], 0.0, 0.0, 0.0, centre)
     assert all(torch.equal(same.to_npz()[k], v) for k, v in params.to_npz().items())
-    smiling = view_app.edited_params(run.head, params, [0.5], 0.0, 0.0, 0.0, centre)
+    smiling = edited_params(run.head, params, [0.5], 0.0, 0.0, 0.0, centre)
     assert float(smiling.expr[0, 0] - params.expr[0, 0]) == pytest.approx(0.5)
 
 
@@ -193,8 +194,8 @@ def test_the_pages_jaw_slider_is_posed_in_python_and_shown(run):
             page.click("#edits button")  # reset: the page plays its own clip again
             page.wait_for_function("window.geoavatar.player.liveVertices === null", timeout=30_000)
         params, _ = RunFrames(run).params(RunFrames(run).timesteps[2])
-        expected = posed_head_vertices(run, view_app.edited_params(run.head, params, [0.0, 0.0], 0.25, 0.0, 0.0,
-                                                                   viewer.centre), None)
+        expected = posed_head_vertices(run, edited_params(run.head, params, [0.0, 0.0], 0.25, 0.0, 0.0,
+                                                          viewer.centre), None)
         np.testing.assert_allclose(shown, expected.detach().numpy().reshape(-1), atol=1e-6)
     finally:
         viewer.stop()

@@ -154,8 +154,8 @@ def test_interrupted_export_leaves_nothing_that_looks_complete(run, tmp_path, mo
 
 
 def test_a_driver_clip_is_reenacts_motion_posed_once(run, tmp_path):
-    from geoavatar.apps.common import posed_head_vertices
-    from geoavatar.apps.reenact import driven_clip, frame_of
+    from geoavatar.animation.posing import posed_head_vertices
+    from geoavatar.animation.sources.driver import driven_clip, frame_of
     from geoavatar.train.run_frames import RunFrames
 
     driver = make_subject(tmp_path / "driver", subject=2, frames=5, size=32, seed=3)
@@ -172,7 +172,7 @@ def test_a_driver_clip_is_reenacts_motion_posed_once(run, tmp_path):
 
 def test_a_clip_whose_camera_moves_lists_each_frames_camera(run, tmp_path, monkeypatch):
     """INSTA-like data moves the camera instead of the head: the dataset view must follow each frame's camera."""
-    from geoavatar.apps import web_export
+    from geoavatar.animation.sinks import web as web_export
 
     still = web_export.record_camera
 

@@ -6,6 +6,11 @@
     rgb = render_params(run, params, camera, T)      # avatar.render_avatar on the run's background, clamped
     with Mp4Writer(path, fps=25) as video: video.write(frame_uint8)   # geoavatar.io.video: the one mp4 writer
 
+The posing path (render_params, posed_head_vertices, record_camera, ...) lives in animation/posing.py, with the
+sources and sinks the animation commands are built from (reenact, drive, view, export --format web, eval --driver);
+this module re-exports it for the commands that pose a frame themselves (render, orbit, export, bench) and for
+the tests.
+
 The T rule (the mouth deformer's time input gamma(T)) lives with RunFrames in train/run_frames.py, which
 `geoavatar eval` uses too: a training timestep renders with its own T and the run's refined parameters, which
 reproduces what training saw; any other timestep (test frames, a driver's frames, edited parameters) renders with
@@ -32,14 +37,12 @@ import torch
 import tyro
 from torch import Tensor
 
-from geoavatar.avatar import GlobalGaussians, pose_avatar, posed_head, render_avatar
-from geoavatar.avatar.hair_motion import head_pose_code
-from geoavatar.data import DatasetError
-from geoavatar.data.subject import Subject
+# the posing path and the side-by-side picture moved to the animation layer; re-exported for render, orbit, export,
+# bench and the tests, which import them from here
+from geoavatar.animation.posing import (browser_pose_code, head_centre, pose_gaussians, posed_head_vertices,
+                                        record_camera, render_params, run_background)
+from geoavatar.animation.sinks.mp4 import side_by_side
 from geoavatar.errors import OptionError
-from geoavatar.head.params import HeadParams
-from geoavatar.head.regions import skull_centre
-from geoavatar.render.camera import Camera
 from geoavatar.runtime import num_threads
 from geoavatar.train.checkpoint import LoadedRun
 
@@ -92,19 +95,7 @@ def torch_threads(threads: int):
         yield
 
 
-# --- cameras and per-frame parameters ---------------------------------------------------------------
-
-
-def record_camera(subject: Subject, timestep: int, resolution: int | None) -> Camera:
-    """The camera of `timestep` in a subject (its first camera), at `resolution` (longer side; None: stored)."""
-    frames = subject.frames_of([timestep])
-    if not frames:
-        raise DatasetError(f"{subject.root}: has no frame with timestep {timestep}")
-    frame = frames[0]
-    camera = Camera(torch.from_numpy(frame.viewmat).float(), torch.from_numpy(frame.K).float(), frame.width, frame.height)
-    if resolution is not None and resolution < max(frame.width, frame.height):
-        camera = camera.resized(resolution)
-    return camera
+# --- per-frame parameters -------------------------------------------------------------------------
 
 
 def split_timesteps(run: LoadedRun, split: str) -> list[int]:
@@ -114,45 +105,6 @@ def split_timesteps(run: LoadedRun, split: str) -> list[int]:
     if split not in run.info.timesteps:
         raise OptionError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
     return list(run.info.timesteps[split])
-
-
-# --- the animation path ----------------------------------------------------------------------------
-
-
-def posed_head_vertices(run: LoadedRun, params: HeadParams, timestep: int | None = None) -> Tensor:
-    """[V, 3] the run's head model posed by `params`, with the mouth deformer's offsets."""
-    return posed_head(run.head, params, run.deformer, timestep).vertices[0]
-
-
-def browser_pose_code(run: LoadedRun, params: HeadParams) -> Tensor | None:
-    """[6] the frame's head pose code when the run's hair follows the head's turn (the browser player moves the hair
-    by it, web/pack.py), clamped to the training frames' range as the avatar clamps it, else None."""
-    return run.avatar.clamp_pose_code(head_pose_code(params)) if run.avatar.follows_head else None
-
-
-def pose_gaussians(run: LoadedRun, params: HeadParams, timestep: int | None = None) -> GlobalGaussians:
-    """Head model (with the mouth deformer) posed by `params`, then the avatar's local -> global."""
-    return pose_avatar(run.avatar, run.head, params, timestep, run.deformer).gaussians
-
-
-def run_background(run: LoadedRun) -> Tensor:
-    """[3] the background colour the run was trained on."""
-    return torch.tensor(run.info.background, dtype=torch.float32)
-
-
-@torch.no_grad()
-def render_params(run: LoadedRun, params: HeadParams, camera: Camera, timestep: int | None = None,
-                  background: Tensor | None = None, backend: str = "auto") -> Tensor:
-    """The avatar posed by `params`, seen by `camera`: rgb [H, W, 3] in [0, 1] on the run's background."""
-    background = run_background(run) if background is None else background
-    frame = render_avatar(run.avatar, run.head, params, camera, timestep, run.deformer, background, backend)
-    return frame.result.rgb.clamp(0.0, 1.0)
-
-
-def head_centre(run: LoadedRun, params: HeadParams) -> Tensor:
-    """[3] centre of the posed head (head.regions.skull_centre: the skin without the neck and the mouth),
-    what an orbit turns about."""
-    return skull_centre(posed_head(run.head, params, None, None).vertices[0], run.head)
 
 
 # --- images ------------------------------------------------------------------------------------------
@@ -186,14 +138,6 @@ def error_map(pred: Tensor, target: Tensor, error_max: float = 0.25, colormap: s
     error = (pred - target).abs().mean(dim=-1)  # [H, W]
     index = (error / error_max).clamp(0.0, 1.0).mul(255.0).round().long()
     return colormap_lut(colormap).to(pred.device)[index]
-
-
-def side_by_side(*images: np.ndarray) -> np.ndarray:
-    """uint8 images [H, W_i, 3] of one height, left to right."""
-    heights = {image.shape[0] for image in images}
-    if len(heights) != 1:
-        raise ValueError(f"side_by_side: images of different heights {sorted(heights)}")
-    return np.concatenate(images, axis=1)
 
 
 def default_output(run: LoadedRun, folder: str, name: str) -> Path:

@@ -10,7 +10,7 @@ from typing import Literal, Optional, Sequence
 
 import tyro
 
-from geoavatar.apps.expression_transfer import TransferMode
+from geoavatar.animation.expression_transfer import TransferMode
 from geoavatar.errors import OptionError
 
 
@@ -145,8 +145,10 @@ def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, dr
                relative: bool, transfer: tuple[str, ...], max_frames: int | None, device: str, data: Path | None,
                checkpoint: str, backend: str, flame_dir: Path | None, progress: bool) -> int:
     """`geoavatar eval RUN --driver ...`: the cross re-enactment report, RUN/eval/cross@<driver>/."""
-    from geoavatar.apps.expression_transfer import resolve_transfer
-    from geoavatar.apps.reenact import DrivenAvatar, DrivingOptions, check_driver_options, track_driver
+    from geoavatar.animation.expression_transfer import resolve_transfer
+    from geoavatar.animation.sources.driver import DrivenAvatar, DrivingOptions
+    from geoavatar.animation.sources.driver_video import track_driver
+    from geoavatar.apps.reenact import check_driver_options
     from geoavatar.eval.cross import cross_dir, mode_table, write_cross_report
     from geoavatar.runtime import resolve_device
     from geoavatar.train.checkpoint import load_run
@@ -175,9 +177,10 @@ def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, dr
 
 def evaluate_cross(run, driven, modes: Sequence[str], driver: str, max_frames: int | None = None,
                    scorer=None, data: Path | None = None, flame_dir: Path | None = None, progress: bool = True):
-    """CrossResult of a DrivenAvatar: `max_frames` driver frames (spread evenly; all by default) rendered in each
-    transfer mode of `modes` and scored against the driver's frames (eval/cross.py). `scorer`: a FaceScorer holding
-    the avatar's identity reference (default: eval's, from the run's training frames; closed after)."""
+    """CrossResult of a DrivenAvatar (the animation layer's driver source): `max_frames` driver frames (spread evenly;
+    all by default), its pictures rendered in each transfer mode of `modes`, scored against the driver's frames
+    (eval/cross.py). `scorer`: a FaceScorer holding the avatar's identity reference (default: eval's, from the run's
+    training frames; closed after)."""
     from geoavatar.data import evenly_spaced
     from geoavatar.eval.cross import CrossResult, score_cross
     from geoavatar.eval.evaluate import face_scorer, face_settings, run_label

@@ -2,7 +2,7 @@
 
 What is exported: the *global* Gaussians of one frame, i.e. the avatar posed with that frame's
 parameters (the run's refined ones for a training frame), with the mouth deformation and the T rule
-of apps/common.py (a training frame with its own T, any other frame with T = 0). A splat viewer shows
+of train/run_frames.py (a training frame with its own T, any other frame with T = 0). A splat viewer shows
 exactly what `geoavatar render` shows for that frame. Scales are log standard deviations in metres
 (local log-scale + log of the face scale k), rotations the global quaternions (face rotation composed
 with the local one), colour and opacity are the learned SH-0 coefficient and opacity logit (a run with
@@ -26,8 +26,9 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from geoavatar.apps.common import EXPORT_DIR, RunPath, default_output, pose_gaussians, progress, split_timesteps
-from geoavatar.apps.expression_transfer import TransferMode, resolve_transfer
+from geoavatar.animation.expression_transfer import TransferMode, resolve_transfer
+from geoavatar.animation.posing import pose_gaussians
+from geoavatar.apps.common import EXPORT_DIR, RunPath, default_output, progress, split_timesteps
 from geoavatar.avatar import GlobalGaussians
 from geoavatar.avatar.model import rgb_to_sh_dc
 from geoavatar.errors import OptionError
