@@ -72,6 +72,9 @@ class TrainArgs:
     # reset-opacity-every, lr.position-decay-steps) scale with --steps unless set here: a value set here is
     # a step of this run.
     config: CommandLineConfig = field(default_factory=CommandLineConfig)
+    # Also learn the voice model when the dataset has speech (geoavatar voice; RUN/voice/): sound -> face, from the
+    # training frames only. --no-voice skips it.
+    voice: bool = True
     # Dotted names of the `config` fields given on the command line (parse_args fills it): only those
     # are taken from `config`, every other field from the preset (or from the run, with --resume).
     overrides: Annotated[tuple[str, ...], tyro.conf.Suppress] = ()
@@ -191,7 +194,26 @@ def train(args: TrainArgs) -> int:
     if plan is not None:
         summary += f"; {result.seconds / 60:.1f} of the {plan.minutes:g} minutes after the warm-up"
     print(f"{summary}\nrun: {result.run_dir}")
-    return 0 if result.status == "finished" else 130
+    if result.status != "finished":
+        return 130
+    if args.voice:
+        _learn_voice(result.run_dir, options)
+    return 0
+
+
+def _learn_voice(run_dir, options: RunOptions) -> None:
+    """The voice model of a finished run whose dataset has speech; one line either way."""
+    from geoavatar.apps.voice import learn_voice
+    from geoavatar.data.sound import read_dataset_sound
+    from geoavatar.train.checkpoint import open_run
+
+    run = open_run(run_dir, "cpu", options.flame_dir)
+    sound = read_dataset_sound(run.info.data_root)
+    if sound is None or not sound.activity.has_speech:
+        print("voice: the dataset has no speech, so the avatar has no voice; prepare a video in which you talk to "
+              "give it one")
+        return
+    learn_voice(run)
 
 
 train.parse_argv = parse_args  # geoavatar.cli parses the words with it (not from train's signature)

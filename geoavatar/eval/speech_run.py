@@ -1,0 +1,126 @@
+"""`geoavatar eval RUN --speech`: the held-out segment driven by its own sound, scored (eval/speech.py says how).
+
+    result = evaluate_speech(run, voice, data=None)       # SpeechResult
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from geoavatar.avatar import render_avatar
+from geoavatar.data.dataset import item_camera, item_to
+from geoavatar.data.errors import DatasetError
+from geoavatar.data.sound import read_dataset_sound
+from geoavatar.eval import metrics
+from geoavatar.eval.evaluate import EvalConfig, RenderedFrame, image_metrics, measure_mouth, mouth_face_mask, run_label
+from geoavatar.eval.speech import (SpeechInputs, SpeechResult, baseline_faces, face_scores, normalised_mel)
+from geoavatar.head.params import HeadParams
+from geoavatar.render import composite_target
+from geoavatar.sound import FRAME_RATE
+from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
+from geoavatar.train.run_frames import RunFrames
+from geoavatar.voice.face import FaceProbe
+from geoavatar.voice.model import SpokenFace, VoiceModel
+from geoavatar.voice.train import voice_data
+
+
+def _segment_inputs(run: LoadedRun, frames: RunFrames, sound, test: list[int], expr_dims: int
+                    ) -> tuple[SpeechInputs, SpokenFace, float]:
+    """The baselines' inputs, the tracked faces of the held-out frames, and their frame rate."""
+    data = voice_data(run, frames, sound, expr_dims)
+    times = sound.times(test)  # [N'] seconds
+    cut = float(data.power.shape[0] - 1) / FRAME_RATE  # where the training sound ends
+    start = min(float(times[0]) - 0.5 / max(data.fps, 1.0), cut)
+    held_out = sound.sound.segment(start, sound.sound.seconds)
+    train_mel = normalised_mel(sound.sound.segment(0.0, cut))
+    inputs = SpeechInputs(data.targets.numpy(), train_mel, data.centres.numpy(), normalised_mel(held_out),
+                          np.round((times - start) * FRAME_RATE).astype(np.int64), expr_dims, data.expr_width)
+    rows = [frames.row(t) for t in test]
+    tracked = SpokenFace(frames.values.expr[rows].detach().cpu().numpy(),
+                         frames.values.jaw_pose[rows].detach().cpu().numpy())
+    return inputs, tracked, data.fps
+
+
+def _test_items(run: LoadedRun, data: Path | None, split: str = "test"):
+    dataset = open_run_dataset(run, split, data)
+    return dataset, {int(dataset[i]["timestep"]): i for i in range(len(dataset))}
+
+
+@torch.no_grad()
+def picture_scores(run: LoadedRun, dataset, index_of: dict[int, int], timesteps: list[int],
+                   faces: dict[str, SpokenFace], config: EvalConfig, progress: bool = True) -> dict[str, dict]:
+    """PSNR, LPIPS, mouth PSNR of the held-out frames rendered with the tracked parameters ("tracked") and with each
+    face's expression and jaw (the tracked head pose and gaze, T = 0); the mouth region is the tracked mesh's, the
+    same pixels for every face."""
+    from tqdm.auto import tqdm
+
+    mouth_faces = mouth_face_mask(run.head)
+    totals = {name: {"psnr": [], "lpips": [], "mouth_psnr": []} for name in ("tracked", *faces)}
+    device = run.device
+    for row, timestep in enumerate(tqdm(timesteps, disable=not progress, desc="eval speech: render", leave=False)):
+        item = item_to(dataset[index_of[timestep]], device)
+        tracked = HeadParams.from_npz(item["params"])
+        target = composite_target(item["image"], item["mask"], item["background"])
+        camera = item_camera(item)
+        tracked_vertices = None  # the tracked render comes first: its mesh gives every face's mouth pixels
+        for name, face in {"tracked": None, **faces}.items():
+            params = tracked if face is None else tracked.replace(
+                expr=torch.as_tensor(face.expr[row:row + 1], dtype=torch.float32, device=device)[:, :tracked.expr.shape[1]],
+                jaw_pose=torch.as_tensor(face.jaw[row:row + 1], dtype=torch.float32, device=device))
+            frame = render_avatar(run.avatar, run.head, params, camera, None, run.deformer, item["background"],
+                                  config.backend)
+            if face is None:
+                tracked_vertices = frame.vertices
+            rendered = RenderedFrame(row, item, frame.result.rgb.clamp(0, 1), target, tracked_vertices,
+                                     frame.result.alpha, params, None)
+            record = image_metrics(rendered, config)
+            measure_mouth(record, rendered, run.head, mouth_faces, config)
+            for key in ("psnr", "lpips", "mouth_psnr"):
+                value = getattr(record, key)
+                if value is not None and np.isfinite(value):
+                    totals[name][key].append(float(value))
+    return {name: {k: (float(np.mean(v)) if v else None) for k, v in values.items()} for name, values in totals.items()}
+
+
+def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None, max_frames: int | None = None,
+                    backend: str = "auto", render: bool = True, progress: bool = True) -> SpeechResult:
+    """The voice model and the baselines on the run's held-out frames (module docstring of eval/speech.py)."""
+    started = time.perf_counter()
+    root = Path(data) if data is not None else run.info.data_root
+    sound = read_dataset_sound(root)
+    if sound is None:
+        raise RunError(f"{root}: the dataset has no sound track (audio.json); --speech scores a run whose video "
+                       "had speech")
+    frames = RunFrames(run)
+    test = sorted(run.info.timesteps.get("test", []), key=lambda t: sound.frame_times.get(t, t))
+    if len(test) < 3:
+        raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
+    if max_frames is not None:
+        test = test[:max_frames]  # a contiguous stretch: the lag and the dynamics need consecutive frames
+    try:
+        inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims)
+    except DatasetError as err:
+        raise RunError(f"{root}: {err}") from err
+    faces = {"voice": voice.predict_features(inputs.test_mel, torch.from_numpy(inputs.test_centres))}
+    faces.update(baseline_faces(inputs, voice.past, voice.ahead))
+    probe = FaceProbe(run.head, {k: v.cpu() for k, v in frames.identity().items()})
+    scores = {name: face_scores(probe, face, tracked, fps) for name, face in faces.items()}
+    scores["tracked"] = {}
+    if render:
+        dataset, index_of = _test_items(run, data)
+        config = EvalConfig(split="test", backend=backend)
+        pictures = picture_scores(run, dataset, index_of, test, faces, config, progress)
+        for name, values in pictures.items():
+            scores[name].update(values)
+    settings = {"voice": {k: voice.config.to_dict()[k] for k in ("past", "ahead")}, "held_out_frames": len(test),
+                "normalisation": "the held-out sound by its own speech statistics", "render": render,
+                "head_pose": "tracked (rotation, neck, translation, eyes); T = 0", "metrics": metrics.__name__}
+    return SpeechResult(run.info.run_dir, run_label(run)[0], len(test), fps, scores, settings,
+                        time.perf_counter() - started)
+
+
+__all__ = ["evaluate_speech", "picture_scores"]

@@ -1,0 +1,141 @@
+"""A trained voice model: sound -> each video frame's expression and jaw, plus the person's idle motion; saved beside
+the run as numpy arrays and JSON (nothing is unpickled when it loads).
+
+    voice = VoiceModel.load(run_dir)                      # RUN/voice/voice.npz + voice.json; None when absent
+    face = voice.predict(sound, times)                    # SpokenFace: expr [N, E], jaw [N, 3] at these times (s)
+    voice.save(run_dir)
+
+The expression has the run's width (a head model with fewer modes uses the leading ones); the model predicts its
+`expr_dims` leading coefficients and the jaw, standardised by the training frames' mean and spread.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from geoavatar.errors import GeoAvatarError
+from geoavatar.io.atomic import atomic_write_json, atomic_write_npz
+from geoavatar.sound import FRAME_RATE, Sound
+from geoavatar.sound.features import power_frames
+from geoavatar.voice.config import VoiceConfig
+from geoavatar.voice.idle import IdleMotion
+from geoavatar.voice.inputs import SpeechStats, log_mel_torch, normalise, speech_stats, windows
+from geoavatar.voice.net import VoiceNet, load_state_arrays, state_arrays
+
+VOICE_DIR = "voice"
+WEIGHTS_FILE = "voice.npz"
+INFO_FILE = "voice.json"
+FORMAT = "geoavatar-voice"
+VERSION = 1
+
+
+class VoiceModelError(GeoAvatarError, ValueError):
+    """A run has no voice model, or its files cannot be read; the message says what to do."""
+
+
+@dataclass
+class SpokenFace:
+    expr: np.ndarray  # [N, E]
+    jaw: np.ndarray  # [N, 3]
+
+
+@dataclass
+class VoiceModel:
+    config: VoiceConfig
+    net: VoiceNet
+    target_mean: np.ndarray  # [D] D = expr_dims + 3
+    target_std: np.ndarray  # [D]
+    expr_dims: int
+    expr_width: int  # the run's expression width (predictions are zero-padded to it)
+    speech: SpeechStats  # the training sound's statistics: a live microphone starts from them
+    idle: IdleMotion
+    info: dict = field(default_factory=dict)  # training report (times, losses, frames)
+
+    @property
+    def past(self) -> int:
+        return int(round(self.config.past * FRAME_RATE))
+
+    @property
+    def ahead(self) -> int:
+        return int(round(self.config.ahead * FRAME_RATE))
+
+    @staticmethod
+    def build_net(config: VoiceConfig, outputs: int) -> VoiceNet:
+        from geoavatar.sound import N_MELS
+
+        frames = int(round(config.past * FRAME_RATE)) + 1 + int(round(config.ahead * FRAME_RATE))
+        return VoiceNet(N_MELS, frames, outputs, config.width, config.hidden, config.dropout)
+
+    @torch.no_grad()
+    def predict_features(self, features: torch.Tensor, centres: torch.Tensor) -> SpokenFace:
+        """Normalised log-mel frames [F, M] and the feature frame of each video frame [N] -> SpokenFace."""
+        self.net.eval()
+        outputs = []
+        for chunk in torch.split(centres, 512):
+            outputs.append(self.net(windows(features, chunk, self.past, self.ahead)))
+        z = torch.cat(outputs).double().numpy() if outputs else np.zeros((0, len(self.target_mean)))
+        values = self.target_mean + z * self.target_std  # [N, D]
+        expr = np.zeros((len(values), self.expr_width), np.float32)
+        expr[:, :self.expr_dims] = values[:, :self.expr_dims]
+        return SpokenFace(expr, values[:, self.expr_dims:].astype(np.float32))
+
+    def predict(self, sound: Sound, times: np.ndarray, stats: SpeechStats | None = None) -> SpokenFace:
+        """Each frame's face at `times` (seconds from the sound's first sample); the sound normalised by its own speech
+        statistics unless `stats` are given."""
+        mel = log_mel_torch(torch.from_numpy(power_frames(sound)))
+        stats = stats or speech_stats(mel)
+        centres = torch.from_numpy(np.round(np.asarray(times) * FRAME_RATE).astype(np.int64))
+        return self.predict_features(normalise(mel, stats), centres)
+
+    # --- files ---------------------------------------------------------------------------------------
+
+    def save(self, run_dir: str | Path) -> Path:
+        folder = Path(run_dir) / VOICE_DIR
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / INFO_FILE).unlink(missing_ok=True)  # the json goes last: with it, the model is complete
+        arrays = state_arrays(self.net) | self.idle.arrays() | {
+            "target_mean": self.target_mean, "target_std": self.target_std,
+            "speech.mean": self.speech.mean.numpy(), "speech.scale": self.speech.scale.numpy()}
+        atomic_write_npz(folder / WEIGHTS_FILE, **arrays)
+        atomic_write_json(folder / INFO_FILE, {"format": FORMAT, "version": VERSION, "config": self.config.to_dict(),
+                                               "expr_dims": self.expr_dims, "expr_width": self.expr_width,
+                                               "info": self.info})
+        return folder
+
+    @staticmethod
+    def exists(run_dir: str | Path) -> bool:
+        return (Path(run_dir) / VOICE_DIR / INFO_FILE).is_file()
+
+    @staticmethod
+    def load(run_dir: str | Path) -> "VoiceModel":
+        """The run's voice model; VoiceModelError saying how to get one when it has none."""
+        folder = Path(run_dir) / VOICE_DIR
+        if not (folder / INFO_FILE).is_file():
+            raise VoiceModelError(
+                f"{run_dir}: the run has no voice model ({VOICE_DIR}/{INFO_FILE}); it learns one from a dataset with "
+                f"speech: prepare a video in which you talk, then `geoavatar train`, or `geoavatar voice {run_dir}` "
+                "for a run trained on such a dataset")
+        try:
+            info = json.loads((folder / INFO_FILE).read_text())
+            if info.get("format") != FORMAT or info.get("version") != VERSION:
+                raise ValueError(f"format {info.get('format')} version {info.get('version')}, expected {FORMAT} {VERSION}")
+            config = VoiceConfig(**info["config"])
+            with np.load(folder / WEIGHTS_FILE, allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+            mean, std = arrays["target_mean"], arrays["target_std"]
+            net = VoiceModel.build_net(config, len(mean))
+            load_state_arrays(net, arrays)
+        except (OSError, ValueError, KeyError, TypeError, RuntimeError) as err:
+            raise VoiceModelError(f"{folder}: the voice model cannot be read ({type(err).__name__}: {err}); learn it "
+                                  f"again with `geoavatar voice {run_dir}`") from err
+        speech = SpeechStats(torch.from_numpy(arrays["speech.mean"]), torch.from_numpy(arrays["speech.scale"]))
+        return VoiceModel(config, net, mean, std, int(info["expr_dims"]), int(info["expr_width"]), speech,
+                          IdleMotion.from_arrays(arrays), info.get("info", {}))
+
+
+__all__ = ["FORMAT", "INFO_FILE", "SpokenFace", "VOICE_DIR", "VoiceModel", "VoiceModelError", "WEIGHTS_FILE"]

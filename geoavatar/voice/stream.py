@@ -1,0 +1,81 @@
+"""The voice model on a live sound: chunks in, each video frame's face out as soon as its look-ahead has arrived.
+
+    stream = VoiceStream(voice, fps=25)
+    for index, face, heard in stream.push(chunk): ...     # frame index, SpokenFace of one frame, seconds of sound heard
+
+Frame k (shown at k / fps of the sound) needs the sound up to k / fps + ahead: that is the model's latency floor
+(0.1 s by default). The features are the same numbers as a whole file's (sound/features.py is chunk-exact), and so are
+the faces when the statistics are fixed (`stats`); live, they start from the training sound's statistics and follow
+the microphone's: every half second, those of its last ADAPT_SECONDS, once it has held LOUD_SECONDS of loud sound.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from geoavatar.sound import FRAME_RATE
+from geoavatar.sound.features import PowerStream
+from geoavatar.voice.inputs import SpeechStats, log_mel_torch, loud_frames, normalise, speech_stats
+from geoavatar.voice.model import SpokenFace, VoiceModel
+
+ADAPT_SECONDS = 10.0
+LOUD_SECONDS = 2.0
+UPDATE_EVERY = 0.5  # seconds of sound between two updates of the statistics
+
+
+class VoiceStream:
+    def __init__(self, voice: VoiceModel, fps: float, stats: SpeechStats | None = None):
+        if fps <= 0:
+            raise ValueError(f"VoiceStream: fps must be positive, got {fps}")
+        self.voice, self.fps = voice, float(fps)
+        self.fixed = stats is not None
+        self.stats = stats or voice.speech
+        self.power = PowerStream()
+        self.mel = torch.zeros(0, voice.speech.mean.shape[0])  # [F, M] raw log-mel of the recent sound
+        self.offset = 0  # feature frame number of self.mel[0]
+        self.next_frame = 0  # the next video frame to emit
+        self._since_update = 0
+
+    @property
+    def heard(self) -> float:
+        """Seconds of sound whose feature frames are complete."""
+        return (self.offset + len(self.mel)) / FRAME_RATE
+
+    def _centre(self, frame: int) -> int:
+        return int(round(frame / self.fps * FRAME_RATE))
+
+    def _adapt(self, new_frames: int) -> None:
+        self._since_update += new_frames
+        if self.fixed or self._since_update < UPDATE_EVERY * FRAME_RATE:
+            return
+        self._since_update = 0
+        recent = self.mel[-int(ADAPT_SECONDS * FRAME_RATE):]
+        if int(loud_frames(recent).sum()) >= LOUD_SECONDS * FRAME_RATE:
+            self.stats = speech_stats(recent)
+
+    def push(self, samples: np.ndarray) -> list[tuple[int, SpokenFace, float]]:
+        """The frames whose sound (with the look-ahead) is now complete: (frame index, its face [1, ...], seconds of
+        sound heard when it was made)."""
+        power = self.power.push(samples)
+        if len(power) == 0:
+            return []
+        self.mel = torch.cat([self.mel, log_mel_torch(torch.from_numpy(power))])
+        self._adapt(len(power))
+        ready = []
+        while self._centre(self.next_frame) + self.voice.ahead < self.offset + len(self.mel):
+            ready.append(self.next_frame)
+            self.next_frame += 1
+        out = []
+        if ready:
+            centres = torch.as_tensor([self._centre(k) - self.offset for k in ready])
+            face = self.voice.predict_features(normalise(self.mel, self.stats), centres)
+            out = [(k, SpokenFace(face.expr[i:i + 1], face.jaw[i:i + 1]), self.heard) for i, k in enumerate(ready)]
+        keep = max(int(ADAPT_SECONDS * FRAME_RATE), self.voice.past + self.voice.ahead + 2)
+        if len(self.mel) > 2 * keep:  # drop what no window or statistic needs any more
+            drop = len(self.mel) - keep
+            self.mel, self.offset = self.mel[drop:], self.offset + drop
+        return out
+
+
+__all__ = ["VoiceStream"]

@@ -1,0 +1,211 @@
+"""Learn how a person's face moves when they speak, from the training frames of their own video (`geoavatar voice`,
+and `geoavatar train` at its end when the dataset has speech).
+
+    voice = train_voice(run, VoiceConfig())              # a VoiceModel; VoiceModelError when the dataset has no speech
+    voice.save(run.info.run_dir)
+
+The targets are the run's own per-frame parameters of its training frames (the refined rows the avatar was trained
+with): expression and jaw. The sound is the dataset's (data/sound.py), cut where the training frames end: nothing of
+the held-out segment's sound is heard, not even by the last training frame's look-ahead. The loss is measured where
+the face moves: the parameters' change mapped to lip and upper-face vertices (the head model linearised at the mean
+training face), plus the frame-to-frame change of the same (runs of consecutive frames), so the mouth moves as much
+and as smoothly as the tracked one. Every step hears a new recording condition (inputs.Augmentation) with statistics
+taken from a random stretch of the (augmented) training sound, as a new recording would be normalised. The last
+`validation` share of the training frames (in time) chooses the step kept (checked every `validate_every` steps).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from geoavatar.data.sound import DatasetSound, read_dataset_sound
+from geoavatar.runtime import num_threads
+from geoavatar.sound import FRAME_RATE
+from geoavatar.sound.features import power_frames
+from geoavatar.voice.config import VoiceConfig
+from geoavatar.voice.face import FaceProbe
+from geoavatar.voice.idle import IdleMotion, upper_face_projection
+from geoavatar.voice.inputs import Augmentation, log_mel_torch, loud_frames, normalise, speech_stats, windows
+from geoavatar.voice.model import VoiceModel, VoiceModelError
+
+STATS_SECONDS = (5.0, 20.0)  # the stretch of sound a step's normalisation statistics come from
+
+
+@dataclass
+class VoiceData:
+    """The training frames of a run with their sound: what train_voice fits."""
+
+    power: torch.Tensor  # [F, B] power spectra of the sound up to the end of the training frames
+    centres: torch.Tensor  # [N] feature frame of each training frame (time order)
+    targets: torch.Tensor  # [N, D] expression (expr_dims) and jaw of each
+    params: dict[str, np.ndarray]  # their per-frame parameters [N, ...] (the idle motion's source)
+    fps: float
+    expr_width: int
+    speech_seconds: float
+
+
+def voice_data(run, frames, sound: DatasetSound, expr_dims: int) -> VoiceData:
+    """The run's training frames in time order, their targets, and the sound cut between the last training frame and
+    the first frame after it."""
+    train = sorted(run.info.timesteps["train"], key=lambda t: sound.frame_times[t] if t in sound.frame_times else t)
+    times = sound.times(train)  # [N] seconds
+    later = [sound.frame_times[t] for t in frames.timesteps if t not in set(train) and t in sound.frame_times
+             and sound.frame_times[t] > times[-1]]
+    cut = 0.5 * (times[-1] + min(later)) if later else sound.sound.seconds
+    power = torch.from_numpy(power_frames(sound.sound.segment(0.0, cut).samples))
+    rows = [frames.row(t) for t in train]
+    values = {k: v[rows].detach().cpu() for k, v in frames.values.to_npz().items() if v.dim() > 1 and k != "static_offset"}
+    targets = torch.cat([values["expr"][:, :expr_dims], values["jaw_pose"]], dim=1).float()
+    spacing = np.diff(times)
+    fps = float(1.0 / np.median(spacing)) if len(spacing) else 25.0
+    speech = sound.activity.mask(times).mean() * len(times) / fps
+    return VoiceData(power, torch.from_numpy(np.round(times * FRAME_RATE).astype(np.int64)), targets,
+                     {k: v.numpy() for k, v in values.items()}, fps, int(values["expr"].shape[1]), float(speech))
+
+
+JACOBIAN_STEP = 1e-3  # central differences: expression coefficients are O(1), jaw angles O(0.1) rad
+
+
+@torch.no_grad()
+def face_jacobians(probe: FaceProbe, targets: torch.Tensor, expr_dims: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """([Kl*3, D], [Ku*3, D]): how lip and upper-face vertices move with each output at the mean training face (central
+    differences, all 2D faces in one batch: the expression is linear, the jaw nearly so at this step)."""
+    mean = targets.mean(0)
+    steps = JACOBIAN_STEP * torch.eye(len(mean))
+    faces = torch.cat([mean + steps, mean - steps])  # [2D, D]
+    expr, jaw = faces[:, :expr_dims], faces[:, expr_dims:]
+    out = []
+    for which in ("lips", "upper"):
+        moved = getattr(probe, which)(expr, jaw).double().reshape(2, len(mean), -1)  # [2, D, K*3]
+        out.append(((moved[0] - moved[1]) / (2 * JACOBIAN_STEP)).T)
+    return out[0], out[1]
+
+
+def loss_metric(lips: torch.Tensor, upper: torch.Tensor, std: torch.Tensor, upper_weight: float) -> torch.Tensor:
+    """[D, D] M such that d^T M d is the mean squared vertex error (m^2) of a standardised output error d."""
+    metric = (lips.T @ lips + upper_weight * upper.T @ upper) / (lips.shape[0] + upper_weight * upper.shape[0]) * 3
+    metric = std[:, None] * metric * std[None]  # standardised units
+    ridge = 1e-3 * torch.trace(metric) / metric.shape[0]  # outputs that move no vertex still get a little loss
+    return (metric + ridge * torch.eye(metric.shape[0], dtype=metric.dtype)).float()
+
+
+def _runs(count: int, config: VoiceConfig, rng: np.random.Generator) -> torch.Tensor:
+    """[R, L] rows of a step: R = batch // run_length runs of L = run_length consecutive frames, each starting anywhere."""
+    runs = max(1, config.batch // config.run_length)
+    starts = rng.integers(0, max(1, count - config.run_length + 1), runs)
+    return torch.as_tensor(starts[:, None] + np.arange(config.run_length)[None]).clamp_max(count - 1)
+
+
+class _Trainer:
+    """One voice model's optimisation (see the module docstring); `step` and `validate` on the data given."""
+
+    def __init__(self, data: VoiceData, config: VoiceConfig, net, metric: torch.Tensor, mean, std, train_rows: int):
+        self.data, self.config, self.net, self.metric = data, config, net, metric
+        self.mean, self.std, self.train_rows = mean, std, train_rows
+        self.z = (data.targets - mean) / std  # [N, D]
+        self.rng = np.random.default_rng([config.seed, 0x701CE])
+        torch.manual_seed(config.seed)
+        self.optimiser = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        clean = log_mel_torch(data.power)
+        self.clean = normalise(clean, speech_stats(clean))  # [F, M] validation features
+        self.loud_power = float(data.power[loud_frames(clean)].sum(-1).mean())
+        self.past, self.ahead = int(round(config.past * FRAME_RATE)), int(round(config.ahead * FRAME_RATE))
+
+    def _features(self) -> torch.Tensor:
+        """[F, M] the training sound as a new recording: a random condition, normalised by a random stretch of it."""
+        condition = Augmentation.sample(self.rng) if self.rng.random() < self.config.augment else Augmentation()
+        power = condition.apply(self.data.power, self.loud_power) if condition != Augmentation() else self.data.power
+        mel = log_mel_torch(power, condition.warp)
+        span = int(self.rng.uniform(*STATS_SECONDS) * FRAME_RATE)
+        start = int(self.rng.integers(0, max(1, len(mel) - span)))
+        return normalise(mel, speech_stats(mel[start:start + span]))
+
+    def _loss(self, predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Vertex-space error of frames and of their frame-to-frame change; [R, L, D] runs of L frames."""
+        error = predicted - target
+        frame = torch.einsum("rld,de,rle->", error, self.metric, error) / (error.shape[0] * error.shape[1])
+        change = error[:, 1:] - error[:, :-1]
+        velocity = torch.einsum("rld,de,rle->", change, self.metric, change) / max(1, change.shape[0] * change.shape[1])
+        return frame + self.config.velocity_weight * velocity
+
+    def step(self) -> float:
+        self.net.train()
+        rows = _runs(self.train_rows, self.config, self.rng)  # [R, L]
+        predicted = self.net(windows(self._features(), self.data.centres[rows.reshape(-1)], self.past, self.ahead))
+        loss = self._loss(predicted.reshape(*rows.shape, -1), self.z[rows])
+        self.optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimiser.step()
+        return float(loss.detach())
+
+    @torch.no_grad()
+    def validate(self, rows: slice) -> float:
+        """Mean squared vertex error (m^2) of the frames `rows` on the clean sound."""
+        self.net.eval()
+        predicted = self.net(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
+        error = predicted - self.z[rows]
+        return float(torch.einsum("nd,de,ne->", error, self.metric, error) / max(1, error.shape[0]))
+
+
+def train_voice(run, config: VoiceConfig | None = None, data_root: Path | None = None,
+                log: Callable[[str], None] = print) -> VoiceModel:
+    """A voice model of the run's person from its dataset's sound (the dataset the run recorded, or `data_root`)."""
+    from geoavatar.train.run_frames import RunFrames
+
+    config = config or VoiceConfig()
+    config.validate()
+    root = Path(data_root) if data_root is not None else run.info.data_root
+    sound = read_dataset_sound(root)
+    if sound is None or not sound.activity.has_speech:
+        heard = "no sound track" if sound is None else f"{sound.activity.speech_seconds:.1f} s of speech"
+        raise VoiceModelError(f"{root}: the dataset has {heard}; a voice is learned from a video in which the person "
+                              "talks (prepare it with its sound)")
+    started = time.perf_counter()
+    with num_threads(config.threads):
+        return _fit(run, RunFrames(run), sound, config, started, log)
+
+
+def _fit(run, frames, sound: DatasetSound, config: VoiceConfig, started: float, log) -> VoiceModel:
+    expr_dims = int(run.head.num_expr)
+    data = voice_data(run, frames, sound, expr_dims)
+    mean, std = data.targets.mean(0), data.targets.std(0).clamp_min(1e-4)
+    probe = FaceProbe(run.head, {k: v.cpu() for k, v in frames.identity().items()})
+    lips, upper = face_jacobians(probe, data.targets, expr_dims)
+    metric = loss_metric(lips, upper, std.double(), config.upper_weight)
+    count = len(data.targets)
+    train_rows = max(config.run_length, int(round(count * (1.0 - config.validation))))
+    net = VoiceModel.build_net(config, data.targets.shape[1])
+    trainer = _Trainer(data, config, net, metric, mean, std, train_rows)
+    held = slice(train_rows, count) if train_rows < count else slice(0, count)
+    best, best_state, history, losses = float("inf"), None, [], []
+    for step in range(1, config.steps + 1):
+        losses.append(trainer.step())
+        if step % config.validate_every and step != config.steps:
+            continue
+        score = trainer.validate(held)
+        history.append((step, float(np.mean(losses)), score))
+        losses = []
+        if score < best:
+            best, best_state = score, {k: v.clone() for k, v in net.state_dict().items()}
+        if (time.perf_counter() - started) / 60.0 > config.max_minutes:
+            log(f"voice: stopped at step {step} of {config.steps}, the {config.max_minutes:g}-minute cap")
+            break
+    net.load_state_dict(best_state)
+    projection = upper_face_projection(lips[:, :expr_dims], upper[:, :expr_dims]).float().numpy()
+    idle_params = {**data.params, "expr": data.params["expr"][:, :expr_dims]}
+    info = {"frames": count, "validation_frames": count - train_rows, "fps": data.fps,
+            "speech_seconds": round(data.speech_seconds, 2), "sound_seconds": round(len(data.power) / FRAME_RATE, 2),
+            "steps": history[-1][0], "best_validation_m2": best, "history": history,
+            "seconds": round(time.perf_counter() - started, 1), "source": str(sound.source)}
+    speech = speech_stats(log_mel_torch(data.power))
+    return VoiceModel(config, net, mean.double().numpy(), std.double().numpy(), expr_dims, data.expr_width, speech,
+                      IdleMotion.from_training(idle_params, projection, data.fps), info)
+
+
+__all__ = ["VoiceData", "face_jacobians", "loss_metric", "train_voice", "voice_data"]

@@ -1,0 +1,168 @@
+"""The voice model against known truth: a generated subject whose sound is a known function of its mouth
+(`synth --sound`). It learns the mouth from the training frames' sound and predicts the held-out frames' (which it
+never heard); with the sound shifted against the frames it cannot. Plus the live stream, the idle motion, the model's
+file and the dataset's sound on a real talking video."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from geoavatar.data.splits import ShortVideoWarning
+
+FRAMES, SIZE = 300, 32
+STEPS = 250
+
+
+@pytest.fixture(scope="module")
+def talking(tmp_path_factory):
+    """A generated subject with its voice and a run of its untrained state (the parameters are what matter here)."""
+    from apps_fixtures import make_untrained_run
+
+    from geoavatar.data.synth.generate import SynthConfig, generate_dataset
+
+    root = tmp_path_factory.mktemp("voice")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShortVideoWarning)
+        data = generate_dataset(root / "data", SynthConfig(frames=FRAMES, size=SIZE, sound=True, workers=1),
+                                progress=False)
+    return data, make_untrained_run(data, root / "run")
+
+
+@pytest.fixture(scope="module")
+def learned(talking):
+    """The run and the voice model it learns with STEPS steps."""
+    return _learn(talking[1])
+
+
+def _ground_truth_jaw(data, timesteps) -> np.ndarray:
+    return np.array([np.load(data / "flame_param_gt" / f"{t:05d}.npz")["jaw_pose"].reshape(-1)[0] for t in timesteps])
+
+
+def _learn(run_dir, steps: int = STEPS):
+    from geoavatar.train.checkpoint import open_run
+    from geoavatar.voice.config import VoiceConfig
+    from geoavatar.voice.train import train_voice
+
+    run = open_run(run_dir, "cpu")
+    return run, train_voice(run, VoiceConfig(steps=steps, validate_every=50), log=lambda _: None)
+
+
+def _held_out_jaw_r(run, voice, data) -> float:
+    from geoavatar.data.sound import read_dataset_sound
+    from geoavatar.eval.speech import pearson
+
+    test = run.info.timesteps["test"]
+    sound = read_dataset_sound(data)
+    held = sound.sound.segment(sound.frame_times[test[0]] - 0.02, sound.sound.seconds)
+    face = voice.predict(held, sound.times(test) - held.start)
+    return pearson(face.jaw[:, 0], _ground_truth_jaw(data, test))
+
+
+def test_the_voice_learns_a_mouth_it_can_hear(talking, learned, tmp_path):
+    data, _ = talking
+    run, voice = learned
+    r = _held_out_jaw_r(run, voice, data)
+    assert r > 0.8, r  # the held-out jaw follows the ground truth from sound alone
+
+    shifted = tmp_path / "shifted"
+    shutil.copytree(data, shifted)
+    info = json.loads((shifted / "audio.json").read_text())
+    info["frame_times"] = {t: s + 0.6 for t, s in info["frame_times"].items()}  # sound 0.6 s off its frames
+    (shifted / "audio.json").write_text(json.dumps(info))
+    from geoavatar.voice.config import VoiceConfig
+    from geoavatar.voice.train import train_voice
+
+    misaligned = train_voice(run, VoiceConfig(steps=STEPS, validate_every=50), data_root=shifted, log=lambda _: None)
+    r_shifted = _held_out_jaw_r(run, misaligned, data)
+    assert r_shifted < r - 0.3, (r, r_shifted)
+
+
+def test_voice_model_file_round_trips_without_pickle(talking, learned, tmp_path):
+    from geoavatar.voice.model import VOICE_DIR, VoiceModel, VoiceModelError
+
+    data, _ = talking
+    run, voice = learned
+    with pytest.raises(VoiceModelError, match="has no voice model.*geoavatar voice"):
+        VoiceModel.load(tmp_path)
+    voice.save(tmp_path)
+    with np.load(tmp_path / VOICE_DIR / "voice.npz", allow_pickle=False) as npz:  # plain arrays only
+        assert all(npz[k].dtype != object for k in npz.files)
+    back = VoiceModel.load(tmp_path)
+    from geoavatar.data.sound import read_dataset_sound
+
+    sound = read_dataset_sound(data).sound.segment(0.0, 2.0)
+    times = np.arange(50) / 25.0
+    a, b = voice.predict(sound, times), back.predict(sound, times)
+    assert np.allclose(a.expr, b.expr, atol=1e-6) and np.allclose(a.jaw, b.jaw, atol=1e-6)
+    (tmp_path / VOICE_DIR / "voice.npz").write_bytes(b"damaged")
+    with pytest.raises(VoiceModelError, match="cannot be read"):
+        VoiceModel.load(tmp_path)
+
+
+def test_the_live_stream_gives_the_files_faces(talking, learned):
+    from geoavatar.data.sound import read_dataset_sound
+    from geoavatar.voice.inputs import log_mel_torch, speech_stats
+    from geoavatar.voice.stream import VoiceStream
+    from geoavatar.sound.features import power_frames
+
+    data, _ = talking
+    _, voice = learned
+    sound = read_dataset_sound(data).sound.segment(0.0, 3.0)
+    stats = speech_stats(log_mel_torch(torch.from_numpy(power_frames(sound))))
+    stream = VoiceStream(voice, 25.0, stats=stats)
+    frames, rng, at = [], np.random.default_rng(1), 0
+    while at < len(sound.samples):
+        size = int(rng.integers(100, 900))
+        frames += stream.push(sound.samples[at:at + size])
+        at += size
+    assert [k for k, _, _ in frames] == list(range(len(frames)))
+    assert len(frames) >= 3.0 * 25 - 4  # all but the last look-ahead
+    offline = voice.predict(sound, np.arange(len(frames)) / 25.0, stats)
+    live_jaw = np.concatenate([face.jaw for _, face, _ in frames])
+    assert np.abs(live_jaw - offline.jaw).max() < 1e-5
+    for k, _, heard in frames:  # a frame is made once its instant and the look-ahead have been heard
+        assert heard >= k / 25.0 + voice.config.ahead - 0.011
+
+
+def test_idle_motion_keeps_the_lips_still_and_plays_the_training_motion(learned):
+    from geoavatar.voice.face import FaceProbe
+
+    run, voice = learned
+    idle = voice.idle
+    player = idle.player(25.0, seed=3)
+    frames = player.take(400)
+    again = idle.player(25.0, seed=3).take(400)
+    assert all(np.array_equal(frames[k], again[k]) for k in frames)  # seeded
+    # the head moves as in training (not frozen), within the training range
+    rotation = idle.sequences["rotation"]
+    assert frames["rotation"].std(0).max() > 0.3 * rotation.std(0).max()
+    assert (frames["rotation"] <= rotation.max(0) + 1e-6).all() and (frames["rotation"] >= rotation.min(0) - 1e-6).all()
+    # the upper-face change moves the eyelids / brows much more than the lips
+    from geoavatar.train.run_frames import RunFrames
+
+    probe = FaceProbe(run.head, RunFrames(run).identity())
+    upper = torch.as_tensor(frames["upper_expr"])
+    zero = torch.zeros(len(upper), 3)
+    base = torch.zeros_like(upper)
+    lips = (probe.lips(upper, zero) - probe.lips(base, zero)).norm(dim=-1).mean()
+    brows = (probe.upper(upper, zero) - probe.upper(base, zero)).norm(dim=-1).mean()
+    assert brows > 5 * lips
+
+
+def test_a_dataset_without_speech_says_how_to_get_a_voice(tmp_path):
+    from apps_fixtures import make_subject, make_untrained_run
+
+    from geoavatar.train.checkpoint import open_run
+    from geoavatar.voice.model import VoiceModelError
+    from geoavatar.voice.train import train_voice
+
+    data = make_subject(tmp_path / "quiet", frames=8)
+    run = open_run(make_untrained_run(data, tmp_path / "run"), "cpu")
+    with pytest.raises(VoiceModelError, match="no sound track.*talks"):
+        train_voice(run)
