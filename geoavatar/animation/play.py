@@ -47,6 +47,10 @@ class _LiveCount:
             stats.records.append(frame.record)
         self.status(stats)
 
+    def end(self) -> None:
+        """The last status line (after the source closed: its drops are counted by then)."""
+        self.status.end(self.stats)
+
 
 def _frames(source: FrameSource, progress: bool, desc: str | None):
     if source.live:
@@ -84,7 +88,7 @@ def play(run: LoadedRun, source: FrameSource, sinks: Sequence[FrameSink], progre
     finally:
         source.close()
         if count is not None:
-            count.status.end(count.stats)
+            count.end()
     return played
 
 
