@@ -38,12 +38,12 @@ def test_a_changed_field_redoes_its_stage_and_the_dependants_only(config, ran):
     assert rerun(config, ran) == []  # everything cached
     changed = config
     for change, redone in [
-        ({"test_fraction": 0.3}, ["write", "gaussian"]),
-        ({"mask_backend": "other"}, ["masks", "photometric", "write", "gaussian"]),  # the tracking does not read masks
-        ({"tracking_steps": (10, 20)}, ["tracking", "photometric", "write", "gaussian"]),
-        ({"static_offset": False}, ["tracking", "photometric", "write", "gaussian"]),
-        ({"missing": "drop"}, ["landmarks", "masks", "tracking", "photometric", "write", "gaussian"]),
-        ({"photometric_epochs": (1, 1)}, ["photometric", "write", "gaussian"]),
+        ({"test_fraction": 0.3}, ["write", "sound", "gaussian"]),
+        ({"mask_backend": "other"}, ["masks", "photometric", "write", "sound", "gaussian"]),  # the tracking does not read masks
+        ({"tracking_steps": (10, 20)}, ["tracking", "photometric", "write", "sound", "gaussian"]),
+        ({"static_offset": False}, ["tracking", "photometric", "write", "sound", "gaussian"]),
+        ({"missing": "drop"}, ["landmarks", "masks", "tracking", "photometric", "write", "sound", "gaussian"]),
+        ({"photometric_epochs": (1, 1)}, ["photometric", "write", "sound", "gaussian"]),
         ({"gaussian_steps": 10}, []),  # the refit is off (the library's default): its settings are not read
         ({"gaussian_refit": True}, ["gaussian"]),
         ({"gaussian_resolution": 64}, ["gaussian"]),
@@ -64,23 +64,23 @@ def test_no_photometric_ignores_the_photometric_settings(config, ran):
     plain = replace(config, photometric=False)
     assert rerun(plain, ran) == list(STAGES)
     assert rerun(replace(plain, photometric_epochs=(1, 1)), ran) == []
-    assert rerun(config, ran) == ["photometric", "write", "gaussian"]
-    assert rerun(plain, ran) == ["photometric", "write", "gaussian"]
+    assert rerun(config, ran) == ["photometric", "write", "sound", "gaussian"]
+    assert rerun(plain, ran) == ["photometric", "write", "sound", "gaussian"]
 
 
 def test_an_interrupted_stage_redoes_its_dependants(config, ran):
     run_prepare(config)
     (config.out / pipeline.WORK / "landmarks.json").unlink()  # killed while the landmarks were being redone
-    assert rerun(config, ran) == ["landmarks", "masks", "tracking", "photometric", "write", "gaussian"]
+    assert rerun(config, ran) == ["landmarks", "masks", "tracking", "photometric", "write", "sound", "gaussian"]
 
 
 def test_a_changed_tracking_default_or_stage_version_is_not_reused(config, ran, monkeypatch):
     run_prepare(config)
     original = pipeline.tracking_config
     monkeypatch.setattr(pipeline, "tracking_config", lambda c: replace(original(c), offset_decay=0.2))
-    assert rerun(config, ran) == ["tracking", "photometric", "write", "gaussian"]
+    assert rerun(config, ran) == ["tracking", "photometric", "write", "sound", "gaussian"]
     monkeypatch.setitem(pipeline.STAGE_VERSIONS, "masks", pipeline.STAGE_VERSIONS["masks"] + 1)
-    assert rerun(config, ran) == ["masks", "photometric", "write", "gaussian"]
+    assert rerun(config, ran) == ["masks", "photometric", "write", "sound", "gaussian"]
 
 
 def test_a_changed_video_file_redoes_everything(config, ran):

@@ -5,9 +5,9 @@ Command lines are the `geoavatar` lines of its ```bash blocks and the inline `ge
 spans. A synopsis (`geoavatar train --data DIR --out RUN [--preset E] [--steps N]`) is checked twice:
 with every optional part left out and with every one put in (`a|b` takes `a`). Placeholders map to
 fixtures: RUN -> a 2-step run, DATA / DIR -> a 48 px generated subject, talk.mp4 -> a 6-frame clip cut
-from a shared test video; N, R, F, E -> small numbers / preset E. Running adds options that keep it
-cheap (CHEAP below: fewer frames, steps and pixels; the viewer starts and stops), after the README's
-own, so the README's line itself is what gets parsed.
+from a shared test video (without the shared folder: of a still photograph); N, R, F, E -> small numbers /
+preset E. Running adds options that keep it cheap (CHEAP below: fewer frames, steps and pixels; the viewer
+starts and stops), after the README's own, so the README's line itself is what gets parsed.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 
 from apps_fixtures import make_run, make_subject
+from conftest import face_photo_video, shared_video
 from geoavatar import cli
 from geoavatar.apps import train as train_app
 from geoavatar.config import CPU_STEPS
@@ -31,7 +32,6 @@ from geoavatar.data.splits import ShortVideoWarning
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 MAKEFILE = README.parent / "Makefile"
-VIDEO = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "video" / "wojtek.mp4"
 
 # Options appended when a command runs here (later options win), so that a README line runs in seconds.
 CHEAP: dict[str, list[str]] = {
@@ -49,8 +49,9 @@ CHEAP: dict[str, list[str]] = {
     "drive": ["--init-seconds", "0.12", "--iterations", "2", "--size", "32", "--no-status", "--device", "cpu"],
 }
 # Lines that are only parsed: the whole demo, tables over runs the README names but the test lacks, and
-# (to keep this test near a minute on 2 shared cores) prepare, eval and head show, whose own tests run them.
-PARSE_ONLY = ("demo", "eval", "prepare", "head show", "ablate")
+# (to keep this test near a minute on 2 shared cores) prepare, eval and head show, whose own tests run them; speak and
+# voice need a run with a voice model (a dataset with speech): tests/test_speak.py and test_voice.py run them.
+PARSE_ONLY = ("demo", "eval", "prepare", "head show", "ablate", "speak", "voice")
 # Commands whose every README line runs; the others run their first line only (synth, train: the rest
 # differ in sizes and lengths that CHEAP overrides anyway).
 RUN_EVERY_LINE = ("render", "reenact", "orbit", "export", "view", "bench", "--help")
@@ -206,11 +207,11 @@ def test_long_commands_share_the_progress_flag(name, capsys):
 # --- running the cheap lines on tiny data ---------------------------------------------------------------
 
 
-def _tiny_clip(path: Path, frames: int = 6) -> Path:
+def _tiny_clip(video: Path, path: Path, frames: int = 6) -> Path:
     """The first frames of the shared test video, re-encoded (what `talk.mp4` stands for)."""
     import av
 
-    with av.open(str(VIDEO)) as source, av.open(str(path), mode="w") as target:
+    with av.open(str(video)) as source, av.open(str(path), mode="w") as target:
         stream = None
         for index, frame in enumerate(source.decode(video=0)):
             if index == frames:
@@ -234,7 +235,8 @@ def tiny(tmp_path_factory):
     data = make_subject(root / "fixtures" / "data", subject=0, frames=8, size=48)
     driver = make_subject(root / "fixtures" / "driver", subject=1, frames=4, size=48, seed=1)
     run = make_run(data, root / "fixtures" / "run", steps=2)
-    clip = _tiny_clip(root / "fixtures" / "talk.mp4") if VIDEO.is_file() else None
+    video, clip = shared_video("wojtek.mp4", required=False), root / "fixtures" / "talk.mp4"
+    clip = _tiny_clip(video, clip) if video is not None else face_photo_video(clip)  # a user's clone: no video
     return {"root": root, "data": data, "driver": driver, "run": run, "clip": clip}
 
 
@@ -246,8 +248,6 @@ def _runnable(line: str, tiny: dict, workdir: Path) -> list[str] | None:
         return None if argv else ["--help"]
     if "--driver-video" in argv:
         return None  # tracks a video with prepare's full settings (minutes); tests/test_reenact_video.py runs it
-    if "talk.mp4" in argv and tiny["clip"] is None:
-        pytest.skip(f"test video {VIDEO} is absent")
     fresh_run = name == "train" and "--resume" not in argv  # a new run goes to a new folder
     mapped = []
     for i, word in enumerate(argv):

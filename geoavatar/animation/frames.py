@@ -32,6 +32,7 @@ class AnimationFrame:
     picture: np.ndarray | None = None  # uint8 [H, W, 3] shown beside the avatar (the driver's frame or face crop)
     timestep: int | None = None  # the frame's number in its source (a dataset's timestep), when it has one
     available: float | None = None  # perf_counter() when a live source had the frame (latency counts from it)
+    heard: float | None = None  # speech: Unix time its own instant of sound was captured (the page's latency clock)
     timings: dict[str, float] = field(default_factory=dict)  # live: seconds per stage (stats.STAGES) so far
     record: dict | None = None  # live, record=True: the driver's fit of this frame (DriveStats.records)
 

@@ -74,7 +74,8 @@ def play(run: LoadedRun, source: FrameSource, sinks: Sequence[FrameSink], progre
     """Every frame of `source` into every sink, until the source ends; returns the number of frames played.
     `progress`: a progress bar (not for a live source); `status`: a live source's status line."""
     rasterize = any(sink.rasterizes for sink in sinks)
-    count = _LiveCount(source.stats, LiveStatus(status)) if source.live else None
+    label = getattr(source, "label", "drive")  # the status line's: drive's tracker, speak's voice
+    count = _LiveCount(source.stats, LiveStatus(status, label=label)) if source.live else None
     played = 0
     try:
         with contextlib.ExitStack() as entered:

@@ -41,8 +41,8 @@ class LiveStatus:
     """The status line on stderr (FPS, drops, latency, recent stage times), at most once every `every` seconds; on a
     terminal it rewrites one line."""
 
-    def __init__(self, enabled: bool, every: float = 1.0):
-        self.enabled, self.every, self.last = enabled, every, 0.0
+    def __init__(self, enabled: bool, every: float = 1.0, label: str = "drive"):
+        self.enabled, self.every, self.last, self.label = enabled, every, 0.0, label
         self.tty = sys.stderr.isatty()
 
     def __call__(self, stats: DriveStats, force: bool = False) -> None:
@@ -51,7 +51,7 @@ class LiveStatus:
             return
         self.last = now
         recent = {s: np.mean(v[-25:]) for s, v in stats.stage_ms.items() if v}
-        line = (f"drive: {stats.frames} frames, {stats.fps:5.1f} fps, dropped {stats.dropped}, latency "
+        line = (f"{self.label}: {stats.frames} frames, {stats.fps:5.1f} fps, dropped {stats.dropped}, latency "
                 f"{np.mean(stats.latency_ms[-25:]) if stats.latency_ms else 0:5.0f} ms | "
                 + " ".join(f"{s} {v:5.1f}" for s, v in recent.items()) + " ms")
         print(("\r" + line) if self.tty else line, end="" if self.tty else "\n", file=sys.stderr, flush=True)

@@ -44,6 +44,7 @@ def eval_runs(
     relative: bool = False,
     transfer: tuple[TransferMode, ...] = (),
     driver_cache: Optional[Path] = None,
+    speech: bool = False,
 ) -> int:
     """Evaluate trained runs on a split of their datasets, as the paper's Table 1 does, or score one run's cross
     re-enactment (--driver / --driver-video), as the paper's appendix does.
@@ -95,7 +96,15 @@ def eval_runs(
         transfer: With a driver: the transfer modes to score, each a row of the report (absolute, relative,
             statistics, subspace; default: reenact's default mode).
         driver_cache: With --driver-video: the folder of its tracking (as `reenact --driver-cache`).
+        speech: Score the run's voice model instead: the held-out segment driven by its own sound (never heard in
+            training) against its tracked parameters, beside the mean-face, nearest and linear baselines:
+            RUN/eval/speech/metrics.json and metrics.md (docs/speech.md). --max-frames scores the first N held-out
+            frames.
     """
+    if speech:
+        if len(runs) != 1 or split != "test" or out is not None or driver is not None or driver_video is not None:
+            raise OptionError("--speech scores one RUN's held-out frames (no --split, --out, --driver)")
+        return eval_speech(runs[0], max_frames, device, data, checkpoint, backend, flame_dir, progress)
     if driver is not None or driver_video is not None or driver_cache is not None:
         if len(runs) != 1 or split != "test" or out is not None:
             raise OptionError("--driver / --driver-video score one RUN (no --split, no --out)")
@@ -175,6 +184,31 @@ def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, dr
     return 0
 
 
+def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path | None, checkpoint: str, backend: str,
+                flame_dir: Path | None, progress: bool) -> int:
+    """`geoavatar eval RUN --speech`: RUN/eval/speech/metrics.{json,md} (eval/speech.py)."""
+    from geoavatar.eval.speech import speech_dir, speech_table, write_speech_report
+    from geoavatar.eval.speech_run import evaluate_speech
+    from geoavatar.runtime import resolve_device
+    from geoavatar.train.checkpoint import load_run
+    from geoavatar.voice import VoiceModel
+
+    if max_frames is not None and max_frames < 3:
+        raise OptionError(f"--max-frames must be at least 3 with --speech, got {max_frames}")
+    try:
+        torch_device = resolve_device(device)
+    except ValueError as err:
+        raise OptionError(str(err)) from err
+    run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
+    voice = VoiceModel.load(run.info.run_dir)
+    result = evaluate_speech(run, voice, data, max_frames, backend, progress=progress)
+    written = write_speech_report(result, speech_dir(run.info.run_dir))
+    print(speech_table(result.scores), end="")
+    print(f"{result.label}: {result.frames} held-out frames driven by their own sound in {result.seconds:.1f} s -> "
+          f"{written['json']}")
+    return 0
+
+
 def evaluate_cross(run, driven, modes: Sequence[str], driver: str, max_frames: int | None = None,
                    scorer=None, data: Path | None = None, flame_dir: Path | None = None, progress: bool = True):
     """CrossResult of a DrivenAvatar (the animation layer's driver source): `max_frames` driver frames (spread evenly;
@@ -215,4 +249,4 @@ def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> 
     return folder.with_name(f"{split}@{Path(data).resolve().name}")
 
 
-__all__ = ["eval_cross", "eval_runs", "evaluate_cross", "report_dir"]
+__all__ = ["eval_cross", "eval_runs", "eval_speech", "evaluate_cross", "report_dir"]

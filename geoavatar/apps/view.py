@@ -32,9 +32,10 @@ from geoavatar.train.run_frames import RunFrames
 
 
 def start_viewer(run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr_sliders: int = 10,
-                 fps: float = 25.0, data: Path | None = None, live: bool = False) -> LiveViewer:
-    """Start serving `run` and return the running LiveViewer (call .stop() to end it); `live`: see show_live.
-    LiveServerError (one line, naming --port) when the address cannot be served."""
+                 fps: float = 25.0, data: Path | None = None, live: bool | str = False, **callbacks) -> LiveViewer:
+    """Start serving `run` and return the running LiveViewer (call .stop() to end it); `live`: see show_live ("speak":
+    the page is also the microphone, `callbacks` on_audio / on_microphone_error receive it). LiveServerError (one
+    line, naming --port) when the address cannot be served."""
     if not 0 <= port <= 65535:
         raise OptionError(f"--port must be in [0, 65535], got {port}")
     if expr_sliders < 0:
@@ -45,7 +46,7 @@ def start_viewer(run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr
     timesteps = frames.timesteps[:1] if live else list(frames.timesteps)  # live: the page's first view only
     clip = WebClip(run, fps, "live" if live else "split all", data=data)
     play(run, SplitFrames(run, timesteps, fps, frames), [clip])
-    return LiveViewer(run, clip.assets(), timesteps, host, port, expr_sliders, live, frames)
+    return LiveViewer(run, clip.assets(), timesteps, host, port, expr_sliders, live, frames, **callbacks)
 
 
 def view(

@@ -9,6 +9,9 @@ opens with) fed by one of two sources:
     --driver DATA / --driver-video F  the driver's motion on the avatar, reenact's rules (--transfer as there;
                                       sources/driver.py's DriverMotion); a video is tracked first as reenact does
                                       (RUN/drivers/, reused)
+    --audio FILE                      the avatar says the sound (sources/speech.py's SpeechFrames: the run's voice
+                                      model, as `geoavatar speak`); the folder carries the sound and the page plays
+                                      it in step (audio.wav, docs/web_player.md)
 """
 
 from __future__ import annotations
@@ -48,7 +51,8 @@ def split_clip(run: LoadedRun, frames: RunFrames, timesteps: list[int], show_pro
 def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | None = None,
                driver_video: Path | None = None, transfer: TransferMode | bool = DEFAULT_TRANSFER,
                fps: float | None = None,
-               data: Path | None = None, flame_dir: Path | None = None, show_progress: bool = True) -> Path:
+               data: Path | None = None, flame_dir: Path | None = None, show_progress: bool = True,
+               audio: Path | None = None) -> Path:
     """Write the player folder `out` (complete or not at all); returns it."""
     if fps is not None and fps <= 0:
         raise OptionError(f"--fps must be positive, got {fps}")
@@ -56,7 +60,10 @@ def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | No
     if driver_video is not None:
         driver, video_fps, _ = track_driver(run, None, driver_video, flame_dir=flame_dir, progress=show_progress)
         fps = fps or video_fps
-    if driver is not None:
+    if audio is not None:
+        source = speech_frames(run, audio, fps or DEFAULT_FPS)
+        name, camera_timesteps = f"speech {Path(audio).name}", [frames.timesteps[0]]  # the avatar's first camera
+    elif driver is not None:
         mode = transfer_mode(transfer)
         source = DriverMotion(run, Path(driver), mode, fps or DEFAULT_FPS, frames)
         name = f"driver {Path(driver_video or driver).name} ({mode} transfer)"
@@ -67,6 +74,18 @@ def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | No
     clip = WebClip(run, source.fps, name, camera_timesteps, data, out, audio=source.audio)
     play(run, source, [clip], progress=show_progress, desc="pose")
     return Path(out)
+
+
+def speech_frames(run: LoadedRun, audio: Path, fps: float):
+    """The speech source of a sound file (the run's voice model; VoiceModelError says how to get one)."""
+    from geoavatar.animation.sources.speech import SpeechFrames
+    from geoavatar.apps.speak import PLAYBACK_RATE
+    from geoavatar.sound import RATE, read_sound
+    from geoavatar.voice import VoiceModel
+
+    voice = VoiceModel.load(run.info.run_dir)
+    return SpeechFrames(run, voice, read_sound(audio, RATE, what="--audio"), fps,
+                        read_sound(audio, PLAYBACK_RATE, what="--audio"))
 
 
 def folder_size(folder: Path) -> int:

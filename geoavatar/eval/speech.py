@@ -107,7 +107,8 @@ def linear_features(mel: torch.Tensor, centres: np.ndarray) -> np.ndarray:
 
 
 def ridge_fit(x: np.ndarray, y: np.ndarray, held: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """(weights [X, Y], x mean, y mean, alpha): ridge regression, alpha chosen on the last `held` rows, refitted on all."""
+    """(weights [X, Y], x mean, y mean, alpha): ridge regression, alpha chosen on the last `held` rows, then refitted
+    on all."""
     def fit(xs, ys, alpha):
         mx, my = xs.mean(0), ys.mean(0)
         xc = xs - mx

@@ -45,6 +45,14 @@ def _segment_inputs(run: LoadedRun, frames: RunFrames, sound, test: list[int], e
     return inputs, tracked, data.fps
 
 
+def spoken_params(tracked: HeadParams, face: SpokenFace, row: int) -> HeadParams:
+    """A frame's tracked parameters (per-frame keys [1, ...]) with row `row` of a face's expression and jaw."""
+    device = tracked.expr.device
+    expr = torch.as_tensor(face.expr[row:row + 1], dtype=torch.float32, device=device)[:, :tracked.expr.shape[1]]
+    return tracked.replace(expr=expr, jaw_pose=torch.as_tensor(face.jaw[row:row + 1], dtype=torch.float32,
+                                                               device=device))
+
+
 def _test_items(run: LoadedRun, data: Path | None, split: str = "test"):
     dataset = open_run_dataset(run, split, data)
     return dataset, {int(dataset[i]["timestep"]): i for i in range(len(dataset))}
@@ -68,9 +76,7 @@ def picture_scores(run: LoadedRun, dataset, index_of: dict[int, int], timesteps:
         camera = item_camera(item)
         tracked_vertices = None  # the tracked render comes first: its mesh gives every face's mouth pixels
         for name, face in {"tracked": None, **faces}.items():
-            params = tracked if face is None else tracked.replace(
-                expr=torch.as_tensor(face.expr[row:row + 1], dtype=torch.float32, device=device)[:, :tracked.expr.shape[1]],
-                jaw_pose=torch.as_tensor(face.jaw[row:row + 1], dtype=torch.float32, device=device))
+            params = tracked if face is None else spoken_params(tracked, face, row)
             frame = render_avatar(run.avatar, run.head, params, camera, None, run.deformer, item["background"],
                                   config.backend)
             if face is None:
@@ -123,4 +129,4 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
                         time.perf_counter() - started)
 
 
-__all__ = ["evaluate_speech", "picture_scores"]
+__all__ = ["evaluate_speech", "picture_scores", "spoken_params"]

@@ -16,7 +16,7 @@ import numpy as np
 
 from geoavatar.sound.track import RATE, Sound
 
-MIN_SPEECH_SECONDS = 3.0  # below this a video "has no speech" worth learning a voice from
+MIN_SPEECH_SECONDS = 2.0  # below this a video "has no speech" worth learning a voice from
 
 
 @lru_cache(maxsize=1)

@@ -87,6 +87,7 @@ def read_sound(path: str | os.PathLike, rate: int = RATE, what: str = "sound") -
     container = _open(path, what)
     parts: list[np.ndarray] = []
     start = None
+    heard = 0.0  # seconds of sound decoded (the resampler's flush adds its filter's tail beyond them)
     try:
         stream = container.streams.audio[0]
         resampler = av.AudioResampler(format="s16", layout="mono", rate=rate)
@@ -94,19 +95,35 @@ def read_sound(path: str | os.PathLike, rate: int = RATE, what: str = "sound") -
             for frame in container.decode(stream):
                 if start is None and frame.time is not None:
                     start = float(frame.time)
+                heard += frame.samples / float(frame.sample_rate)
                 parts.extend(out.to_ndarray().reshape(-1) for out in resampler.resample(frame))
             parts.extend(out.to_ndarray().reshape(-1) for out in resampler.resample(None))
         except Exception as err:
             if not parts:
-                raise SoundError(f"{what} {path}: its sound could not be decoded ({type(err).__name__}: {err})") from err
+                raise SoundError(f"{what} {path}: its sound could not be decoded "
+                                 f"({type(err).__name__}: {err})") from err
             raise SoundError(f"{what} {path}: decoding its sound failed after {sum(map(len, parts)) / rate:.2f} s "
                              f"({type(err).__name__}: {err})") from err
     finally:
         container.close()
     samples = np.concatenate(parts).astype(np.float32) / 32768.0 if parts else np.zeros(0, np.float32)
+    samples = samples[:int(round(heard * rate))]  # as long as the file's sound, whatever the rate
     if len(samples) == 0:
         raise SoundError(f"{what} {path}: the sound track holds no samples")
     return Sound(samples, rate, start or 0.0)
+
+
+def resample(sound: Sound, rate: int) -> Sound:
+    """The sound at another rate (polyphase filtering, scipy): for a sound made here, not read from a file."""
+    from math import gcd
+
+    from scipy.signal import resample_poly
+
+    if rate == sound.rate:
+        return sound
+    common = gcd(int(rate), int(sound.rate))
+    samples = resample_poly(sound.samples, int(rate) // common, int(sound.rate) // common)
+    return Sound(np.clip(samples, -1.0, 1.0).astype(np.float32), int(rate), sound.start)
 
 
 def to_pcm16(samples: np.ndarray) -> np.ndarray:
@@ -124,4 +141,4 @@ def write_wav(path: str | os.PathLike, sound: Sound) -> Path:
     return Path(path)
 
 
-__all__ = ["RATE", "Sound", "SoundError", "has_sound_track", "read_sound", "to_pcm16", "write_wav"]
+__all__ = ["RATE", "Sound", "SoundError", "has_sound_track", "read_sound", "resample", "to_pcm16", "write_wav"]

@@ -60,7 +60,8 @@ class IdleMotion:
 
     @staticmethod
     def from_arrays(arrays: dict) -> "IdleMotion":
-        sequences = {k[len("idle."):]: np.asarray(v) for k, v in arrays.items() if k.startswith("idle.") and k != "idle.fps"}
+        sequences = {k[len("idle."):]: np.asarray(v) for k, v in arrays.items()
+                     if k.startswith("idle.") and k != "idle.fps"}
         return IdleMotion(sequences, float(arrays["idle.fps"]))
 
 

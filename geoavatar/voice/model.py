@@ -123,7 +123,8 @@ class VoiceModel:
         try:
             info = json.loads((folder / INFO_FILE).read_text())
             if info.get("format") != FORMAT or info.get("version") != VERSION:
-                raise ValueError(f"format {info.get('format')} version {info.get('version')}, expected {FORMAT} {VERSION}")
+                raise ValueError(f"format {info.get('format')} version {info.get('version')}, "
+                                 f"expected {FORMAT} {VERSION}")
             config = VoiceConfig(**info["config"])
             with np.load(folder / WEIGHTS_FILE, allow_pickle=False) as npz:
                 arrays = {k: npz[k] for k in npz.files}

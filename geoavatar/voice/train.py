@@ -60,7 +60,8 @@ def voice_data(run, frames, sound: DatasetSound, expr_dims: int) -> VoiceData:
     cut = 0.5 * (times[-1] + min(later)) if later else sound.sound.seconds
     power = torch.from_numpy(power_frames(sound.sound.segment(0.0, cut).samples))
     rows = [frames.row(t) for t in train]
-    values = {k: v[rows].detach().cpu() for k, v in frames.values.to_npz().items() if v.dim() > 1 and k != "static_offset"}
+    values = {k: v[rows].detach().cpu() for k, v in frames.values.to_npz().items()
+              if v.dim() > 1 and k != "static_offset"}
     targets = torch.cat([values["expr"][:, :expr_dims], values["jaw_pose"]], dim=1).float()
     spacing = np.diff(times)
     fps = float(1.0 / np.median(spacing)) if len(spacing) else 25.0
@@ -96,7 +97,7 @@ def loss_metric(lips: torch.Tensor, upper: torch.Tensor, std: torch.Tensor, uppe
 
 
 def _runs(count: int, config: VoiceConfig, rng: np.random.Generator) -> torch.Tensor:
-    """[R, L] rows of a step: R = batch // run_length runs of L = run_length consecutive frames, each starting anywhere."""
+    """[R, L] rows of a step: R = batch // run_length runs of L = run_length consecutive frames, starting anywhere."""
     runs = max(1, config.batch // config.run_length)
     starts = rng.integers(0, max(1, count - config.run_length + 1), runs)
     return torch.as_tensor(starts[:, None] + np.arange(config.run_length)[None]).clamp_max(count - 1)

@@ -8,9 +8,12 @@ expression, jaw and head-turn sliders (turning the head differs from turning the
 stay fixed to the world). A slider sends the shown frame and the edits over the page's websocket; this process poses
 the head with them (`edited_params`; an edited frame is a new animation: T = 0) and streams the posed mesh back.
 
-Live mode (`live=True`): the page has no clip of its own and draws every mesh sent with
-`LiveViewer.show_live(vertices, info, read_time, code)`; LiveStream sends each frame's posed head mesh and its head
-pose code (the browser places, shades and draws the splats on its GPU: nothing is rasterized here).
+Live mode (`live=True`, or `live="speak"`): the page has no clip of its own and draws every mesh sent with
+`LiveViewer.show_live(vertices, info, read_time, code, capture_time)`; LiveStream sends each frame's posed head mesh
+and its head pose code (the browser places, shades and draws the splats on its GPU: nothing is rasterized here). With
+"speak" the page is also the microphone: its sound goes to `on_audio` (web/live.py), and a frame made from sound
+carries the capture time of its own instant of sound (AnimationFrame.heard), from which the page measures
+sound-to-picture latency.
 """
 
 from __future__ import annotations
@@ -69,20 +72,22 @@ class LiveViewer:
     live meshes. `assets`: the player's avatar and clip (sinks/web.py's WebClip of those timesteps)."""
 
     def __init__(self, run: LoadedRun, assets: PlayerAssets, timesteps: list[int], host: str = "127.0.0.1",
-                 port: int = 8080, expr_sliders: int = 10, live: bool = False, frames: RunFrames | None = None):
+                 port: int = 8080, expr_sliders: int = 10, live: bool | str = False, frames: RunFrames | None = None,
+                 on_audio=None, on_microphone_error=None):
         self.run = run
         self.frames = frames if frames is not None else RunFrames(run)
-        self.live = live
+        self.live = bool(live)
         first, _ = self.frames.params(timesteps[0])
         self.centre = head_centre(run, first)  # [3]
-        assets.manifest["live"] = "drive" if live else "view"
+        assets.manifest["live"] = live if isinstance(live, str) else ("drive" if live else "view")
         if not live:
             names = list(run.head.data.metadata.get("expression_names", []))
             count = min(expr_sliders, run.head.num_expr)
             assets.manifest["edit"] = {"expressions": [names[i] if i < len(names) else f"expr {i}" for i in range(count)],
                                        "exprRange": EXPR_RANGE, "jawRange": list(JAW_RANGE), "headRange": HEAD_RANGE}
         self.timesteps = list(timesteps)
-        self.server = LiveServer(assets, host, port, on_edit=None if live else self.edit).start()
+        self.server = LiveServer(assets, host, port, on_edit=None if live else self.edit, on_audio=on_audio,
+                                 on_microphone_error=on_microphone_error).start()
         self.host, self.port = host, self.server.port
 
     @property
@@ -114,10 +119,10 @@ class LiveViewer:
                                       browser_pose_code(self.run, params))
 
     def show_live(self, vertices: Tensor, info: str = "", read_time: float | None = None,
-                  code: Tensor | None = None) -> None:
+                  code: Tensor | None = None, capture_time: float | None = None) -> None:
         """Live mode: send a posed mesh [V, 3] and its head pose code [6] (posing.browser_pose_code) to the browsers
-        (the caller poses it: LiveStream)."""
-        self.server.send_vertices(vertices, read_time, code)
+        (the caller poses it: LiveStream); `capture_time`: Unix time of the sound it was made from (speech)."""
+        self.server.send_vertices(vertices, read_time, code, capture_time=capture_time)
 
     def summary(self) -> str:
         """The stream's counts and its latency from frame read to message sent (median)."""
@@ -147,7 +152,8 @@ class LiveStream:
     def write(self, frame: AnimationFrame, posed: PosedFrame) -> None:
         started = time.perf_counter()
         caption = f"live: frame {frame.index}, {self.source.stats.fps:.1f} fps, dropped {self.source.dropped}"
-        self.viewer.show_live(posed.vertices, caption, frame.available, browser_pose_code(self.run, frame.params))
+        self.viewer.show_live(posed.vertices, caption, frame.available, browser_pose_code(self.run, frame.params),
+                              frame.heard)
         frame.add_time("pose", time.perf_counter() - started)  # the browser draws: streaming counts as posing
 
 
