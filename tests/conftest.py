@@ -17,12 +17,64 @@ else:
     atexit.register(shutil.rmtree, os.environ["GEOAVATAR_CACHE"], ignore_errors=True)
 setup_process()
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+# The real test videos (data/video/*.mp4) live in a folder beside the checkout, ../shared; a user's clone has none,
+# and every test must then pass or skip with a reason. GEOAVATAR_SHARED names another folder (an empty one: a fresh
+# clone, tests/test_fresh_clone.py). Tests reach it only through the helpers below, never by a path of their own
+# (test_fresh_clone checks that too), so that the variable and the skip work everywhere.
+SHARED = Path(os.environ.get("GEOAVATAR_SHARED") or Path(__file__).resolve().parents[1].parent / "shared").resolve()
+
+
+def _video_path(name: str) -> Path:
+    return SHARED / "data" / "video" / name
+
+
+def _absent(path: Path) -> str:
+    return f"shared test data {path} is absent (a clone without ../shared; GEOAVATAR_SHARED names the folder)"
+
+
+def shared_video(name: str, required: bool = True) -> Path | None:
+    """The shared test video `name` (e.g. "wojtek.mp4"). When it is absent: the calling test or fixture skipped with
+    the reason, or None if not `required`. Call it inside a test or fixture, never at import."""
+    path = _video_path(name)
+    if path.is_file():
+        return path
+    if required:
+        pytest.skip(_absent(path))
+    return None
+
+
+def needs_shared_video(*names: str) -> pytest.MarkDecorator:
+    """A skipif mark for tests that need these shared test videos: it skips before their fixtures are built."""
+    missing = [_video_path(name) for name in names if not _video_path(name).is_file()]
+    return pytest.mark.skipif(bool(missing), reason=_absent(missing[0]) if missing else "")
+
+
+def face_photo_video(path: Path, frames: int = 6, size: int = 256) -> Path:
+    """A clip of a real face that needs no shared data: matplotlib's sample photograph (Grace Hopper, installed with
+    it), a `size` px square of it moved one pixel per frame, 25 fps."""
+    import matplotlib.cbook as cbook
+    import numpy as np
+    from PIL import Image
+
+    from geoavatar.io.video import Mp4Writer
+
+    photo = Image.open(cbook.get_sample_data("grace_hopper.jpg")).convert("RGB")  # 512 x 600, the face mid-image
+    square = np.asarray(photo.resize((size, size * 600 // 512)))[size * 44 // 512:][:size]
+    with Mp4Writer(path, fps=25) as video:
+        for k in range(frames):
+            video.write(np.ascontiguousarray(np.roll(square, k, axis=1)))
+    return path
+
+
+def pytest_report_header(config) -> str:
+    videos = SHARED / "data" / "video"
+    count = len(list(videos.glob("*.mp4"))) if videos.is_dir() else 0
+    return f"shared test data: {SHARED} ({count} videos)" + ("" if count else "; the tests that need them skip")
 
 
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
-    """../shared beside the checkout (real videos); tests that need it skip when it is absent."""
+    """The shared data folder itself; tests that need it skip when it is absent."""
     if not SHARED.is_dir():
-        pytest.skip(f"shared data folder not found at {SHARED}")
+        pytest.skip(_absent(SHARED))
     return SHARED

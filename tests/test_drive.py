@@ -11,21 +11,20 @@ import numpy as np
 import pytest
 
 from apps_fixtures import make_subject, make_untrained_run
+from conftest import needs_shared_video, shared_video
 from geoavatar.animation.sources.capture import NewestFrame, open_video
 from geoavatar.animation.sources.capture import VideoInput as Source
 from geoavatar.apps.drive import drive_avatar
 from geoavatar.cli import main
 
-VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "wojtek.mp4"
-needs_video = pytest.mark.skipif(not VIDEO.is_file(), reason=f"test video {VIDEO} is absent")
+needs_video = needs_shared_video("wojtek.mp4")
 INIT_STEPS = (30, 60)  # the identity stage's tracker steps (prepare uses 100, 300)
 
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory) -> Path:
     """The first 30 frames of wojtek.mp4 at 128 px, 25 fps."""
-    if not VIDEO.is_file():
-        pytest.skip(f"test video {VIDEO} is absent")
+    source = shared_video("wojtek.mp4")
     import cv2
 
     from geoavatar.io.video import Mp4Writer
@@ -33,7 +32,7 @@ def clip(tmp_path_factory) -> Path:
 
     path = tmp_path_factory.mktemp("drive") / "clip.mp4"
     with Mp4Writer(path, fps=25) as video:
-        for _index, rgb in decode_frames(VIDEO, max_frames=30):
+        for _index, rgb in decode_frames(source, max_frames=30):
             video.write(cv2.resize(rgb, (128, 128), interpolation=cv2.INTER_AREA))
     return path
 

@@ -16,6 +16,7 @@ import torch
 from PIL import Image
 
 from apps_fixtures import make_subject, make_untrained_run
+from conftest import needs_shared_video, shared_video
 from geoavatar import cli
 from geoavatar.eval import expression as expression_module
 from geoavatar.eval import identity as identity_module
@@ -173,10 +174,7 @@ def test_a_missing_package_is_one_line_naming_its_install_step(run_dir, monkeypa
     assert err.startswith("geoavatar eval: ") and install in err and "`make install` does" in err
 
 
-VIDEOS = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
-
-
-@pytest.mark.skipif(not (VIDEOS / "d3.mp4").is_file(), reason="the shared test videos are absent")
+@needs_shared_video("d3.mp4", "wojtek.mp4", "duda.mp4")
 def test_expression_classes_of_faces_labelled_by_eye():
     """Frames of our real videos whose expression was labelled by eye (docs/cross_reenactment.md)."""
     from geoavatar.prep.video import decode_frames
@@ -184,7 +182,7 @@ def test_expression_classes_of_faces_labelled_by_eye():
     labelled = {("d3", 310): "surprise", ("d3", 220): "sad", ("wojtek", 55): "neutral", ("duda", 165): "happy"}
     with FaceReader(identity=False, landmarks=False) as reader:
         for (video, frame), label in labelled.items():
-            rgb = next(rgb for k, (_, rgb) in enumerate(decode_frames(VIDEOS / f"{video}.mp4", max_frames=frame + 1))
-                       if k == frame)
+            frames = decode_frames(shared_video(f"{video}.mp4"), max_frames=frame + 1)
+            rgb = next(rgb for k, (_, rgb) in enumerate(frames) if k == frame)
             reading = reader(rgb)
             assert EXPRESSIONS[int(np.argmax(reading.expression))] == label, (video, frame, reading.expression)

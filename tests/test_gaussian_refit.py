@@ -9,16 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import shared_video
 from geoavatar.head.params import FRAME_KEYS
 
-WOJTEK = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "wojtek.mp4"
 
-
-def _config(out: Path, refit: bool):
+def _config(video: Path, out: Path, refit: bool):
     from geoavatar.apps.prepare import _gaussian_refit
     from geoavatar.prep.pipeline import PrepareConfig
 
-    return PrepareConfig(video=WOJTEK, out=out, size=96, max_frames=8, tracking_steps=(40, 60), photometric=False,
+    return PrepareConfig(video=video, out=out, size=96, max_frames=8, tracking_steps=(40, 60), photometric=False,
                          overlay=False, workers=1, progress=False, log=lambda message: None, gaussian_refit=refit,
                          gaussian_steps=40, gaussian_resolution=64, gaussian_runner=_gaussian_refit)
 
@@ -33,12 +32,10 @@ def _rows(dataset: Path, like: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def refitted(tmp_path_factory):
-    if not WOJTEK.is_file():
-        pytest.skip(f"test video {WOJTEK} is absent")
     from geoavatar.prep.pipeline import fit_file, run_prepare
 
     out = tmp_path_factory.mktemp("gaussian") / "wojtek"
-    config = _config(out, refit=True)
+    config = _config(shared_video("wojtek.mp4"), out, refit=True)
     dataset = run_prepare(config)
     fit = dict(np.load(fit_file(config, out / ".prepare")))
     written = {key: fit[f"param_{key}"].reshape(len(fit[f"param_{key}"]), -1) for key in FRAME_KEYS}  # [T, W]
@@ -65,7 +62,7 @@ def test_turning_the_refit_off_gives_the_written_parameters_back(refitted):
 
     out, dataset, written = refitted
     messages: list[str] = []
-    config = _config(out, refit=False)
+    config = _config(shared_video("wojtek.mp4"), out, refit=False)
     config.log = messages.append
     run_prepare(config)
     assert "prepare: stage 'write' is complete, skipped" in messages  # only the last stage ran again
@@ -80,7 +77,9 @@ def test_the_stage_refuses_to_run_without_its_runner(tmp_path):
     from geoavatar.prep.errors import PrepareError
     from geoavatar.prep.pipeline import stage_gaussian
 
-    config = _config(tmp_path, refit=True)
+    video = tmp_path / "talk.mp4"  # never decoded: the stage's key only reads the file's size and time
+    video.write_bytes(b"")
+    config = _config(video, tmp_path, refit=True)
     config.gaussian_runner = None
     (tmp_path / "work").mkdir()
     with pytest.raises(PrepareError, match="gaussian_runner"):

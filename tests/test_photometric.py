@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import needs_shared_video, shared_video
 from geoavatar.head import load_head_model
 from geoavatar.head.params import HeadParams
 from geoavatar.prep.photometric import (
@@ -28,7 +29,7 @@ from geoavatar.prep.photometric import (
 )
 from geoavatar.prep.tracking import camera_viewmat
 
-WOJTEK = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "wojtek.mp4"
+needs_video = needs_shared_video("wojtek.mp4")
 
 
 @pytest.fixture(scope="module")
@@ -231,7 +232,7 @@ def test_prepare_and_track_share_the_fit_defaults():
         defaults.sizes, defaults.epochs, defaults.per_face)
 
 
-@pytest.mark.skipif(not WOJTEK.is_file(), reason="test video absent")
+@needs_video
 def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path, monkeypatch):
     from geoavatar.data import open_dataset
     from geoavatar.prep import photometric
@@ -242,7 +243,7 @@ def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path, monkeypat
     monkeypatch.setattr(photometric, "fit_photometric", lambda *a, **k: threads.append(torch.get_num_threads()) or fit(*a, **k))
 
     messages: list[str] = []
-    options = dict(video=WOJTEK, size=128, max_frames=5, tracking_steps=(30, 40), progress=False, overlay=False,
+    options = dict(video=shared_video("wojtek.mp4"), size=128, max_frames=5, tracking_steps=(30, 40), progress=False, overlay=False,
                    photometric_epochs=(1, 1), workers=1, log=messages.append)  # inline: the recorder above sees the fit
     plain = run_prepare(PrepareConfig(out=tmp_path / "plain", photometric=False, **options))
     work = tmp_path / "plain" / ".prepare"
@@ -272,7 +273,7 @@ def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path, monkeypat
     assert any("stage 'write' is complete, skipped" in m for m in messages)
 
 
-@pytest.mark.skipif(not WOJTEK.is_file(), reason="test video absent")
+@needs_video
 def test_prepare_photometric_in_segments_over_workers(tmp_path, monkeypatch):
     """The photometric stage cut into segments (3 of 3-4 frames here, 2 frames of overlap, one appearance fitted
     first on a sample): the same fit on one process or two, every frame refined."""
@@ -283,7 +284,7 @@ def test_prepare_photometric_in_segments_over_workers(tmp_path, monkeypatch):
 
     monkeypatch.setattr(pipeline, "PHOTOMETRIC_SEGMENT", 4)
     monkeypatch.setattr(pipeline, "PHOTOMETRIC_OVERLAP", 2)
-    options = dict(video=WOJTEK, size=96, max_frames=10, tracking_steps=(10, 10), progress=False, overlay=False,
+    options = dict(video=shared_video("wojtek.mp4"), size=96, max_frames=10, tracking_steps=(10, 10), progress=False, overlay=False,
                    photometric_epochs=(1, 1), log=lambda message: None)
     run_prepare(PrepareConfig(out=tmp_path / "one", photometric=False, workers=1, **options))
     shutil.copytree(tmp_path / "one", tmp_path / "two")
@@ -330,7 +331,7 @@ def test_frames_without_pixels_get_no_image_term(head):
     assert summary["per_frame"][2:] == [None, None] and summary["mean"] == pytest.approx(result.residual[:2].mean())
 
 
-@pytest.mark.skipif(not WOJTEK.is_file(), reason="test video absent")
+@needs_video
 def test_prepare_photometric_on_a_video_that_loses_the_face(tmp_path):
     """A real clip whose face is lost for a stretch (frames filled with a flat colour) goes through prepare
     --photometric: those frames are interpolated, flagged in report.json, get no image term (null residual) and
@@ -339,7 +340,7 @@ def test_prepare_photometric_on_a_video_that_loses_the_face(tmp_path):
     from geoavatar.prep.pipeline import PrepareConfig, run_prepare
     from geoavatar.prep.video import decode_frames
 
-    frames = [rgb[::2, ::2].copy() for _, rgb in decode_frames(WOJTEK, max_frames=9)]  # 256 px
+    frames = [rgb[::2, ::2].copy() for _, rgb in decode_frames(shared_video("wojtek.mp4"), max_frames=9)]  # 256 px
     lost = [3, 4, 5]
     for k in lost:
         frames[k][:] = (90, 130, 160)

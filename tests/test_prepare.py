@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-VIDEO_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
-WOJTEK = VIDEO_DIR / "wojtek.mp4"
+from conftest import needs_shared_video, shared_video
 
-needs_video = pytest.mark.skipif(not WOJTEK.is_file(), reason=f"test video folder {VIDEO_DIR} is absent")
+needs_video = needs_shared_video("wojtek.mp4")
 
 
 def _write_video(path: Path, frames: list[np.ndarray], fps: int = 25) -> Path:
@@ -36,13 +35,11 @@ def _config(video, out, **changes):
 
 @pytest.fixture(scope="module")
 def prepared(tmp_path_factory):
-    if not WOJTEK.is_file():
-        pytest.skip(f"test video folder {VIDEO_DIR} is absent")
     from geoavatar.prep.pipeline import run_prepare
 
     out = tmp_path_factory.mktemp("prepare") / "wojtek"
     messages: list[str] = []
-    config = _config(WOJTEK, out, log=messages.append)
+    config = _config(shared_video("wojtek.mp4"), out, log=messages.append)
     dataset = run_prepare(config)
     return config, out, dataset, messages
 
@@ -103,7 +100,7 @@ def test_the_dataset_does_not_depend_on_the_worker_count(prepared, tmp_path):
     from geoavatar.prep.pipeline import run_prepare
 
     _, out, dataset, _ = prepared
-    other = run_prepare(_config(WOJTEK, tmp_path / "two", workers=2))
+    other = run_prepare(_config(shared_video("wojtek.mp4"), tmp_path / "two", workers=2))
     names = sorted(path.relative_to(dataset) for path in dataset.rglob("*") if path.is_file())
     assert len(names) == 6 * 3 + 6  # images, masks, parameters; canonical, transforms x 4, geoavatar.json
     for name in names:
@@ -260,7 +257,7 @@ def test_too_short_video_is_a_clear_error(tmp_path):
     from geoavatar.prep.pipeline import run_prepare
     from geoavatar.prep.video import decode_frames
 
-    frames = [rgb[::4, ::4].copy() for _, rgb in decode_frames(WOJTEK, max_frames=3)]
+    frames = [rgb[::4, ::4].copy() for _, rgb in decode_frames(shared_video("wojtek.mp4"), max_frames=3)]
     video = _write_video(tmp_path / "short.mp4", frames)
     out = tmp_path / "out"
     with pytest.raises(PrepareError, match="3 frame.*fewer than the 5 needed"):

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from apps_fixtures import make_subject, make_untrained_run
+from conftest import needs_shared_video, shared_video
 from geoavatar import cli
 from geoavatar.animation.sources.driver_video import driver_cache_dir
 from geoavatar.apps import reenact as reenact_app
@@ -23,8 +24,7 @@ from geoavatar.prep.pipeline import STAGES
 from geoavatar.io.video import Mp4Writer
 from geoavatar.prep.errors import PrepareError
 
-VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "wojtek.mp4"
-needs_video = pytest.mark.skipif(not VIDEO.is_file(), reason=f"test video {VIDEO} is absent")
+needs_video = needs_shared_video("wojtek.mp4")
 FRAMES = 6
 
 
@@ -58,11 +58,10 @@ def run_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory) -> Path:
-    if not VIDEO.is_file():
-        pytest.skip(f"test video {VIDEO} is absent")
+    video = shared_video("wojtek.mp4")
     from geoavatar.prep.video import decode_frames
 
-    frames = [rgb[::2, ::2].copy() for _, rgb in decode_frames(VIDEO, max_frames=FRAMES)]  # 256 px
+    frames = [rgb[::2, ::2].copy() for _, rgb in decode_frames(video, max_frames=FRAMES)]  # 256 px
     return write_clip(tmp_path_factory.mktemp("clip") / "talk.mp4", frames, fps=20)
 
 

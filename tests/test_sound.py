@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import shared_video
 from geoavatar.sound import RATE, LogMelStream, Sound, SoundError, log_mel, read_sound, write_wav
 
 
@@ -136,10 +137,10 @@ def test_speech_activity_finds_speech_and_silence():
 
 
 @pytest.mark.parametrize("name", ["french.mp4"])
-def test_speech_in_a_real_talking_video(shared_dir, name):
+def test_speech_in_a_real_talking_video(name):
     from geoavatar.sound.activity import speech_activity
 
-    video = shared_dir / "data" / "video" / name
+    video = shared_video(name)
     sound = read_sound(video).segment(0.0, 6.0)
     activity = speech_activity(sound)
     assert 3.0 < activity.speech_seconds <= 6.0
