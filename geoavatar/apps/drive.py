@@ -41,6 +41,7 @@ from geoavatar.apps.common import RunPath, record_camera
 from geoavatar.data import DatasetError, open_subject
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.render.camera import Camera
+from geoavatar.runtime import show_native_logs
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run
 
 
@@ -127,6 +128,7 @@ def drive(
     flame_dir: Optional[Path] = None,
     status: bool = True,
     threads: int = 1,
+    verbose: bool = False,
 ) -> int:
     """Drive a trained avatar live from a webcam or a video: landmarks, online fit, avatar posed and rendered.
 
@@ -161,6 +163,8 @@ def drive(
         status: Print a status line (FPS, drops, latency per stage) about once a second.
         threads: CPU threads of the pipeline's torch and rasterizer work. 1 by default: its tensors are small,
             and on a busy 2-core machine 2 threads made the fit 10x and posing 3-5x slower (OpenMP waits).
+        verbose: Also show the log lines of the libraries underneath (MediaPipe, TensorFlow Lite), which are
+            kept out of the terminal otherwise.
     """
     if (camera is None) == (video is None):
         raise OptionError("give one driving source: --camera N or --video FILE")
@@ -179,9 +183,10 @@ def drive(
             raise GeoAvatarError(f"cannot start the viewer: {err}") from err
         print(f"GeoAvatar live viewer: {viewer.url}", flush=True)
     try:
-        stats = drive_avatar(loaded, source, out, mode, size, init_seconds, iterations, solver, max_frames=max_frames,
-                             viewer=viewer, backend=backend, data=data, status=status, flame_dir=flame_dir,
-                             threads=threads)
+        with show_native_logs(verbose):
+            stats = drive_avatar(loaded, source, out, mode, size, init_seconds, iterations, solver,
+                                 max_frames=max_frames, viewer=viewer, backend=backend, data=data, status=status,
+                                 flame_dir=flame_dir, threads=threads)
     except KeyboardInterrupt:
         return 0
     finally:

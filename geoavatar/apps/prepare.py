@@ -10,6 +10,7 @@ import tyro
 
 from geoavatar.prep.errors import PrepareError
 from geoavatar.prep.pipeline import PrepareConfig, run_prepare
+from geoavatar.runtime import show_native_logs
 
 
 # The input video: the subject of the command, first and positional (`geoavatar prepare talk.mp4 --out data/talk`).
@@ -33,6 +34,7 @@ def prepare(
     overlay: bool = True,
     workers: Optional[int] = None,
     progress: bool = True,
+    verbose: bool = False,
 ) -> int:
     """Prepare a dataset from a monocular head video: crop, landmarks, masks, head-model tracking (a landmark fit,
     then a photometric refinement of every frame unless --no-photometric).
@@ -72,6 +74,8 @@ def prepare(
         workers: Worker processes (default: one per core this process may use, at most 8; each holds up to
             0.9 GB). The dataset does not depend on it.
         progress: Show progress bars.
+        verbose: Also show the log lines of the libraries underneath (MediaPipe, TensorFlow Lite), which are
+            kept out of the terminal otherwise.
     """
     config = PrepareConfig(
         video=video, out=out, head=head, size=size, fps=fps, max_frames=max_frames, missing=missing,
@@ -80,7 +84,8 @@ def prepare(
         progress=progress, gaussian_refit=gaussian_refit, gaussian_runner=_gaussian_refit,
     )
     try:
-        dataset = run_prepare(config)
+        with show_native_logs(verbose):
+            dataset = run_prepare(config)
     except PrepareError as err:
         print(f"geoavatar prepare: {err}", file=sys.stderr)
         return 2

@@ -16,41 +16,50 @@ the speed, which keeps fast mouth motion and removes the still-frame jitter. Con
 is presence x stability: presence = the detector's score, stability = exp(-r / 0.01) where r is the
 mean distance between the raw and the filtered landmarks in units of the face size (jitter of 1 %
 of the face size gives 0.37).
+
+MediaPipe's native log lines (geoavatar.runtime says which) stay out of the terminal unless --verbose: a model is
+made in quiet_native_logs and returns with its graph started (`_start_synchronously`: its calculators open, load
+their models and log on the graph's threads, after the constructor would otherwise have returned), and a face mesh
+processes in it until the process's first face (landmark_projection_calculator warns once per process, then).
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
+import functools
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
 import numpy as np
 
+from geoavatar.runtime import quiet_native_levels, quiet_native_logs
+
 NUM_POINTS = 478
+_quiet_native_logs = quiet_native_logs  # the name prep/masks.py imports
+_face_found = False  # a face mesh of this process found a face: the one warning of the first face is behind us
 
 
-@contextlib.contextmanager
-def _quiet_native_logs():
-    """MediaPipe's C++ side writes INFO/WARNING lines to fd 2; hide them while its graphs start."""
-    os.environ.setdefault("GLOG_minloglevel", "2")
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
-    try:
-        saved = os.dup(2)
-    except OSError:
-        yield
+def _start_synchronously(mp) -> None:
+    """Every legacy solution (face detection, face mesh, selfie segmentation) waits in its constructor until its graph
+    has started (`wait_until_idle`), so that the lines its calculators log on opening fall inside a constructor's
+    quiet_native_logs. Once per process; nothing else changes."""
+    from mediapipe.python import solution_base
+
+    init = solution_base.SolutionBase.__init__
+    if getattr(init, "_waits_until_started", False):
         return
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
+
+    @functools.wraps(init)
+    def started(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        self._graph.wait_until_idle()
+
+    started._waits_until_started = True
+    solution_base.SolutionBase.__init__ = started
 
 
 def _mediapipe():
+    quiet_native_levels()  # before the import: glog reads its level when the library loads
     try:
         import mediapipe as mp
     except ImportError as err:  # pragma: no cover - a broken install
@@ -62,6 +71,7 @@ def _mediapipe():
         raise RuntimeError(
             f"mediapipe {getattr(mp, '__version__', '?')} has no legacy `solutions` models; install mediapipe==0.10.21"
         )
+    _start_synchronously(mp)
     return mp
 
 
@@ -77,7 +87,7 @@ class FaceDetector:
 
     def __init__(self, min_confidence: float = 0.5):
         mp = _mediapipe()
-        with _quiet_native_logs():
+        with quiet_native_logs():
             self._model = mp.solutions.face_detection.FaceDetection(model_selection=1, min_detection_confidence=min_confidence)
 
     def __call__(self, rgb: np.ndarray) -> FaceBox | None:
@@ -106,7 +116,7 @@ class FaceMesh:
 
     def __init__(self, static_images: bool = False, min_confidence: float = 0.5):
         mp = _mediapipe()
-        with _quiet_native_logs():
+        with quiet_native_logs():
             self._model = mp.solutions.face_mesh.FaceMesh(
                 static_image_mode=static_images, max_num_faces=1, refine_landmarks=True,
                 min_detection_confidence=min_confidence, min_tracking_confidence=min_confidence,
@@ -114,10 +124,13 @@ class FaceMesh:
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray | None:
         """[478, 3] (x, y pixels; z relative depth in x's pixel units), or None when no face."""
+        global _face_found
         height, width = rgb.shape[:2]
-        result = self._model.process(rgb)
+        with contextlib.nullcontext() if _face_found else quiet_native_logs():
+            result = self._model.process(rgb)
         if not result.multi_face_landmarks:
             return None
+        _face_found = True
         points = np.array([(p.x, p.y, p.z) for p in result.multi_face_landmarks[0].landmark], dtype=np.float64)
         if points.shape[0] != NUM_POINTS:
             return None
