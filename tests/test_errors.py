@@ -72,3 +72,35 @@ def test_a_bug_keeps_its_traceback(tmp_path, monkeypatch):
     monkeypatch.setattr(geoavatar.head, "load_head_model", broken)
     with pytest.raises(ValueError, match="an internal bug"):
         cli.main(["head", "show", "--out", str(tmp_path / "h.png")])
+
+
+# --- bad input, one line each -------------------------------------------------------------------------------
+
+
+def _one_line(capsys, argv: list[str]) -> str:
+    code = cli.main(argv)
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_prepare_into_a_file_is_one_line_naming_out(tmp_path, capsys):
+    video = tmp_path / "talk.mp4"
+    video.write_bytes(b"")
+    taken = tmp_path / "notes.txt"
+    taken.write_text("mine")
+    err = _one_line(capsys, ["prepare", str(video), "--out", str(taken)])
+    assert err.startswith(f"geoavatar prepare: --out {taken}: is a file, not a folder"), err
+    err = _one_line(capsys, ["prepare", str(video), "--out", str(taken / "talk")])  # a folder below a file
+    assert err.startswith(f"geoavatar prepare: --out {taken / 'talk'}: {taken} is a file, not a folder"), err
+    assert taken.read_text() == "mine"
+
+
+def test_an_unknown_split_names_each_split_once(tmp_path, capsys):
+    from apps_fixtures import make_subject, make_untrained_run
+
+    run = make_untrained_run(make_subject(tmp_path / "data", frames=4), tmp_path / "run")
+    err = _one_line(capsys, ["export", str(run), "--format", "web", "--split", "nosuch", "--out",
+                             str(tmp_path / "player"), "--no-progress"])
+    assert err == "geoavatar export: --split must be one of all, train, val, test; got 'nosuch'\n", err
+    assert not (tmp_path / "player").exists()

@@ -103,7 +103,8 @@ def split_timesteps(run: LoadedRun, split: str) -> list[int]:
     if split == "all":
         return list(run.info.timesteps["all"])
     if split not in run.info.timesteps:
-        raise OptionError(f"--split must be one of all, {', '.join(run.info.timesteps)}; got {split!r}")
+        names = ["all", *(name for name in run.info.timesteps if name != "all")]  # the run's own lists "all" too
+        raise OptionError(f"--split must be one of {', '.join(names)}; got {split!r}")
     return list(run.info.timesteps[split])
 
 

@@ -84,6 +84,7 @@ def prepare(
         progress=progress, gaussian_refit=gaussian_refit, gaussian_runner=_gaussian_refit,
     )
     try:
+        _check_out(Path(out))
         with show_native_logs(verbose):
             dataset = run_prepare(config)
     except PrepareError as err:
@@ -92,6 +93,17 @@ def prepare(
     print(f"dataset: {dataset}\noverlay: {Path(out) / 'overlay.mp4'}\nreport: {Path(out) / 'report.json'}")
     print(capture_verdict(Path(out)))
     return 0
+
+
+def _check_out(out: Path) -> None:
+    """PrepareError naming --out when OUT cannot be a folder: it, or a folder it would be made in, is a file."""
+    for path in (out, *out.parents):
+        if path.exists():
+            if not path.is_dir():
+                what = "is a file" if path == out else f"{path} is a file"
+                raise PrepareError(f"--out {out}: {what}, not a folder (prepare writes a folder: dataset/, "
+                                   "report.json, overlay.mp4)")
+            return
 
 
 def _gaussian_refit(dataset: Path, work: Path, config: PrepareConfig) -> dict:
