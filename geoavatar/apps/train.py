@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field, fields, replace
-from typing import Annotated, Literal, Optional, Sequence
+from typing import TYPE_CHECKING, Annotated, Literal, Optional, Sequence
 
 import tyro
 
@@ -25,6 +25,9 @@ from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.train.options import RunOptions
 from geoavatar.train.trainer import train as run_training
+
+if TYPE_CHECKING:
+    from geoavatar.train.budget import BudgetPlan
 
 
 @dataclass
@@ -142,43 +145,11 @@ def train(args: TrainArgs) -> int:
     _check_options(args, options)
     values = config_values(args.config)
     overrides = {name: values[name] for name in args.overrides}
-    record = None
-    config = None
-    plan = None
     resume = args.resume or args.extend is not None
     if resume:
-        if args.extend is None and (args.steps is not None or options.preset is not None or overrides):
-            config = _requested_on_resume(options, args.steps, overrides)
+        config, record, plan = _requested_on_resume(args, options, overrides), None, None
     else:
-        name = options.preset or DEFAULT_PRESET
-        options.preset = name
-        keep = [n for n in overrides if n in STEP_FIELDS]
-        try:
-            base = with_values(make_preset(name), overrides)
-        except ValueError as err:
-            raise OptionError(f"--config: {err}") from None
-        if args.minutes is not None:
-            from geoavatar.train.budget import plan_budget
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ShortVideoWarning)  # the run itself warns
-                plan = plan_budget(options, base, args.minutes, keep)
-            print(plan.summary(), flush=True)
-        if plan is not None:
-            steps, chosen_by = plan.steps, "--minutes"
-        elif args.steps is not None:
-            steps, chosen_by = args.steps, "--steps"
-        else:
-            steps, chosen_by = default_schedule(args.schedule or "auto", options)
-            print(f"budget: {chosen_by}", flush=True)
-        config = base.scaled_to(steps, keep)
-        try:
-            config.validate()
-        except ValueError as err:
-            raise OptionError(f"--config: {err}") from None
-        record = {"overrides": overrides, "schedule": {
-            "steps": steps, "chosen_by": chosen_by, "scaled_from": PAPER_STEPS, "not_scaled": keep,
-            "budget": plan.to_json() if plan is not None else None}}
+        config, record, plan = _new_run(args, options, overrides)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("once", ShortVideoWarning)
@@ -264,11 +235,51 @@ def _check_options(args: TrainArgs, options: RunOptions) -> None:
         raise OptionError("--data is required for a new run (only --resume finds the run's own)")
 
 
-def _requested_on_resume(options: RunOptions, steps: int | None, overrides: dict) -> TrainConfig:
-    """The configuration --preset/--steps/--config.* ask for on --resume; the trainer refuses it (naming the
-    differences) unless it is the run's own."""
+def _new_run(args: TrainArgs, options: RunOptions, overrides: dict) -> tuple[TrainConfig, dict, BudgetPlan | None]:
+    """A new run's configuration, what config.json records of it and the --minutes plan (None without): the
+    --preset with the --config.* overrides on the paper's schedule, scaled to the steps that --minutes, --steps or
+    --schedule choose (the milestones set by an override stay put). Sets `options.preset`, and with --schedule auto
+    on a CPU `options.resolution` (default_schedule)."""
+    options.preset = options.preset or DEFAULT_PRESET
+    keep = [name for name in overrides if name in STEP_FIELDS]
+    try:
+        base = with_values(make_preset(options.preset), overrides)
+    except ValueError as err:
+        raise OptionError(f"--config: {err}") from None
+    plan = None
+    if args.minutes is not None:
+        from geoavatar.train.budget import plan_budget
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ShortVideoWarning)  # the run itself warns
+            plan = plan_budget(options, base, args.minutes, keep)
+        print(plan.summary(), flush=True)
+        steps, chosen_by = plan.steps, "--minutes"
+    elif args.steps is not None:
+        steps, chosen_by = args.steps, "--steps"
+    else:
+        steps, chosen_by = default_schedule(args.schedule or "auto", options)
+        print(f"budget: {chosen_by}", flush=True)
+    config = base.scaled_to(steps, keep)
+    try:
+        config.validate()
+    except ValueError as err:
+        raise OptionError(f"--config: {err}") from None
+    record = {"overrides": overrides, "schedule": {
+        "steps": steps, "chosen_by": chosen_by, "scaled_from": PAPER_STEPS, "not_scaled": keep,
+        "budget": plan.to_json() if plan is not None else None}}
+    return config, record, plan
+
+
+def _requested_on_resume(args: TrainArgs, options: RunOptions, overrides: dict) -> TrainConfig | None:
+    """The configuration --preset/--steps/--config.* ask for on --resume (None when none of them is given, or with
+    --extend, which continues the run's own); the trainer refuses it (naming the differences) unless it is the run's
+    own."""
     from geoavatar.train.checkpoint import config_from_json, load_checkpoint, run_checkpoint_path
 
+    steps = args.steps
+    if args.extend is not None or (steps is None and options.preset is None and not overrides):
+        return None
     saved = config_from_json(load_checkpoint(run_checkpoint_path(options.out, "last"))["config"])
     if options.preset is not None:
         requested = make_preset(options.preset, steps or saved.steps)
