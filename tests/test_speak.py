@@ -170,7 +170,7 @@ def test_the_web_export_plays_the_speech_with_its_sound(speaker, clip, tmp_path)
     with static_server(out) as url, chromium_page(96, 96, args=AUTOPLAY) as page:
         page.goto(url)
         wait_drawn(page, 0)
-        page.wait_for_function("document.getElementById('sound').currentTime > 0.5", timeout=60_000)
+        page.wait_for_function("document.getElementById('sound').currentTime > 0.2", timeout=60_000)
         shown = page.evaluate("() => new Promise((done) => requestAnimationFrame(() => done(["
                               "document.getElementById('sound').currentTime, window.geoavatar.player.frame])))")
     audio_time, frame = shown

@@ -152,8 +152,9 @@ class LiveStream:
     def write(self, frame: AnimationFrame, posed: PosedFrame) -> None:
         started = time.perf_counter()
         caption = f"live: frame {frame.index}, {self.source.stats.fps:.1f} fps, dropped {self.source.dropped}"
+        heard = {"capture_time": frame.heard} if frame.heard is not None else {}  # speech: its sound's capture
         self.viewer.show_live(posed.vertices, caption, frame.available, browser_pose_code(self.run, frame.params),
-                              frame.heard)
+                              **heard)
         frame.add_time("pose", time.perf_counter() - started)  # the browser draws: streaming counts as posing
 
 
