@@ -44,13 +44,15 @@ def _ground_truth_jaw(data, timesteps) -> np.ndarray:
     return np.array([np.load(data / "flame_param_gt" / f"{t:05d}.npz")["jaw_pose"].reshape(-1)[0] for t in timesteps])
 
 
-def _learn(run_dir, steps: int = STEPS):
+def _learn(run_dir, steps: int = STEPS, members: int = 1):
+    """One network (the default ensemble of three learns the same, three times over: test_voice_model_file... checks
+    an ensemble's file)."""
     from geoavatar.train.checkpoint import open_run
     from geoavatar.voice.config import VoiceConfig
     from geoavatar.voice.train import train_voice
 
     run = open_run(run_dir, "cpu")
-    return run, train_voice(run, VoiceConfig(steps=steps, validate_every=50), log=lambda _: None)
+    return run, train_voice(run, VoiceConfig(steps=steps, validate_every=50, members=members), log=lambda _: None)
 
 
 def _held_out_jaw_r(run, voice, data) -> float:
@@ -78,22 +80,24 @@ def test_the_voice_learns_a_mouth_it_can_hear(talking, learned, tmp_path):
     from geoavatar.voice.config import VoiceConfig
     from geoavatar.voice.train import train_voice
 
-    misaligned = train_voice(run, VoiceConfig(steps=STEPS, validate_every=50), data_root=shifted, log=lambda _: None)
+    misaligned = train_voice(run, VoiceConfig(steps=STEPS, validate_every=50, members=1), data_root=shifted,
+                             log=lambda _: None)
     r_shifted = _held_out_jaw_r(run, misaligned, data)
     assert r_shifted < r - 0.3, (r, r_shifted)
 
 
-def test_voice_model_file_round_trips_without_pickle(talking, learned, tmp_path):
+def test_voice_model_file_round_trips_without_pickle(talking, tmp_path):
     from geoavatar.voice.model import VOICE_DIR, VoiceModel, VoiceModelError
 
-    data, _ = talking
-    run, voice = learned
+    data, run_dir = talking
+    run, voice = _learn(run_dir, steps=10, members=2)  # an ensemble: both members saved and averaged
     with pytest.raises(VoiceModelError, match="has no voice model.*geoavatar voice"):
         VoiceModel.load(tmp_path)
     voice.save(tmp_path)
     with np.load(tmp_path / VOICE_DIR / "voice.npz", allow_pickle=False) as npz:  # plain arrays only
         assert all(npz[k].dtype != object for k in npz.files)
     back = VoiceModel.load(tmp_path)
+    assert len(back.net.members) == 2
     from geoavatar.data.sound import read_dataset_sound
 
     sound = read_dataset_sound(data).sound.segment(0.0, 2.0)

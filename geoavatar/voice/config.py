@@ -9,9 +9,10 @@ from dataclasses import asdict, dataclass
 class VoiceConfig:
     past: float = 0.30  # seconds of sound before a video frame that the model hears
     ahead: float = 0.10  # seconds after it: the look-ahead, which a live microphone waits for
-    width: int = 64  # channels of the convolutions
+    width: int = 48  # channels of the convolutions
     hidden: int = 128  # units of the dense layer
-    dropout: float = 0.2
+    dropout: float = 0.4
+    members: int = 3  # networks averaged (net.VoiceEnsemble): trained side by side from different initial weights
     steps: int = 1000  # optimisation steps, each with a new recording condition
     batch: int = 128  # frames per step, in runs of `run_length` consecutive frames
     run_length: int = 8
@@ -29,7 +30,7 @@ class VoiceConfig:
     def validate(self) -> None:
         if self.past < 0 or self.ahead < 0 or self.past + self.ahead <= 0:
             raise ValueError(f"past {self.past} and ahead {self.ahead}: the model must hear some sound")
-        for name in ("width", "hidden", "steps", "batch", "run_length", "threads", "validate_every"):
+        for name in ("width", "hidden", "members", "steps", "batch", "run_length", "threads", "validate_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 <= self.validation < 0.5:

@@ -25,13 +25,13 @@ from geoavatar.sound.features import power_frames
 from geoavatar.voice.config import VoiceConfig
 from geoavatar.voice.idle import IdleMotion
 from geoavatar.voice.inputs import SpeechStats, log_mel_torch, normalise, speech_stats, windows
-from geoavatar.voice.net import VoiceNet, load_state_arrays, state_arrays
+from geoavatar.voice.net import VoiceEnsemble, load_state_arrays, state_arrays
 
 VOICE_DIR = "voice"
 WEIGHTS_FILE = "voice.npz"
 INFO_FILE = "voice.json"
 FORMAT = "geoavatar-voice"
-VERSION = 1
+VERSION = 2  # 2: an ensemble of networks (1: one)
 
 
 class VoiceModelError(GeoAvatarError, ValueError):
@@ -43,11 +43,14 @@ class SpokenFace:
     expr: np.ndarray  # [N, E]
     jaw: np.ndarray  # [N, 3]
 
+    def take(self, rows: list[int]) -> "SpokenFace":
+        return SpokenFace(self.expr[rows], self.jaw[rows])
+
 
 @dataclass
 class VoiceModel:
     config: VoiceConfig
-    net: VoiceNet
+    net: VoiceEnsemble
     target_mean: np.ndarray  # [D] D = expr_dims + 3
     target_std: np.ndarray  # [D]
     expr_dims: int
@@ -65,11 +68,11 @@ class VoiceModel:
         return int(round(self.config.ahead * FRAME_RATE))
 
     @staticmethod
-    def build_net(config: VoiceConfig, outputs: int) -> VoiceNet:
+    def build_net(config: VoiceConfig, outputs: int) -> VoiceEnsemble:
         from geoavatar.sound import N_MELS
 
         frames = int(round(config.past * FRAME_RATE)) + 1 + int(round(config.ahead * FRAME_RATE))
-        return VoiceNet(N_MELS, frames, outputs, config.width, config.hidden, config.dropout)
+        return VoiceEnsemble(config.members, N_MELS, frames, outputs, config.width, config.hidden, config.dropout)
 
     @torch.no_grad()
     def predict_features(self, features: torch.Tensor, centres: torch.Tensor) -> SpokenFace:
@@ -77,7 +80,7 @@ class VoiceModel:
         self.net.eval()
         outputs = []
         for chunk in torch.split(centres, 512):
-            outputs.append(self.net(windows(features, chunk, self.past, self.ahead)))
+            outputs.append(self.net.predict(windows(features, chunk, self.past, self.ahead)))
         z = torch.cat(outputs).double().numpy() if outputs else np.zeros((0, len(self.target_mean)))
         values = self.target_mean + z * self.target_std  # [N, D]
         expr = np.zeros((len(values), self.expr_width), np.float32)

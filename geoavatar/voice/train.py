@@ -111,8 +111,10 @@ class _Trainer:
         self.mean, self.std, self.train_rows = mean, std, train_rows
         self.z = (data.targets - mean) / std  # [N, D]
         self.rng = np.random.default_rng([config.seed, 0x701CE])
-        torch.manual_seed(config.seed)
         self.optimiser = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        # the rate falls along a half cosine to a tenth: late steps settle instead of jumping between minima
+        self.schedule = torch.optim.lr_scheduler.LambdaLR(
+            self.optimiser, lambda step: 0.1 + 0.45 * (1.0 + np.cos(np.pi * min(step / config.steps, 1.0))))
         clean = log_mel_torch(data.power)
         self.clean = normalise(clean, speech_stats(clean))  # [F, M] validation features
         self.loud_power = float(data.power[loud_frames(clean)].sum(-1).mean())
@@ -128,28 +130,31 @@ class _Trainer:
         return normalise(mel, speech_stats(mel[start:start + span]))
 
     def _loss(self, predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """Vertex-space error of frames and of their frame-to-frame change; [R, L, D] runs of L frames."""
+        """Vertex-space error of frames and of their frame-to-frame change, summed over the ensemble's members (each
+        learns on its own); predicted [K, R, L, D] runs of L frames, target [R, L, D]."""
         error = predicted - target
-        frame = torch.einsum("rld,de,rle->", error, self.metric, error) / (error.shape[0] * error.shape[1])
-        change = error[:, 1:] - error[:, :-1]
-        velocity = torch.einsum("rld,de,rle->", change, self.metric, change) / max(1, change.shape[0] * change.shape[1])
+        count = error.shape[1] * error.shape[2]
+        frame = torch.einsum("krld,de,krle->", error, self.metric, error) / count
+        change = error[:, :, 1:] - error[:, :, :-1]
+        velocity = torch.einsum("krld,de,krle->", change, self.metric, change) / max(1, count - error.shape[1])
         return frame + self.config.velocity_weight * velocity
 
     def step(self) -> float:
         self.net.train()
         rows = _runs(self.train_rows, self.config, self.rng)  # [R, L]
         predicted = self.net(windows(self._features(), self.data.centres[rows.reshape(-1)], self.past, self.ahead))
-        loss = self._loss(predicted.reshape(*rows.shape, -1), self.z[rows])
+        loss = self._loss(predicted.reshape(predicted.shape[0], *rows.shape, -1), self.z[rows])
         self.optimiser.zero_grad(set_to_none=True)
         loss.backward()
         self.optimiser.step()
+        self.schedule.step()
         return float(loss.detach())
 
     @torch.no_grad()
     def validate(self, rows: slice) -> float:
         """Mean squared vertex error (m^2) of the frames `rows` on the clean sound."""
         self.net.eval()
-        predicted = self.net(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
+        predicted = self.net.predict(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
         error = predicted - self.z[rows]
         return float(torch.einsum("nd,de,ne->", error, self.metric, error) / max(1, error.shape[0]))
 
@@ -181,6 +186,7 @@ def _fit(run, frames, sound: DatasetSound, config: VoiceConfig, started: float, 
     metric = loss_metric(lips, upper, std.double(), config.upper_weight)
     count = len(data.targets)
     train_rows = max(config.run_length, int(round(count * (1.0 - config.validation))))
+    torch.manual_seed(config.seed)  # the network's initial weights: the same run every time
     net = VoiceModel.build_net(config, data.targets.shape[1])
     trainer = _Trainer(data, config, net, metric, mean, std, train_rows)
     held = slice(train_rows, count) if train_rows < count else slice(0, count)
