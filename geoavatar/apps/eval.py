@@ -98,8 +98,8 @@ def eval_runs(
         driver_cache: With --driver-video: the folder of its tracking (as `reenact --driver-cache`).
         speech: Score the run's voice model instead: the held-out segment driven by its own sound (never heard in
             training) against its tracked parameters, beside the mean-face, nearest and linear baselines:
-            RUN/eval/speech/metrics.json and metrics.md (docs/speech.md). --max-frames scores the first N held-out
-            frames.
+            RUN/eval/speech/metrics.json and metrics.md (docs/speech.md). The face scores use every held-out frame,
+            the picture scores 40 of them spread evenly (--max-frames N: N of them).
     """
     if speech:
         if len(runs) != 1 or split != "test" or out is not None or driver is not None or driver_video is not None:
@@ -188,20 +188,20 @@ def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path |
                 flame_dir: Path | None, progress: bool) -> int:
     """`geoavatar eval RUN --speech`: RUN/eval/speech/metrics.{json,md} (eval/speech.py)."""
     from geoavatar.eval.speech import speech_dir, speech_table, write_speech_report
-    from geoavatar.eval.speech_run import evaluate_speech
+    from geoavatar.eval.speech_run import PICTURE_FRAMES, evaluate_speech
     from geoavatar.runtime import resolve_device
     from geoavatar.train.checkpoint import load_run
     from geoavatar.voice import VoiceModel
 
-    if max_frames is not None and max_frames < 3:
-        raise OptionError(f"--max-frames must be at least 3 with --speech, got {max_frames}")
+    if max_frames is not None and max_frames < 1:
+        raise OptionError(f"--max-frames must be positive, got {max_frames}")
     try:
         torch_device = resolve_device(device)
     except ValueError as err:
         raise OptionError(str(err)) from err
     run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
     voice = VoiceModel.load(run.info.run_dir)
-    result = evaluate_speech(run, voice, data, max_frames, backend, progress=progress)
+    result = evaluate_speech(run, voice, data, max_frames or PICTURE_FRAMES, backend, progress=progress)
     written = write_speech_report(result, speech_dir(run.info.run_dir))
     print(speech_table(result.scores), end="")
     print(f"{result.label}: {result.frames} held-out frames driven by their own sound in {result.seconds:.1f} s -> "

@@ -15,7 +15,8 @@ Scores (head model's canonical frame: the head pose at zero, identity fixed; fac
                            predicted (m^2; near 0: the brows and eyelids move as much as tracked)
     psnr, lpips, mouth_psnr  the held-out frames rendered with the tracked head pose, gaze and T = 0 and the
                            predicted expression and jaw, against the ground-truth pictures; `tracked` gives the same
-                           for the tracked parameters
+                           for the tracked parameters (40 frames spread over the segment by default: five renders
+                           and LPIPS each; the face scores use every frame)
 Baselines, scored the same way: mean_face (the training frames' mean expression, the jaw at rest), nearest (the
 training frame whose sound window, as the voice model hears it, is nearest) and linear (ridge regression from
 +-120 ms of log-mel and MFCC frames to the parameters, its strength chosen on the last tenth of the training frames).
@@ -205,8 +206,11 @@ def write_speech_report(result: SpeechResult, folder: Path) -> dict[str, Path]:
                                                               if k not in ("voice", "tracked")},
                "tracked": result.scores.get("tracked", {}), "settings": result.settings,
                "units": {"lip_vertex_error": "m^2", "upper_face_dynamics": "m^2", "lag_ms": "ms"}}
+    pictures = result.settings.get("picture_frames")
     markdown = (f"# Speech-driven held-out frames: {result.label}\n\n{result.frames} held-out frames at "
-                f"{result.fps:g} fps, driven by their own sound (never heard in training).\n\n"
+                f"{result.fps:g} fps, driven by their own sound (never heard in training)"
+                + (f"; PSNR, LPIPS and mouth PSNR over {pictures} of them, spread evenly" if pictures else "")
+                + ".\n\n"
                 + speech_table(result.scores)
                 + "\nvoice: the voice model; tracked: the held-out frames' tracked parameters (the reference the face "
                   "scores compare with; its pictures are the avatar's best). Baselines: mean_face, nearest, linear "

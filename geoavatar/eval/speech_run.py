@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from geoavatar.avatar import render_avatar
+from geoavatar.data import evenly_spaced
 from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.data.errors import DatasetError
 from geoavatar.data.sound import read_dataset_sound
@@ -92,9 +93,14 @@ def picture_scores(run: LoadedRun, dataset, index_of: dict[int, int], timesteps:
     return {name: {k: (float(np.mean(v)) if v else None) for k, v in values.items()} for name, values in totals.items()}
 
 
-def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None, max_frames: int | None = None,
-                    backend: str = "auto", render: bool = True, progress: bool = True) -> SpeechResult:
-    """The voice model and the baselines on the run's held-out frames (module docstring of eval/speech.py)."""
+PICTURE_FRAMES = 40  # held-out frames rendered for the picture scores (5 renders each: the voice, tracked, baselines)
+
+
+def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
+                    picture_frames: int | None = PICTURE_FRAMES, backend: str = "auto", render: bool = True,
+                    progress: bool = True) -> SpeechResult:
+    """The voice model and the baselines on the run's held-out frames (module docstring of eval/speech.py): the face
+    scores over every held-out frame, the picture scores over `picture_frames` of them spread evenly (None: all)."""
     started = time.perf_counter()
     root = Path(data) if data is not None else run.info.data_root
     sound = read_dataset_sound(root)
@@ -105,8 +111,6 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     test = sorted(run.info.timesteps.get("test", []), key=lambda t: sound.frame_times.get(t, t))
     if len(test) < 3:
         raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
-    if max_frames is not None:
-        test = test[:max_frames]  # a contiguous stretch: the lag and the dynamics need consecutive frames
     try:
         inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims)
     except DatasetError as err:
@@ -119,10 +123,13 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     if render:
         dataset, index_of = _test_items(run, data)
         config = EvalConfig(split="test", backend=backend)
-        pictures = picture_scores(run, dataset, index_of, test, faces, config, progress)
+        rows = evenly_spaced(len(test), picture_frames)
+        pictures = picture_scores(run, dataset, index_of, [test[r] for r in rows],
+                                  {name: face.take(rows) for name, face in faces.items()}, config, progress)
         for name, values in pictures.items():
             scores[name].update(values)
-    settings = {"voice": {k: voice.config.to_dict()[k] for k in ("past", "ahead")}, "held_out_frames": len(test),
+    settings = {"voice": {k: voice.config.to_dict()[k] for k in ("past", "ahead", "members")},
+                "held_out_frames": len(test), "picture_frames": len(evenly_spaced(len(test), picture_frames)),
                 "normalisation": "the held-out sound by its own speech statistics", "render": render,
                 "head_pose": "tracked (rotation, neck, translation, eyes); T = 0", "metrics": metrics.__name__}
     return SpeechResult(run.info.run_dir, run_label(run)[0], len(test), fps, scores, settings,
