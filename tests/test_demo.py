@@ -1,6 +1,6 @@
 """`geoavatar demo` end to end on a tiny budget: every stage of a user's path runs (train, track the test frames
-against the avatar, eval on that copy), the report leads with that score, the pictures are 256 px, and the report
-points at real files."""
+against the avatar, eval on that copy, learn the voice, score it, speak), the report leads with the tracked score,
+the pictures are larger than the training images, and the report points at real files."""
 
 import functools
 import json
@@ -14,8 +14,12 @@ from PIL import Image
 from geoavatar import cli
 from geoavatar.apps.demo import TRACKED_NAME, demo
 
-# 256 px generated images, trained at 48 px: the pictures (256 px) are larger than the training images
-TINY = dict(steps=4, frames=8, size=256, resolution=48, track_steps=2, driver_frames=3, device="cpu", backend="torch")
+# 128 px generated images, trained at 32 px: the pictures (128 px) are larger than the training images; 60 frames hold
+# 2.1 s of the subject's voice, enough to learn one (8 frames would not: the speech stages would be skipped)
+PICTURES = 128
+TINY = dict(steps=4, frames=60, size=PICTURES, resolution=32, picture_resolution=PICTURES, track_steps=2,
+            driver_frames=3, voice_steps=20, device="cpu", backend="torch")
+TEST_FRAMES = 15
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +37,8 @@ def test_demo_writes_report_with_metrics_videos_and_stills(demo_out, capsys):
     out = demo_out
     report = (out / "report.md").read_text()
     assert "PSNR" in report and "| **total** |" in report and "backend 'torch'" in report
-    for name in ("render_test.mp4", "orbit.mp4", "reenact.mp4", "render.png", "orbit.png", "reenact.png"):
+    for name in ("render_test.mp4", "orbit.mp4", "reenact.mp4", "speak.mp4", "render.png", "orbit.png", "reenact.png",
+                 "speak.png"):
         assert (out / name).stat().st_size > 0, name
     # every picture the report links exists
     for link in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report):
@@ -86,18 +91,32 @@ def test_demo_report_leads_with_the_tracked_score(demo_out):
     assert summary["test"]["lead"] == "tracked"
     assert summary["test"]["tracked"]["psnr"]["mean"] == pytest.approx(tracked["psnr"]["mean"])
     assert summary["test"]["written"]["psnr"]["mean"] == pytest.approx(written["psnr"]["mean"])
-    assert summary["frames_evaluated"] == 2 and summary["tracking"]["frames_fitted"] == 2
-    assert summary["pictures"]["resolution"] == 256
+    assert summary["frames_evaluated"] == TEST_FRAMES and summary["tracking"]["frames_fitted"] == TEST_FRAMES
+    assert summary["pictures"]["resolution"] == PICTURES
     assert set(summary["seconds"]) >= {"track the test frames against the avatar", "evaluate (test split, tracked)"}
 
 
-def test_demo_stills_are_256_px_from_a_48_px_run(demo_out):
-    assert json.loads((demo_out / "run" / "config.json").read_text())["run"]["resolution"] == 48
+def test_demo_speaks_a_clip_with_its_sound_and_reports_its_voice(demo_out):
+    import av
+
+    with av.open(str(demo_out / "speak.mp4")) as container:
+        assert [stream.type for stream in container.streams] == ["video", "audio"]
+    speech = json.loads((demo_out / "run" / "eval" / "speech" / "metrics.json").read_text())
+    assert set(speech["baselines"]) == {"mean_face", "nearest", "linear"}
+    report = (demo_out / "report.md").read_text()
+    assert "## The avatar speaks" in report and f"mouth-open r {speech['mouth_open_correlation']:.2f}" in report
+    summary = json.loads((demo_out / "report.json").read_text())
+    assert summary["speech"]["lip_vertex_error"] == pytest.approx(speech["lip_vertex_error"])
+    assert "learn the voice" in summary["seconds"]
+
+
+def test_demo_stills_are_larger_than_the_training_images(demo_out):
+    assert json.loads((demo_out / "run" / "config.json").read_text())["run"]["resolution"] == 32
     for name in ("render", "orbit", "reenact"):
         with Image.open(demo_out / f"{name}.png") as image:
-            assert image.height >= 256, (name, image.size)
-    with Image.open(demo_out / "render.png") as image:  # ground truth | render | error, 256 px each
-        assert image.size == (3 * 256, 256)
+            assert image.height >= PICTURES, (name, image.size)
+    with Image.open(demo_out / "render.png") as image:  # ground truth | render | error, 128 px each
+        assert image.size == (3 * PICTURES, PICTURES)
         assert np.asarray(image).std() > 0
 
 

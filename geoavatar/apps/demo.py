@@ -39,6 +39,8 @@ class DemoSettings:
     driver_frames: int = 60  # length of the cross re-enactment driver
     orbit_frames: int = 48
     seed: int = 0
+    voice_steps: int = 400  # the voice model's steps (a 4.8 s training part: the default 1000 gain nothing here)
+    speech_seconds: float = 4.0  # the clip the avatar says
 
 
 @dataclass
@@ -86,6 +88,7 @@ def demo(
     picture_resolution: int = DemoSettings.picture_resolution,
     track_steps: int = DemoSettings.track_steps,
     driver_frames: int = DemoSettings.driver_frames,
+    voice_steps: int = DemoSettings.voice_steps,
     seed: int = DemoSettings.seed,
     device: str = "auto",
     backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto",
@@ -93,15 +96,16 @@ def demo(
 ) -> int:
     """Run the whole pipeline on a generated subject and write OUT/report.md.
 
-    Generates subject 0 (and subject 1 as a driver), trains GeoAvatar (preset E) on the first 75 %
+    Generates subject 0 with its voice (and subject 1 as a driver), trains GeoAvatar (preset E) on the first 75 %
     of the video, tracks the held-out last 25 % against the trained avatar as the README advises for a user's
     own video (`geoavatar track DATA --avatar RUN --out COPY`), evaluates MSE/PSNR/SSIM/LPIPS on them
     (`geoavatar eval RUN --data COPY`) and, beside it, on the generated subject's written parameters (the plain
     `geoavatar eval RUN`: their simulated tracker error, which the avatar never saw), renders the tracked test
     re-enactment (ground truth | render | error), a novel-view orbit and a cross re-enactment at
-    --picture-resolution, and writes report.md (led by the tracked test score) and report.json with timings and
-    pictures. Re-running continues an interrupted demo. The defaults take an estimated 4-5 minutes on 2 quiet CPU
-    cores (native cpu rasterizer; docs/demo.md).
+    --picture-resolution, learns the subject's voice from its training frames, scores it on the held-out frames'
+    sound (`geoavatar eval RUN --speech`) and makes the avatar say a clip it never heard (`geoavatar speak`), and
+    writes report.md (led by the tracked test score) and report.json with timings and pictures. Re-running
+    continues an interrupted demo. The defaults take an estimated 5 minutes on 2 quiet CPU cores (docs/demo.md).
 
     Args:
         out: Output folder (data/, run/, videos, stills and report.md go here).
@@ -112,6 +116,7 @@ def demo(
         picture_resolution: Longer side of the videos and stills (pixels; at most --size).
         track_steps: Adam steps per test frame when tracking them against the avatar (`track --steps`).
         driver_frames: Length of the second subject's video that drives the cross re-enactment.
+        voice_steps: Training steps of the voice model (`geoavatar voice --steps`).
         seed: Seed of the generated motion and of training.
         device: auto (CUDA when available, else CPU), cpu or cuda.
         backend: Rasterizer of every stage: auto (gsplat on CUDA, the native cpu kernel on CPU when it
@@ -119,86 +124,153 @@ def demo(
             native kernel.
         progress: Show progress bars.
     """
-    from geoavatar.apps.eval import eval_runs
-    from geoavatar.apps.export import export
-    from geoavatar.apps.orbit import orbit
-    from geoavatar.apps.reenact import reenact
-    from geoavatar.apps.render_video import render
-    from geoavatar.apps.synth import synth
-    from geoavatar.apps.track import REPORT_FILE as TRACK_REPORT
-    from geoavatar.apps.track import track
-    from geoavatar.apps.train import TrainArgs, train
-    from geoavatar.data.layout import is_layout
-    from geoavatar.train.options import RunOptions
-
     if (steps <= 0 or frames < 8 or size < 32 or resolution < 32 or picture_resolution < 32 or track_steps <= 0
-            or driver_frames < 2):
+            or driver_frames < 2 or voice_steps <= 0):
         raise SystemExit("geoavatar demo: need --steps > 0, --frames >= 8, --size >= 32, --resolution >= 32, "
-                         "--picture-resolution >= 32, --track-steps > 0, --driver-frames >= 2")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    data, driver, run = out / "data" / "subject0", out / "data" / "driver", out / "run"
-    tracked = out / "data" / TRACKED_NAME
-    pictures = min(picture_resolution, size)  # the generated images are never enlarged
-    videos = {"render": out / "render_test.mp4", "orbit": out / "orbit.mp4", "reenact": out / "reenact.mp4"}
-    metrics = {"tracked": run / "eval" / f"test@{TRACKED_NAME}" / "metrics.json",  # eval's folder for --data COPY
-               "written": run / "eval" / "test" / "metrics.json"}
-    timer = StageTimer(out / "timings.json")
-
-    timer.run("generate subject", lambda: is_layout(data),
-              lambda: synth(out=data, subject=0, frames=frames, size=size, seed=seed, preview=True,
-                            progress=progress))
-    timer.run("generate driver", lambda: is_layout(driver),
-              lambda: synth(out=driver, subject=DRIVER_SUBJECT, frames=driver_frames, size=size, seed=seed + 1,
-                            progress=progress))
-    final_ckpt = run / "checkpoints" / "final.pt"
-    resume = (run / "checkpoints" / "last.pt").is_file()
-    timer.run("train GeoAvatar (preset E)", final_ckpt.is_file,
-              lambda: _checked(train(TrainArgs(
-                  RunOptions(out=run, data=data, preset=None if resume else "E", resolution=resolution, seed=seed,
-                             device=device, backend=backend, progress=progress),
-                  steps=None if resume else steps, resume=resume)), "train"))
-    # the user's path: the held-out frames tracked against the avatar (only they: the training frames keep the
-    # parameters training refined), then scored on that copy
-    timer.run("track the test frames against the avatar", (tracked / TRACK_REPORT).is_file,
-              lambda: _checked(track(data, out=tracked, avatar=run, steps=track_steps, device=device, overwrite=True,
-                                     progress=progress), "track"))
-    timer.run("evaluate (test split, tracked)", metrics["tracked"].is_file,
-              lambda: _checked(eval_runs([run], split="test", data=tracked, device=device, backend=backend,
-                                         progress=progress), "eval"))
-    # beside it, the plain eval on the written parameters (the generator's tracker error); its three figures only
-    timer.run("evaluate (test split, written parameters)", metrics["written"].is_file,
-              lambda: _checked(eval_runs([run], split="test", faces=False, floaters=False, device=device,
-                                         backend=backend, progress=progress), "eval"))
-    timer.run("render test re-enactment", videos["render"].is_file,
-              lambda: _checked(render(run, split="test", out=videos["render"], data=tracked, resolution=pictures,
-                                      device=device, backend=backend, progress=progress),
-                               "render"))
-    timer.run("render novel-view orbit", videos["orbit"].is_file,
-              lambda: _checked(orbit(run, out=videos["orbit"], frames=DemoSettings.orbit_frames, resolution=pictures,
-                                     device=device, backend=backend, progress=progress), "orbit"))
-    timer.run("render cross re-enactment", videos["reenact"].is_file,
-              lambda: _checked(reenact(run, driver=driver, out=videos["reenact"], relative=True, resolution=pictures,
-                                       device=device, backend=backend, progress=progress),
-                               "reenact"))
-
-    player = out / "web"
-    timer.run("write the web player", (player / "avatar.json").is_file,
-              lambda: _checked(export(run, out=player, format="web", overwrite=True, device=device,
-                                      progress=progress), "export"))
-
-    stills = {name: out / f"{name}.png" for name in videos}
-    for name, video in videos.items():
-        save_still(video, stills[name])
-    report = write_report(out, data, tracked, run, metrics, videos, stills, timer.seconds,
-                          steps=steps, resolution=resolution, frames=frames, backend=backend,
-                          picture_resolution=pictures, track_steps=track_steps, size=size, seed=seed)
+                         "--picture-resolution >= 32, --track-steps > 0, --driver-frames >= 2, --voice-steps > 0")
+    plan = DemoPlan(Path(out), DemoSettings(frames, size, resolution, min(picture_resolution, size), steps,
+                                            track_steps, driver_frames, seed=seed, voice_steps=voice_steps),
+                    device, backend, progress)
+    plan.out.mkdir(parents=True, exist_ok=True)
+    timer = StageTimer(plan.out / "timings.json")
+    for name, done, action in plan.stages():
+        timer.run(name, done, action)
+    stills = {name: plan.out / f"{name}.png" for name in plan.videos}
+    for name, video in plan.videos.items():
+        if video.is_file():  # no speech video when the subject was too short to learn a voice
+            save_still(video, stills[name])
+    report = write_report(plan, stills, timer.seconds)
     print()
     print(f"Demo finished: {sum(timer.seconds.values()) / 60:.1f} min of stage time in all.")
-    print(f"Open {report} (metrics, timings, pictures); videos: {', '.join(str(v) for v in videos.values())}")
-    print(f"The avatar in your browser: python3 -m http.server 8000 --bind 127.0.0.1 --directory {player}\n"
-          f"  then open http://127.0.0.1:8000/ (or: geoavatar view {run}, with expression and jaw sliders)")
+    print(f"Open {report} (metrics, timings, pictures); videos: {', '.join(str(v) for v in plan.videos.values())}")
+    print(f"The avatar in your browser: python3 -m http.server 8000 --bind 127.0.0.1 --directory {plan.player}\n"
+          f"  then open http://127.0.0.1:8000/ (or: geoavatar view {plan.run}, with expression and jaw sliders)")
     return 0
+
+
+@dataclass
+class DemoPlan:
+    """Where the demo's stages write, and the stages themselves (each: a name, whether it is done, what it does)."""
+
+    out: Path
+    settings: DemoSettings
+    device: str = "auto"
+    backend: str = "auto"
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        out = self.out
+        self.data, self.driver, self.run = out / "data" / "subject0", out / "data" / "driver", out / "run"
+        self.tracked = out / "data" / TRACKED_NAME
+        self.new_speech = out / "data" / "new_speech.wav"  # a clip of the subject's voice it never said
+        self.videos = {"render": out / "render_test.mp4", "orbit": out / "orbit.mp4", "reenact": out / "reenact.mp4",
+                       "speak": out / "speak.mp4"}
+        self.metrics = {"tracked": self.run / "eval" / f"test@{TRACKED_NAME}" / "metrics.json",  # --data COPY's
+                        "written": self.run / "eval" / "test" / "metrics.json"}
+        self.speech_metrics = self.run / "eval" / "speech" / "metrics.json"
+        self.player = out / "web"
+
+    def stages(self) -> list[tuple[str, Callable[[], bool], Callable[[], object]]]:
+        return [*self._subject_stages(), *self._evaluation_stages(), *self._picture_stages(), *self._speech_stages()]
+
+    def _subject_stages(self):
+        from geoavatar.apps.synth import synth
+        from geoavatar.apps.train import TrainArgs, train
+        from geoavatar.data.layout import is_layout
+        from geoavatar.train.options import RunOptions
+
+        s, run = self.settings, self.run
+        resume = (run / "checkpoints" / "last.pt").is_file()
+        return [
+            ("generate subject", lambda: is_layout(self.data),
+             lambda: synth(out=self.data, subject=0, frames=s.frames, size=s.size, seed=s.seed, preview=True,
+                           sound=True, progress=self.progress)),
+            ("generate driver", lambda: is_layout(self.driver),
+             lambda: synth(out=self.driver, subject=DRIVER_SUBJECT, frames=s.driver_frames, size=s.size,
+                           seed=s.seed + 1, progress=self.progress)),
+            ("train GeoAvatar (preset E)", (run / "checkpoints" / "final.pt").is_file,
+             lambda: _checked(train(TrainArgs(
+                 RunOptions(out=run, data=self.data, preset=None if resume else "E", resolution=s.resolution,
+                            seed=s.seed, device=self.device, backend=self.backend, progress=self.progress),
+                 steps=None if resume else s.steps, resume=resume, voice=False)), "train")),
+        ]
+
+    def _evaluation_stages(self):
+        from geoavatar.apps.eval import eval_runs
+        from geoavatar.apps.track import REPORT_FILE as TRACK_REPORT
+        from geoavatar.apps.track import track
+
+        common = {"device": self.device, "progress": self.progress}
+        # the user's path: the held-out frames tracked against the avatar (the training frames keep the parameters
+        # training refined), then scored on that copy; beside it the plain eval on the written parameters
+        return [
+            ("track the test frames against the avatar", (self.tracked / TRACK_REPORT).is_file,
+             lambda: _checked(track(self.data, out=self.tracked, avatar=self.run, steps=self.settings.track_steps,
+                                    overwrite=True, **common), "track")),
+            ("evaluate (test split, tracked)", self.metrics["tracked"].is_file,
+             lambda: _checked(eval_runs([self.run], split="test", data=self.tracked, backend=self.backend, **common),
+                              "eval")),
+            ("evaluate (test split, written parameters)", self.metrics["written"].is_file,
+             lambda: _checked(eval_runs([self.run], split="test", faces=False, floaters=False, backend=self.backend,
+                                        **common), "eval")),
+        ]
+
+    def _picture_stages(self):
+        from geoavatar.apps.export import export
+        from geoavatar.apps.orbit import orbit
+        from geoavatar.apps.reenact import reenact
+        from geoavatar.apps.render_video import render
+
+        px, videos = self.settings.picture_resolution, self.videos
+        common = {"device": self.device, "backend": self.backend, "progress": self.progress}
+        return [
+            ("render test re-enactment", videos["render"].is_file,
+             lambda: _checked(render(self.run, split="test", out=videos["render"], data=self.tracked, resolution=px,
+                                     **common), "render")),
+            ("render novel-view orbit", videos["orbit"].is_file,
+             lambda: _checked(orbit(self.run, out=videos["orbit"], frames=DemoSettings.orbit_frames, resolution=px,
+                                    **common), "orbit")),
+            ("render cross re-enactment", videos["reenact"].is_file,
+             lambda: _checked(reenact(self.run, driver=self.driver, out=videos["reenact"], relative=True,
+                                      resolution=px, **common), "reenact")),
+            ("write the web player", (self.player / "avatar.json").is_file,
+             lambda: _checked(export(self.run, out=self.player, format="web", overwrite=True, device=self.device,
+                                     progress=self.progress), "export")),
+        ]
+
+    def _speech_stages(self):
+        from geoavatar.apps.eval import eval_runs
+        from geoavatar.apps.speak import speak
+        from geoavatar.apps.voice import learn_voice
+        from geoavatar.train.checkpoint import open_run
+        from geoavatar.voice import VoiceConfig, VoiceModel
+
+        px, s = self.settings.picture_resolution, self.settings
+        mute = self.mute  # a subject too short to learn a voice from: these stages are skipped (the report says so)
+        return [
+            ("learn the voice", lambda: VoiceModel.exists(self.run) or mute(),
+             lambda: learn_voice(open_run(self.run, "cpu"), config=VoiceConfig(steps=s.voice_steps, seed=s.seed))),
+            ("evaluate the voice (held-out sound)", lambda: self.speech_metrics.is_file() or mute(),
+             lambda: _checked(eval_runs([self.run], speech=True, device=self.device, backend=self.backend,
+                                        progress=self.progress), "eval --speech")),
+            ("speak a clip it never heard", lambda: self.videos["speak"].is_file() or mute(),
+             lambda: _checked(speak(self.run, audio=self._new_speech(), out=self.videos["speak"], resolution=px,
+                                    seed=s.seed, device=self.device, backend=self.backend, progress=self.progress),
+                              "speak")),
+        ]
+
+    def mute(self) -> bool:
+        """Whether the generated subject holds too little speech to learn a voice from (a very short --frames)."""
+        from geoavatar.data.sound import read_dataset_sound
+
+        sound = read_dataset_sound(self.data)
+        return sound is None or not sound.activity.has_speech
+
+    def _new_speech(self) -> Path:
+        from geoavatar.data.synth.sound import new_speech
+        from geoavatar.sound import write_wav
+
+        return write_wav(self.new_speech, new_speech(DemoSettings.speech_seconds, seed=self.settings.seed + 11))
 
 
 def save_still(video: Path, png: Path, position: float = 0.5) -> Path:
@@ -213,116 +285,134 @@ def save_still(video: Path, png: Path, position: float = 0.5) -> Path:
     return atomic_write_png(png, image)
 
 
-def write_report(out: Path, data: Path, tracked: Path, run: Path, metrics: dict[str, Path], videos: dict[str, Path],
-                 stills: dict[str, Path], seconds: dict[str, float], **settings) -> Path:
+def write_report(plan: DemoPlan, stills: dict[str, Path], seconds: dict[str, float]) -> Path:
     """OUT/report.md, led by the test score of the tracked test frames with the written parameters' beside it, and
     OUT/report.json with the same figures (per path: mean and std of PSNR, SSIM, LPIPS, MSE and the mouth's)."""
-    scores = {path: json.loads(file.read_text()) for path, file in metrics.items()}
+    out, settings = plan.out, plan.settings
+    scores = {path: json.loads(file.read_text()) for path, file in plan.metrics.items()}
     figures = {path: _figures(score["summary"]) for path, score in scores.items()}
-    tracking = _tracking_summary(tracked)
-    # the tracked eval's report without its own title, its sections one level down, so it nests under this heading
-    table = "\n".join("##" + line if line.startswith("## ") else line
-                      for line in (metrics["tracked"].parent / "metrics.md").read_text().strip().splitlines()
-                      if not line.startswith("# "))
-    aps = run / "aps.json"
-    aps_text = ""
-    if aps.is_file():
-        aps_text = "\n## Adaptive Pre-allocation Stage\n\n```\n" + _aps_summary(json.loads(aps.read_text())) + "\n```\n"
+    speech = json.loads(plan.speech_metrics.read_text()) if plan.speech_metrics.is_file() else None
+    tracking = _tracking_summary(plan.tracked)
     rel = lambda p: Path(p).relative_to(out).as_posix()  # noqa: E731
-    timing_rows = "\n".join(f"| {name} | {sec / 60:.1f} min |" for name, sec in seconds.items())
-    frames_evaluated = len(scores["tracked"]["frames"])
-    lead = figures["tracked"]
-    px = settings["picture_resolution"]
-    lines = [
-        "# GeoAvatar demo",
-        "",
-        f"A generated subject ({settings['frames']} frames), GeoAvatar (preset E) trained for {settings['steps']} steps "
-        f"at {settings['resolution']} px on {platform.processor() or platform.machine()} (rasterizer backend "
-        f"'{settings.get('backend', 'auto')}') on the first 75 % of the video, and tested on the held-out last 25 % "
-        f"(poses and expressions not seen in training) the way your own video is: its frames tracked against the "
-        f"trained avatar, then scored.",
-        "",
-        "## Test-split score",
-        "",
-        f"**{_headline(lead)}** on the {frames_evaluated} held-out frames tracked against the avatar "
-        f"(`geoavatar track DATA --avatar RUN --out COPY`, then `geoavatar eval RUN --data COPY`).",
-        "",
-        "| test frames' parameters | PSNR ↑ | SSIM ↑ | LPIPS ↓ | mouth PSNR ↑ |",
-        "|---|---:|---:|---:|---:|",
-        f"| **tracked against the avatar** (`{rel(tracked)}`) | {_row(lead, bold=True)} |",
-        f"| written by the generator (the plain `geoavatar eval RUN`) | {_row(figures['written'])} |",
-        "",
-        "The written parameters carry the generator's simulated tracker error, which the avatar never saw (on the test "
-        "frames mostly a drift in depth); tracking against the avatar fits it away as it would a real tracker's, so the "
-        "plain score measures that error more than the avatar.",
-        "",
-        _tracking_line(tracking, rel(tracked / "track.json")),
-        "",
-        f"### The tracked test frames in full (`geoavatar eval RUN --data {rel(tracked)}`)",
-        "",
-        table,
-        "",
-        f"Frames evaluated: {frames_evaluated}. Per-frame values: `{rel(metrics['tracked'])}`; with the written "
-        f"parameters: `{rel(metrics['written'])}`.",
-        "",
-        "## Pictures",
-        "",
-        f"At {px} px (the avatar was trained at {settings['resolution']} px).",
-        "",
-        f"Self re-enactment of the tracked test frames (ground truth | render | error): `{rel(videos['render'])}`",
-        "",
-        f"![test re-enactment]({rel(stills['render'])})",
-        "",
-        f"Novel views (yaw/pitch orbit): `{rel(videos['orbit'])}`",
-        "",
-        f"![orbit]({rel(stills['orbit'])})",
-        "",
-        f"Cross re-enactment driven by a second generated subject (relative expressions): `{rel(videos['reenact'])}`",
-        "",
-        f"![cross re-enactment]({rel(stills['reenact'])})",
-        "",
-        f"The generated subject across its sequence: `{rel(data / 'preview.png')}`",
-        "",
-        f"The animated avatar in a browser (test split, posed on the GPU): `python3 -m http.server 8000 --bind "
-        f"127.0.0.1 --directory {out / 'web'}`, then open http://127.0.0.1:8000/ (docs/web_player.md).",
-        aps_text,
-        "## Time",
-        "",
-        "| stage | time |",
-        "|---|---|",
-        timing_rows,
-        f"| **total** | **{sum(seconds.values()) / 60:.1f} min** |",
-        "",
-        "## Reproduce",
-        "",
-        "```bash",
-        f"geoavatar demo --out {out} --steps {settings['steps']} --frames {settings['frames']} --size {settings['size']} "
-        f"--resolution {settings['resolution']} --picture-resolution {px} --track-steps {settings['track_steps']}",
-        "```",
-        "",
-        "or the same steps one by one, as for your own video after `geoavatar prepare`:",
-        "",
-        "```bash",
-        *_user_path(out, data, tracked, run, videos["render"], **settings),
-        "```",
-        "",
-        f"Training log: `{rel(run / 'train.log')}`; validation images: `{rel(run / 'val')}`.",
-        "",
-    ]
+    lines = [*_score_lines(plan, figures, tracking, len(scores["tracked"]["frames"]), rel),
+             *_speech_lines(plan, speech, rel), *_picture_lines(plan, stills, rel), _aps_text(plan.run),
+             *_time_lines(seconds), *_reproduce_lines(plan, rel)]
     atomic_write_text(out / "report.json", json.dumps({
         "format": "geoavatar-demo", "version": 1,
         "test": {"lead": "tracked", **figures},  # per path: the test frames' parameters
-        "frames_evaluated": frames_evaluated,
+        "frames_evaluated": len(scores["tracked"]["frames"]),
         "tracking": tracking,
-        "metrics": {path: rel(file) for path, file in metrics.items()},
-        "pictures": {"resolution": px, "stills": {name: rel(png) for name, png in stills.items()},
-                     "videos": {name: rel(video) for name, video in videos.items()}},
-        "settings": {key: settings[key] for key in ("frames", "size", "steps", "resolution", "track_steps", "seed",
-                                                    "backend") if key in settings},
+        "speech": None if speech is None else ({key: speech.get(key) for key in SPEECH_KEYS}
+                                               | {"baselines": speech.get("baselines", {})}),
+        "metrics": {path: rel(file) for path, file in plan.metrics.items()}
+        | ({"speech": rel(plan.speech_metrics)} if speech is not None else {}),
+        "pictures": {"resolution": settings.picture_resolution,
+                     "stills": {n: rel(png) for n, png in stills.items() if png.is_file()},
+                     "videos": {name: rel(video) for name, video in plan.videos.items() if video.is_file()}},
+        "settings": {key: getattr(settings, key) for key in ("frames", "size", "steps", "resolution", "track_steps",
+                                                             "voice_steps", "seed")} | {"backend": plan.backend},
         "seconds": {name: round(sec, 1) for name, sec in seconds.items()},
         "total_seconds": round(sum(seconds.values()), 1),
     }, indent=1) + "\n")
     return atomic_write_text(out / "report.md", "\n".join(lines))
+
+
+SPEECH_KEYS = ("lip_vertex_error", "mouth_open_correlation", "lag_ms", "upper_face_dynamics", "psnr", "lpips",
+               "mouth_psnr")
+
+
+def _score_lines(plan: DemoPlan, figures: dict, tracking: dict, evaluated: int, rel) -> list[str]:
+    s, lead = plan.settings, figures["tracked"]
+    # the tracked eval's report without its own title, its sections one level down, so it nests under this heading
+    table = "\n".join("##" + line if line.startswith("## ") else line
+                      for line in (plan.metrics["tracked"].parent / "metrics.md").read_text().strip().splitlines()
+                      if not line.startswith("# "))
+    return [
+        "# GeoAvatar demo", "",
+        f"A generated subject ({s.frames} frames, with its voice), GeoAvatar (preset E) trained for {s.steps} steps at "
+        f"{s.resolution} px on {platform.processor() or platform.machine()} (rasterizer backend '{plan.backend}') "
+        "on the first 75 % of the video, and tested on the held-out last 25 % (poses and expressions not seen in "
+        "training) the way your own video is: its frames tracked against the trained avatar, then scored.", "",
+        "## Test-split score", "",
+        f"**{_headline(lead)}** on the {evaluated} held-out frames tracked against the avatar "
+        "(`geoavatar track DATA --avatar RUN --out COPY`, then `geoavatar eval RUN --data COPY`).", "",
+        "| test frames' parameters | PSNR ↑ | SSIM ↑ | LPIPS ↓ | mouth PSNR ↑ |", "|---|---:|---:|---:|---:|",
+        f"| **tracked against the avatar** (`{rel(plan.tracked)}`) | {_row(lead, bold=True)} |",
+        f"| written by the generator (the plain `geoavatar eval RUN`) | {_row(figures['written'])} |", "",
+        "The written parameters carry the generator's simulated tracker error, which the avatar never saw (on the test "
+        "frames mostly a drift in depth); tracking against the avatar fits it away as it would a real tracker's, so "
+        "the plain score measures that error more than the avatar.", "",
+        _tracking_line(tracking, rel(plan.tracked / "track.json")), "",
+        f"### The tracked test frames in full (`geoavatar eval RUN --data {rel(plan.tracked)}`)", "",
+        table, "",
+        f"Frames evaluated: {evaluated}. Per-frame values: `{rel(plan.metrics['tracked'])}`; with the written "
+        f"parameters: `{rel(plan.metrics['written'])}`.", "",
+    ]
+
+
+def _speech_lines(plan: DemoPlan, speech: dict | None, rel) -> list[str]:
+    if speech is None:
+        return ["## The avatar speaks", "", f"Not in this demo: its {plan.settings.frames}-frame subject holds too "
+                "little speech to learn a voice from (the default 160 frames hold 4.5 s).", ""]
+    table = (plan.speech_metrics.parent / "metrics.md").read_text().strip().splitlines()
+    table = [line for line in table if line.startswith("|")]
+    r, lag = speech.get("mouth_open_correlation"), speech.get("lag_ms")
+    headline = (f"mouth-open r {'–' if r is None else f'{r:.2f}'}, LVE {speech['lip_vertex_error']:.2e} m², "
+                f"lag {'–' if lag is None else f'{lag:+.0f}'} ms")
+    return [
+        "## The avatar speaks", "",
+        f"The subject's voice model, learned from its training frames' sound, drives the {speech['frames']} held-out "
+        f"frames by their own sound (never heard in training; `geoavatar eval RUN --speech`): **{headline}** "
+        f"(`{rel(plan.speech_metrics)}`).", "",
+        *table, "",
+        f"The avatar saying a clip of the same voice it never heard (`geoavatar speak RUN --audio "
+        f"{rel(plan.new_speech)}`, an mp4 with its sound): `{rel(plan.videos['speak'])}`", "",
+    ]
+
+
+def _picture_lines(plan: DemoPlan, stills: dict[str, Path], rel) -> list[str]:
+    videos = plan.videos
+    return [
+        "## Pictures", "",
+        f"At {plan.settings.picture_resolution} px (the avatar was trained at {plan.settings.resolution} px).", "",
+        f"Self re-enactment of the tracked test frames (ground truth | render | error): `{rel(videos['render'])}`", "",
+        f"![test re-enactment]({rel(stills['render'])})", "",
+        f"Novel views (yaw/pitch orbit): `{rel(videos['orbit'])}`", "",
+        f"![orbit]({rel(stills['orbit'])})", "",
+        f"Cross re-enactment driven by a second generated subject (relative expressions): `{rel(videos['reenact'])}`",
+        "", f"![cross re-enactment]({rel(stills['reenact'])})", "",
+        *([f"The avatar speaking: `{rel(videos['speak'])}`", "", f"![speaking]({rel(stills['speak'])})", ""]
+          if stills["speak"].is_file() else []),
+        f"The generated subject across its sequence: `{rel(plan.data / 'preview.png')}`", "",
+        f"The animated avatar in a browser (test split, posed on the GPU): `python3 -m http.server 8000 --bind "
+        f"127.0.0.1 --directory {plan.player}`, then open http://127.0.0.1:8000/ (docs/web_player.md).",
+    ]
+
+
+def _aps_text(run: Path) -> str:
+    aps = run / "aps.json"
+    if not aps.is_file():
+        return ""
+    return "\n## Adaptive Pre-allocation Stage\n\n```\n" + _aps_summary(json.loads(aps.read_text())) + "\n```\n"
+
+
+def _time_lines(seconds: dict[str, float]) -> list[str]:
+    return ["## Time", "", "| stage | time |", "|---|---|",
+            *(f"| {name} | {sec / 60:.1f} min |" for name, sec in seconds.items()),
+            f"| **total** | **{sum(seconds.values()) / 60:.1f} min** |", ""]
+
+
+def _reproduce_lines(plan: DemoPlan, rel) -> list[str]:
+    s = plan.settings
+    return [
+        "## Reproduce", "", "```bash",
+        f"geoavatar demo --out {plan.out} --steps {s.steps} --frames {s.frames} --size {s.size} "
+        f"--resolution {s.resolution} --picture-resolution {s.picture_resolution} --track-steps {s.track_steps} "
+        f"--voice-steps {s.voice_steps}",
+        "```", "", "or the same steps one by one, as for your own video after `geoavatar prepare`:", "", "```bash",
+        *_user_path(plan), "```", "",
+        f"Training log: `{rel(plan.run / 'train.log')}`; validation images: `{rel(plan.run / 'val')}`.", "",
+    ]
 
 
 def _figures(summary: dict) -> dict[str, dict[str, float]]:
@@ -356,21 +446,25 @@ def _tracking_summary(tracked: Path) -> dict:
 def _tracking_line(tracking: dict, report: str) -> str:
     return (f"Tracking: {tracking['frames_fitted']} test frames, {tracking['steps']} Adam steps each against the "
             f"frozen avatar (the {tracking['frames_from_run']} training frames keep the parameters training refined); "
-            f"L1 {tracking['l1_before']:.4f} -> {tracking['l1_after']:.4f} in {tracking['seconds']:.0f} s (`{report}`).")
+            f"L1 {tracking['l1_before']:.4f} -> {tracking['l1_after']:.4f} in {tracking['seconds']:.0f} s "
+            f"(`{report}`).")
 
 
-def _user_path(out: Path, data: Path, tracked: Path, run: Path, render_video: Path, **settings) -> list[str]:
+def _user_path(plan: DemoPlan) -> list[str]:
     """The demo's stages as the commands a user types (the generated subject stands for `prepare`'s dataset)."""
-    px = settings["picture_resolution"]
+    s, data, run, tracked = plan.settings, plan.data, plan.run, plan.tracked
     return [
-        f"geoavatar synth --out {data} --subject 0 --frames {settings['frames']} --size {settings['size']} "
-        f"--seed {settings['seed']} --preview",
-        f"geoavatar train --data {data} --out {run} --preset E --steps {settings['steps']} "
-        f"--resolution {settings['resolution']} --seed {settings['seed']}",
-        f"geoavatar track {data} --avatar {run} --out {tracked} --steps {settings['track_steps']}",
+        f"geoavatar synth --out {data} --subject 0 --frames {s.frames} --size {s.size} --seed {s.seed} --preview "
+        "--sound",
+        f"geoavatar train --data {data} --out {run} --preset E --steps {s.steps} --resolution {s.resolution} "
+        f"--seed {s.seed} --no-voice",
+        f"geoavatar track {data} --avatar {run} --out {tracked} --steps {s.track_steps}",
         f"geoavatar eval {run} --data {tracked}",
         f"geoavatar eval {run} --no-faces --no-floaters      # the written parameters",
-        f"geoavatar render {run} --data {tracked} --resolution {px} --out {render_video}",
+        f"geoavatar render {run} --data {tracked} --resolution {s.picture_resolution} --out {plan.videos['render']}",
+        f"geoavatar voice {run} --steps {s.voice_steps}      # train learns it itself without --no-voice",
+        f"geoavatar eval {run} --speech",
+        f"geoavatar speak {run} --audio {plan.new_speech} --out {plan.videos['speak']}",
     ]
 
 
