@@ -170,3 +170,45 @@ def test_a_dataset_without_speech_says_how_to_get_a_voice(tmp_path):
     run = open_run(make_untrained_run(data, tmp_path / "run"), "cpu")
     with pytest.raises(VoiceModelError, match="no sound track.*talks"):
         train_voice(run)
+
+
+def test_speech_scores_have_known_values_and_follow_a_copys_parameters(talking, learned, tmp_path):
+    from geoavatar.eval.speech import best_lag, face_scores
+    from geoavatar.eval.speech_run import evaluate_speech
+    from geoavatar.train.run_frames import RunFrames
+    from geoavatar.voice.face import FaceProbe
+    from geoavatar.voice.model import SpokenFace
+
+    data, _ = talking
+    run, voice = learned
+    # a signal against itself 3 frames late (25 fps): +120 ms, and r 1 there
+    signal = np.convolve(np.random.default_rng(0).normal(size=200), np.ones(5), "same")
+    lag, r = best_lag(np.concatenate([np.zeros(3), signal[:-3]]), signal, 25.0)
+    assert lag == pytest.approx(120.0) and r == pytest.approx(1.0)
+
+    # the held-out faces against themselves score perfectly; with the jaw opened further the lips err
+    frames = RunFrames(run)
+    rows = [frames.row(t) for t in run.info.timesteps["test"]]
+    tracked = SpokenFace(frames.values.expr[rows].detach().numpy(), frames.values.jaw_pose[rows].detach().numpy())
+    probe = FaceProbe(run.head, frames.identity())
+    same = face_scores(probe, tracked, tracked, 25.0)
+    assert same["lip_vertex_error"] == 0.0 and same["lag_ms"] == 0.0
+    assert same["mouth_open_correlation"] == pytest.approx(1.0) and same["upper_face_dynamics"] == pytest.approx(0.0)
+    opened = SpokenFace(tracked.expr, tracked.jaw + np.array([0.1, 0.0, 0.0], np.float32))
+    assert face_scores(probe, opened, tracked, 25.0)["lip_vertex_error"] > 1e-6
+
+    # the learned voice beats the mean face and hears the mouth on time
+    scores = evaluate_speech(run, voice, render=False).scores
+    assert scores["voice"]["mouth_open_correlation"] > 0.7 and abs(scores["voice"]["lag_ms"]) <= 40
+    assert scores["voice"]["lip_vertex_error"] < scores["mean_face"]["lip_vertex_error"]
+    # --data COPY: the copy's held-out parameters are the reference (here a closed jaw: the mean face wins)
+    copy = tmp_path / "copy"
+    shutil.copytree(data, copy)
+    for timestep in run.info.timesteps["test"]:
+        path = copy / "flame_param" / f"{timestep:05d}.npz"
+        with np.load(path) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        arrays["jaw_pose"] = np.zeros_like(arrays["jaw_pose"])
+        np.savez(path, **arrays)
+    closed = evaluate_speech(run, voice, data=copy, render=False).scores
+    assert closed["mean_face"]["lip_vertex_error"] < closed["voice"]["lip_vertex_error"]

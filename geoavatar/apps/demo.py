@@ -41,6 +41,7 @@ class DemoSettings:
     seed: int = 0
     voice_steps: int = 400  # the voice model's steps (a 4.8 s training part: the default 1000 gain nothing here)
     speech_seconds: float = 4.0  # the clip the avatar says
+    speech_pictures: int = 10  # held-out frames rendered for eval --speech's picture scores (its face scores: all)
 
 
 @dataclass
@@ -251,8 +252,9 @@ class DemoPlan:
             ("learn the voice", lambda: VoiceModel.exists(self.run) or mute(),
              lambda: learn_voice(open_run(self.run, "cpu"), config=VoiceConfig(steps=s.voice_steps, seed=s.seed))),
             ("evaluate the voice (held-out sound)", lambda: self.speech_metrics.is_file() or mute(),
-             lambda: _checked(eval_runs([self.run], speech=True, device=self.device, backend=self.backend,
-                                        progress=self.progress), "eval --speech")),
+             lambda: _checked(eval_runs([self.run], speech=True, data=self.tracked, max_frames=s.speech_pictures,
+                                        device=self.device, backend=self.backend, progress=self.progress),
+                              "eval --speech")),
             ("speak a clip it never heard", lambda: self.videos["speak"].is_file() or mute(),
              lambda: _checked(speak(self.run, audio=self._new_speech(), out=self.videos["speak"], resolution=px,
                                     seed=s.seed, device=self.device, backend=self.backend, progress=self.progress),
@@ -362,7 +364,9 @@ def _speech_lines(plan: DemoPlan, speech: dict | None, rel) -> list[str]:
     return [
         "## The avatar speaks", "",
         f"The subject's voice model, learned from its training frames' sound, drives the {speech['frames']} held-out "
-        f"frames by their own sound (never heard in training; `geoavatar eval RUN --speech`): **{headline}** "
+        f"frames by their own sound (never heard in training; `geoavatar eval RUN --speech --data COPY`, the head "
+        f"pose and the reference parameters from the tracked copy; pictures on {plan.settings.speech_pictures} of the "
+        f"frames): **{headline}** "
         f"(`{rel(plan.speech_metrics)}`).", "",
         *table, "",
         f"The avatar saying a clip of the same voice it never heard (`geoavatar speak RUN --audio "
@@ -463,7 +467,7 @@ def _user_path(plan: DemoPlan) -> list[str]:
         f"geoavatar eval {run} --no-faces --no-floaters      # the written parameters",
         f"geoavatar render {run} --data {tracked} --resolution {s.picture_resolution} --out {plan.videos['render']}",
         f"geoavatar voice {run} --steps {s.voice_steps}      # train learns it itself without --no-voice",
-        f"geoavatar eval {run} --speech",
+        f"geoavatar eval {run} --speech --data {tracked} --max-frames {s.speech_pictures}",
         f"geoavatar speak {run} --audio {plan.new_speech} --out {plan.videos['speak']}",
     ]
 

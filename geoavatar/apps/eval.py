@@ -99,7 +99,8 @@ def eval_runs(
         speech: Score the run's voice model instead: the held-out segment driven by its own sound (never heard in
             training) against its tracked parameters, beside the mean-face, nearest and linear baselines:
             RUN/eval/speech/metrics.json and metrics.md (docs/speech.md). The face scores use every held-out frame,
-            the picture scores 40 of them spread evenly (--max-frames N: N of them).
+            the picture scores 40 of them spread evenly (--max-frames N: N of them). With --data COPY (track
+            --avatar's), the copy's parameters of the held-out frames are the reference and give the head pose.
     """
     if speech:
         if len(runs) != 1 or split != "test" or out is not None or driver is not None or driver_video is not None:

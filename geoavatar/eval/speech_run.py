@@ -54,6 +54,19 @@ def spoken_params(tracked: HeadParams, face: SpokenFace, row: int) -> HeadParams
                                                                device=device))
 
 
+def _copy_faces(run: LoadedRun, data: Path, test: list[int], like: SpokenFace) -> SpokenFace:
+    """The held-out frames' expression and jaw as the dataset copy `data` holds them (shaped as `like`)."""
+    dataset, _ = _test_items(run, data)
+    rows = {frame.timestep: frame.row for frame in dataset.frames}
+    expr, jaw = np.zeros_like(like.expr), np.zeros_like(like.jaw)  # [N, E], [N, 3]
+    for i, timestep in enumerate(test):
+        params = dataset.subject.frame_params(rows[timestep])
+        values = np.asarray(params["expr"], np.float32).reshape(-1)[:expr.shape[1]]
+        expr[i, :len(values)] = values
+        jaw[i] = np.asarray(params["jaw_pose"], np.float32).reshape(-1)[:3]
+    return SpokenFace(expr, jaw)
+
+
 def _test_items(run: LoadedRun, data: Path | None, split: str = "test"):
     dataset = open_run_dataset(run, split, data)
     return dataset, {int(dataset[i]["timestep"]): i for i in range(len(dataset))}
@@ -113,6 +126,8 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
         raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
     try:
         inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims)
+        if data is not None:  # a copy's parameters (track --avatar's) are the reference, as for plain eval --data
+            tracked = _copy_faces(run, data, test, tracked)
     except DatasetError as err:
         raise RunError(f"{root}: {err}") from err
     faces = {"voice": voice.predict_features(inputs.test_mel, torch.from_numpy(inputs.test_centres))}
