@@ -38,7 +38,7 @@ def percentiles(values) -> dict:
             "count": int(values.size)}
 
 
-def measure(run, voice, sound, path: str, seconds: float, wav: Path) -> dict:
+def measure(run, voice, sound, path: str, seconds: float, wav: Path, page_size: int = 512) -> dict:
     """One live pass of `seconds` of sound through the pipeline into a Chromium page."""
     from geoavatar.animation.sources.speech import MicrophoneSound, RealTimeSound
     from geoavatar.apps.speak import speak_live
@@ -57,10 +57,13 @@ def measure(run, voice, sound, path: str, seconds: float, wav: Path) -> dict:
     result: dict = {}
 
     def work():
-        result["source"] = speak_live(run, voice, sound_input, 25.0, 0, viewer, max_seconds=seconds, status=False)
+        try:
+            result["source"] = speak_live(run, voice, sound_input, 25.0, 0, viewer, max_seconds=seconds, status=False)
+        except BaseException as err:  # reported below, in the main thread
+            result["error"] = err
 
     try:
-        with chromium_page(512, 512, nice=10, args=flags) as page:
+        with chromium_page(page_size, page_size, nice=10, args=flags) as page:
             page.goto(viewer.url)
             page.wait_for_function("window.geoavatar && window.geoavatar.stats.ready", timeout=120_000)
             thread = threading.Thread(target=work, daemon=True)
@@ -70,8 +73,11 @@ def measure(run, voice, sound, path: str, seconds: float, wav: Path) -> dict:
             page_stats = page.evaluate("window.geoavatar.stats")
     finally:
         viewer.stop()
+    if "source" not in result:
+        raise RuntimeError(f"the {path} pass did not finish: {result.get('error', 'timed out')!r}")
     stats = result["source"].stats
-    return {"path": path, "frames": stats.frames, "fps": round(stats.fps, 2), "dropped": stats.dropped,
+    return {"path": path, "page_size": page_size, "frames": stats.frames, "fps": round(stats.fps, 2),
+            "dropped": stats.dropped,
             "made": stats.delivered, "sound_to_mesh_ms": percentiles(stats.latency_ms),
             "sound_to_picture_ms": percentiles(page_stats.get("soundToPictureMs", [])),
             "page_drawn": page_stats.get("drawn"), "page_received": page_stats.get("received"),
@@ -84,6 +90,7 @@ def main() -> None:
     parser.add_argument("sound", type=Path, help="a sound or video file (played as the live source)")
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--paths", nargs="+", default=["file", "microphone"], choices=["file", "microphone"])
+    parser.add_argument("--page-size", type=int, default=512, help="the page's viewport (software GL draws slowly)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
 
@@ -102,7 +109,7 @@ def main() -> None:
     sound = read_sound(args.sound, RATE).segment(0.0, args.seconds + 1.0)
     wav = write_wav(Path("/tmp") / "speech_live_bench.wav", sound)
     print(f"load average before: {load()}; {run.avatar.num_gaussians} Gaussians; look-ahead {voice.config.ahead} s")
-    results = [measure(run, voice, sound, path, args.seconds, wav) for path in args.paths]
+    results = [measure(run, voice, sound, path, args.seconds, wav, args.page_size) for path in args.paths]
     for r in results:
         print(json.dumps(r))
     print(f"load average after: {load()}")

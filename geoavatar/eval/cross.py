@@ -4,7 +4,8 @@
     result = CrossResult(run_dir, label, driver, root, scored, ...)       # summaries per mode (face_summary)
     write_cross_report(result, cross_dir(run_dir, driver_name))           # RUN/eval/cross@<driver>/metrics.{json,md}
 
-apps/eval.py's evaluate_cross drives the avatar (apps/reenact.py's DrivenAvatar) and scores it with these.
+apps/eval.py's evaluate_cross drives the avatar (animation/sources/driver.py's DrivenAvatar) and scores it with
+these.
 
 Every driver frame (evenly spaced with --max-frames) is rendered once per transfer mode, exactly as `geoavatar
 reenact` renders it, and scored by eval/face_scores.py against the driver's frame: dlib identity similarity to the
