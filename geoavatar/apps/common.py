@@ -68,6 +68,17 @@ def synchronize(device: torch.device | str) -> None:
 RENDER_THREADS = 1  # default --threads of the video commands (render, reenact, orbit), as `geoavatar drive`
 
 
+def serve_until_interrupted(server, serve_forever: bool = True) -> None:
+    """Keep a started server (`.stop()`) up until Ctrl-C, then stop it; serve_forever=False stops it at once."""
+    try:
+        while serve_forever:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+
+
 def check_threads(threads: int) -> int:
     """`threads` when it is a positive int, else OptionError naming --threads."""
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:

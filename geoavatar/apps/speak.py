@@ -16,7 +16,6 @@ Outputs: --out FILE.mp4 (the avatar with the sound, one frame per 1/fps of it; d
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -24,7 +23,8 @@ from geoavatar.animation.play import play
 from geoavatar.animation.sinks.mp4 import Mp4Sink
 from geoavatar.animation.sources.speech import (LiveSpeech, MicrophoneSound, RealTimeSound, SpeechFrames,
                                                 avatar_camera)
-from geoavatar.apps.common import VIDEO_DIR, RunPath, check_resolution, check_threads, default_output, torch_threads
+from geoavatar.apps.common import (VIDEO_DIR, RunPath, check_resolution, check_threads, default_output,
+                                   serve_until_interrupted, torch_threads)
 from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.sound import RATE, Sound, read_sound
 from geoavatar.train.checkpoint import LoadedRun, open_run
@@ -82,13 +82,7 @@ def _serve_clip(run: LoadedRun, source: SpeechFrames, name: str, host: str, port
     play(run, source, [clip], desc="pose")
     server = LiveServer(clip.assets(), host, port).start()
     print(f"GeoAvatar player: {server.url}  (press Play for the sound; Ctrl-C stops)", flush=True)
-    try:
-        while serve_forever:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.stop()
+    serve_until_interrupted(server, serve_forever)
 
 
 def speak_live(run: LoadedRun, voice: VoiceModel, sound_input, fps: float, seed: int, viewer=None,

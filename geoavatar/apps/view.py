@@ -17,7 +17,6 @@ serves until Ctrl-C. The server listens on 127.0.0.1 unless --host says otherwis
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Optional
 
@@ -25,7 +24,7 @@ from geoavatar.animation.play import play
 from geoavatar.animation.sinks.browser import LiveViewer
 from geoavatar.animation.sinks.web import WebClip
 from geoavatar.animation.sources.split import SplitFrames
-from geoavatar.apps.common import RunPath
+from geoavatar.apps.common import RunPath, serve_until_interrupted
 from geoavatar.errors import OptionError
 from geoavatar.train.checkpoint import LoadedRun, open_run
 from geoavatar.train.run_frames import RunFrames
@@ -80,13 +79,7 @@ def view(
     viewer = start_viewer(loaded, host, port, expr_sliders, fps, data)
     print(f"GeoAvatar player: {viewer.url}  ({loaded.avatar.num_gaussians} Gaussians, {len(viewer.frames)} frames; "
           "Ctrl-C stops)", flush=True)
-    try:
-        while serve_forever:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        viewer.stop()
+    serve_until_interrupted(viewer, serve_forever)
     return 0
 
 
