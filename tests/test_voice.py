@@ -93,11 +93,13 @@ def test_voice_model_file_round_trips_without_pickle(talking, tmp_path):
     run, voice = _learn(run_dir, steps=10, members=2)  # an ensemble: both members saved and averaged
     with pytest.raises(VoiceModelError, match="has no voice model.*geoavatar voice"):
         VoiceModel.load(tmp_path)
+    assert 1.0 <= voice.gain <= 2.0 and voice.info["gain"] == pytest.approx(voice.gain, abs=1e-4)
+    voice.gain = 1.3  # the validation frames' gain travels with the file
     voice.save(tmp_path)
     with np.load(tmp_path / VOICE_DIR / "voice.npz", allow_pickle=False) as npz:  # plain arrays only
         assert all(npz[k].dtype != object for k in npz.files)
     back = VoiceModel.load(tmp_path)
-    assert len(back.net.members) == 2
+    assert len(back.net.members) == 2 and back.gain == pytest.approx(1.3)
     from geoavatar.data.sound import read_dataset_sound
 
     sound = read_dataset_sound(data).sound.segment(0.0, 2.0)

@@ -58,6 +58,9 @@ class VoiceModel:
     speech: SpeechStats  # the training sound's statistics: a live microphone starts from them
     idle: IdleMotion
     info: dict = field(default_factory=dict)  # training report (times, losses, frames)
+    # the networks' standardised output is scaled by this, fitted on the validation frames: averaging what a sound may
+    # mean (and three networks' outputs) shrinks the mouth's motion; the least-squares gain restores what it can
+    gain: float = 1.0
 
     @property
     def past(self) -> int:
@@ -82,7 +85,7 @@ class VoiceModel:
         for chunk in torch.split(centres, 512):
             outputs.append(self.net.predict(windows(features, chunk, self.past, self.ahead)))
         z = torch.cat(outputs).double().numpy() if outputs else np.zeros((0, len(self.target_mean)))
-        values = self.target_mean + z * self.target_std  # [N, D]
+        values = self.target_mean + self.gain * z * self.target_std  # [N, D]
         expr = np.zeros((len(values), self.expr_width), np.float32)
         expr[:, :self.expr_dims] = values[:, :self.expr_dims]
         return SpokenFace(expr, values[:, self.expr_dims:].astype(np.float32))
@@ -103,7 +106,8 @@ class VoiceModel:
         (folder / INFO_FILE).unlink(missing_ok=True)  # the json goes last: with it, the model is complete
         arrays = state_arrays(self.net) | self.idle.arrays() | {
             "target_mean": self.target_mean, "target_std": self.target_std,
-            "speech.mean": self.speech.mean.numpy(), "speech.scale": self.speech.scale.numpy()}
+            "speech.mean": self.speech.mean.numpy(), "speech.scale": self.speech.scale.numpy(),
+            "gain": np.asarray(self.gain, np.float64)}
         atomic_write_npz(folder / WEIGHTS_FILE, **arrays)
         atomic_write_json(folder / INFO_FILE, {"format": FORMAT, "version": VERSION, "config": self.config.to_dict(),
                                                "expr_dims": self.expr_dims, "expr_width": self.expr_width,
@@ -139,7 +143,7 @@ class VoiceModel:
                                   f"again with `geoavatar voice {run_dir}`") from err
         speech = SpeechStats(torch.from_numpy(arrays["speech.mean"]), torch.from_numpy(arrays["speech.scale"]))
         return VoiceModel(config, net, mean, std, int(info["expr_dims"]), int(info["expr_width"]), speech,
-                          IdleMotion.from_arrays(arrays), info.get("info", {}))
+                          IdleMotion.from_arrays(arrays), info.get("info", {}), float(arrays.get("gain", 1.0)))
 
 
 __all__ = ["FORMAT", "INFO_FILE", "SpokenFace", "VOICE_DIR", "VoiceModel", "VoiceModelError", "WEIGHTS_FILE"]

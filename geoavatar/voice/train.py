@@ -151,6 +151,16 @@ class _Trainer:
         return float(loss.detach())
 
     @torch.no_grad()
+    def gain(self, rows: slice, lip_metric: torch.Tensor) -> float:
+        """The scale of the standardised output that minimises the lips' vertex error on the frames `rows` (clean
+        sound): <predicted, target> / <predicted, predicted> in the lips' metric [D, D], within [1, 2]."""
+        self.net.eval()
+        predicted = self.net.predict(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
+        along = torch.einsum("nd,de,ne->", predicted, lip_metric, self.z[rows])
+        norm = torch.einsum("nd,de,ne->", predicted, lip_metric, predicted)
+        return float(min(2.0, max(1.0, float(along / norm)))) if float(norm) > 0 else 1.0
+
+    @torch.no_grad()
     def validate(self, rows: slice) -> float:
         """Mean squared vertex error (m^2) of the frames `rows` on the clean sound."""
         self.net.eval()
@@ -204,15 +214,16 @@ def _fit(run, frames, sound: DatasetSound, config: VoiceConfig, started: float, 
             log(f"voice: stopped at step {step} of {config.steps}, the {config.max_minutes:g}-minute cap")
             break
     net.load_state_dict(best_state)
+    gain = trainer.gain(held, loss_metric(lips, upper, std.double(), 0.0))  # measured on the lips alone
     projection = upper_face_projection(lips[:, :expr_dims], upper[:, :expr_dims]).float().numpy()
     idle_params = {**data.params, "expr": data.params["expr"][:, :expr_dims]}
     info = {"frames": count, "validation_frames": count - train_rows, "fps": data.fps,
             "speech_seconds": round(data.speech_seconds, 2), "sound_seconds": round(len(data.power) / FRAME_RATE, 2),
-            "steps": history[-1][0], "best_validation_m2": best, "history": history,
+            "steps": history[-1][0], "best_validation_m2": best, "gain": round(gain, 4), "history": history,
             "seconds": round(time.perf_counter() - started, 1), "source": str(sound.source)}
     speech = speech_stats(log_mel_torch(data.power))
     return VoiceModel(config, net, mean.double().numpy(), std.double().numpy(), expr_dims, data.expr_width, speech,
-                      IdleMotion.from_training(idle_params, projection, data.fps), info)
+                      IdleMotion.from_training(idle_params, projection, data.fps), info, gain)
 
 
 __all__ = ["VoiceData", "face_jacobians", "loss_metric", "train_voice", "voice_data"]
