@@ -102,10 +102,6 @@ def chromium_page(width: int = 640, height: int = 480, hardware: bool = False, c
                 page.on("pageerror", lambda error: console.append(f"pageerror: {error}"))
             yield page
         finally:
-            # the page first: a browser closed with a live microphone page in it waits ~25 s in its teardown
-            for context in browser.contexts:
-                for open_page in context.pages:
-                    open_page.close()
             browser.close()
 
 
