@@ -48,7 +48,8 @@ def _check_options(audio, text, microphone, live, view, out, fps, max_seconds) -
         raise OptionError(f"--max-seconds must be positive, got {max_seconds}")
 
 
-def _sound(audio: Path | None, text: str | None, tts: str, tts_voice: str | None) -> tuple[Sound, Sound, str]:
+def spoken_sound(audio: Path | None, text: str | None = None, tts: str = "auto",
+                 tts_voice: str | None = None) -> tuple[Sound, Sound, str]:
     """(the sound at the model's rate, the same for playback, its name) of --audio or --text."""
     if audio is not None:
         return (read_sound(audio, RATE, what="--audio"), read_sound(audio, PLAYBACK_RATE, what="--audio"),
@@ -61,25 +62,27 @@ def _sound(audio: Path | None, text: str | None, tts: str, tts_voice: str | None
     return resample(spoken, RATE), spoken, "text"
 
 
-def speak_video(run: LoadedRun, voice: VoiceModel, sound: Sound, playback: Sound, out: Path, fps: float = 25.0,
-                seed: int = 0, resolution: int | None = None, data: Path | None = None, backend: str = "auto",
-                progress: bool = True, threads: int = 1) -> int:
-    """The mp4 of the avatar saying `sound` (with `playback` as its sound track); returns its frame count."""
-    source = SpeechFrames(run, voice, sound, fps, playback, seed)
-    sink = Mp4Sink(run, out, fps, avatar_camera(run, data, resolution), backend=backend, audio=source.audio)
-    with torch_threads(threads):
-        play(run, source, [sink], progress=progress, desc="speak")
-    return sink.frames
-
-
-def _serve_clip(run: LoadedRun, source: SpeechFrames, name: str, host: str, port: int, data: Path | None,
-                serve_forever: bool) -> None:
-    """The browser player of the speech clip with its sound, until Ctrl-C."""
+def speak_clip(run: LoadedRun, voice: VoiceModel, sound: Sound, playback: Sound, out: Path | None = None,
+               clip_name: str | None = None, fps: float = 25.0, seed: int = 0, resolution: int | None = None,
+               data: Path | None = None, backend: str = "auto", progress: bool = True, threads: int = 1):
+    """The avatar saying `sound` (with `playback` as its sound), posed once for each of: the mp4 `out`, and the
+    browser player's clip named `clip_name`; returns (the mp4's frame count, the clip or None)."""
     from geoavatar.animation.sinks.web import WebClip
+
+    source = SpeechFrames(run, voice, sound, fps, playback, seed)
+    mp4 = (Mp4Sink(run, out, fps, avatar_camera(run, data, resolution), backend=backend, audio=source.audio)
+           if out is not None else None)
+    clip = (WebClip(run, source.fps, f"speech {clip_name}", [run.info.timesteps["all"][0]], data, audio=source.audio)
+            if clip_name is not None else None)
+    with torch_threads(threads):
+        play(run, source, [sink for sink in (mp4, clip) if sink is not None], progress=progress, desc="speak")
+    return (mp4.frames if mp4 is not None else 0), clip
+
+
+def _serve_clip(clip, host: str, port: int, serve_forever: bool) -> None:
+    """The browser player of the speech clip with its sound, until Ctrl-C."""
     from geoavatar.web.live import LiveServer
 
-    clip = WebClip(run, source.fps, f"speech {name}", [run.info.timesteps["all"][0]], data, audio=source.audio)
-    play(run, source, [clip], desc="pose")
     server = LiveServer(clip.assets(), host, port).start()
     print(f"GeoAvatar player: {server.url}  (press Play for the sound; Ctrl-C stops)", flush=True)
     serve_until_interrupted(server, serve_forever)
@@ -165,15 +168,14 @@ def speak(
     if microphone or live:
         return _speak_live(loaded, voice, audio, microphone, out, view, fps, seed, resolution, max_seconds, host,
                            port, data, backend, status)
-    sound, playback, name = _sound(audio, text, tts, tts_voice)
+    sound, playback, name = spoken_sound(audio, text, tts, tts_voice)
     target = out if out is not None or view else default_output(loaded, VIDEO_DIR, f"speak_{name}.mp4")
+    count, clip = speak_clip(loaded, voice, sound, playback, target, name if view else None, fps, seed, resolution,
+                             data, backend, progress, threads)
     if target is not None:
-        count = speak_video(loaded, voice, sound, playback, target, fps, seed, resolution, data, backend, progress,
-                            threads)
         print(f"wrote {target} ({count} frames at {fps:g} fps, {sound.seconds:.1f} s of sound)")
-    if view:
-        _serve_clip(loaded, SpeechFrames(loaded, voice, sound, fps, playback, seed), name, host, port, data,
-                    serve_forever)
+    if clip is not None:
+        _serve_clip(clip, host, port, serve_forever)
     return 0
 
 
@@ -205,4 +207,4 @@ def _speak_live(run, voice, audio, microphone, out, view, fps, seed, resolution,
     return 0
 
 
-__all__ = ["PLAYBACK_RATE", "speak", "speak_live", "speak_video"]
+__all__ = ["PLAYBACK_RATE", "speak", "speak_clip", "speak_live", "spoken_sound"]

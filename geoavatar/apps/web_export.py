@@ -79,13 +79,12 @@ def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | No
 def speech_frames(run: LoadedRun, audio: Path, fps: float):
     """The speech source of a sound file (the run's voice model; VoiceModelError says how to get one)."""
     from geoavatar.animation.sources.speech import SpeechFrames
-    from geoavatar.apps.speak import PLAYBACK_RATE
-    from geoavatar.sound import RATE, read_sound
+    from geoavatar.apps.speak import spoken_sound
     from geoavatar.voice import VoiceModel
 
     voice = VoiceModel.load(run.info.run_dir)
-    return SpeechFrames(run, voice, read_sound(audio, RATE, what="--audio"), fps,
-                        read_sound(audio, PLAYBACK_RATE, what="--audio"))
+    sound, playback, _ = spoken_sound(audio)  # as `speak --audio` reads it
+    return SpeechFrames(run, voice, sound, fps, playback)
 
 
 def folder_size(folder: Path) -> int:
