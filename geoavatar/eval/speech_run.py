@@ -54,9 +54,8 @@ def spoken_params(tracked: HeadParams, face: SpokenFace, row: int) -> HeadParams
                                                                device=device))
 
 
-def _copy_faces(run: LoadedRun, data: Path, test: list[int], like: SpokenFace) -> SpokenFace:
-    """The held-out frames' expression and jaw as the dataset copy `data` holds them (shaped as `like`)."""
-    dataset, _ = _test_items(run, data)
+def _copy_faces(dataset, test: list[int], like: SpokenFace) -> SpokenFace:
+    """The held-out frames' expression and jaw as a dataset copy's test split holds them (shaped as `like`)."""
     rows = {frame.timestep: frame.row for frame in dataset.frames}
     expr, jaw = np.zeros_like(like.expr), np.zeros_like(like.jaw)  # [N, E], [N, 3]
     for i, timestep in enumerate(test):
@@ -124,10 +123,11 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     test = sorted(run.info.timesteps.get("test", []), key=lambda t: sound.frame_times.get(t, t))
     if len(test) < 3:
         raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
+    dataset, index_of = _test_items(run, data) if render or data is not None else (None, {})
     try:
         inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims)
         if data is not None:  # a copy's parameters (track --avatar's) are the reference, as for plain eval --data
-            tracked = _copy_faces(run, data, test, tracked)
+            tracked = _copy_faces(dataset, test, tracked)
     except DatasetError as err:
         raise RunError(f"{root}: {err}") from err
     faces = {"voice": voice.predict_features(inputs.test_mel, torch.from_numpy(inputs.test_centres))}
@@ -135,16 +135,15 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     probe = FaceProbe(run.head, {k: v.cpu() for k, v in frames.identity().items()})
     scores = {name: face_scores(probe, face, tracked, fps) for name, face in faces.items()}
     scores["tracked"] = {}
+    rows = evenly_spaced(len(test), picture_frames)
     if render:
-        dataset, index_of = _test_items(run, data)
         config = EvalConfig(split="test", backend=backend)
-        rows = evenly_spaced(len(test), picture_frames)
         pictures = picture_scores(run, dataset, index_of, [test[r] for r in rows],
                                   {name: face.take(rows) for name, face in faces.items()}, config, progress)
         for name, values in pictures.items():
             scores[name].update(values)
     settings = {"voice": {k: voice.config.to_dict()[k] for k in ("past", "ahead", "members")},
-                "held_out_frames": len(test), "picture_frames": len(evenly_spaced(len(test), picture_frames)),
+                "held_out_frames": len(test), "picture_frames": len(rows),
                 "normalisation": "the held-out sound by its own speech statistics", "render": render,
                 "head_pose": "tracked (rotation, neck, translation, eyes); T = 0", "metrics": metrics.__name__}
     return SpeechResult(run.info.run_dir, run_label(run)[0], len(test), fps, scores, settings,
