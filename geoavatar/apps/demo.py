@@ -14,6 +14,7 @@ interrupted demo continues where it stopped (training itself resumes from its la
 
 from __future__ import annotations
 
+import functools
 import json
 import platform
 import time
@@ -247,22 +248,24 @@ class DemoPlan:
         from geoavatar.voice import VoiceConfig, VoiceModel
 
         px, s = self.settings.picture_resolution, self.settings
-        mute = self.mute  # a subject too short to learn a voice from: these stages are skipped (the report says so)
+        # a subject too short to learn a voice from: these stages are skipped (the report says so)
         return [
-            ("learn the voice", lambda: VoiceModel.exists(self.run) or mute(),
+            ("learn the voice", lambda: VoiceModel.exists(self.run) or self.mute,
              lambda: learn_voice(open_run(self.run, "cpu"), config=VoiceConfig(steps=s.voice_steps, seed=s.seed))),
-            ("evaluate the voice (held-out sound)", lambda: self.speech_metrics.is_file() or mute(),
+            ("evaluate the voice (held-out sound)", lambda: self.speech_metrics.is_file() or self.mute,
              lambda: _checked(eval_runs([self.run], speech=True, data=self.tracked, max_frames=s.speech_pictures,
                                         device=self.device, backend=self.backend, progress=self.progress),
                               "eval --speech")),
-            ("speak a clip it never heard", lambda: self.videos["speak"].is_file() or mute(),
+            ("speak a clip it never heard", lambda: self.videos["speak"].is_file() or self.mute,
              lambda: _checked(speak(self.run, audio=self._new_speech(), out=self.videos["speak"], resolution=px,
                                     seed=s.seed, device=self.device, backend=self.backend, progress=self.progress),
                               "speak")),
         ]
 
+    @functools.cached_property
     def mute(self) -> bool:
-        """Whether the generated subject holds too little speech to learn a voice from (a very short --frames)."""
+        """Whether the generated subject holds too little speech to learn a voice from (a very short --frames); read
+        once, after the subject is generated."""
         from geoavatar.data.sound import read_dataset_sound
 
         sound = read_dataset_sound(self.data)

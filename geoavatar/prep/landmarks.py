@@ -35,7 +35,6 @@ import numpy as np
 from geoavatar.runtime import quiet_native_levels, quiet_native_logs
 
 NUM_POINTS = 478
-_quiet_native_logs = quiet_native_logs  # the name prep/masks.py imports
 _face_found = False  # a face mesh of this process found a face: the one warning of the first face is behind us
 
 

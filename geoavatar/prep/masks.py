@@ -30,7 +30,8 @@ import numpy as np
 
 from geoavatar.head import landmarks_mediapipe as mpids
 from geoavatar.imaging import to_uint8
-from geoavatar.prep.landmarks import _mediapipe, _quiet_native_logs
+from geoavatar.prep.landmarks import _mediapipe
+from geoavatar.runtime import quiet_native_logs
 
 HAIR_SCALE = 1.9
 HAIR_MIN_REACH = 0.65  # the oval's top above c, before HAIR_SCALE, is at least this many face widths
@@ -50,7 +51,7 @@ class PersonSegmenter:
         if backend not in MASK_BACKENDS:
             raise ValueError(f"unknown mask backend '{backend}'; available: {', '.join(MASK_BACKENDS)}")
         mp = _mediapipe()
-        with _quiet_native_logs():
+        with quiet_native_logs():
             self._model = mp.solutions.selfie_segmentation.SelfieSegmentation(model_selection=0)
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
