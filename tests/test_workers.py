@@ -1,4 +1,4 @@
-"""prepare's worker processes (geoavatar.prep.workers): ordered results, progress from the workers, an error in a
+"""prepare's worker processes (geoavatar.workers): ordered results, progress from the workers, an error in a
 task raised in the parent with its own type, the same results inline and in workers; photometric segments."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from geoavatar.prep.errors import PrepareError
 import numpy as np
 
 from geoavatar.prep.segments import blend_weights, segment_rows, segments
-from geoavatar.prep.workers import WorkerPool, report_progress, split_range, worker_cache
+from geoavatar.workers import WorkerPool, report_progress, split_range, worker_cache
 
 
 def square_and_count(value: int) -> tuple[int, int]:

@@ -25,7 +25,7 @@ holds the key it would have now, and redoes it and every stage that depends on i
                (geoavatar.data.sound); a video without sound, or without speech, prepares as before and says so
     gaussian   every frame's parameters refitted against a quick Gaussian head (with --gaussian-refit; see below)
 
-Every stage splits its frames into tasks for a WorkerPool (geoavatar.prep.workers: spawned processes, one torch
+Every stage splits its frames into tasks for a WorkerPool (geoavatar.workers: spawned processes, one torch
 thread each, `workers` of them, by default one per core): decoding + face detection and the crops one range of the
 video per worker, the landmarks, masks and overlay pictures in fixed blocks, the photometric fit in segments
 (geoavatar.prep.segments); the tracking stage is one batched fit (its data term in chunks). The tasks do not depend
@@ -61,7 +61,7 @@ import numpy as np
 
 from geoavatar.io.atomic import atomic_write_json, atomic_write_npz, atomic_write_png
 from geoavatar.prep.errors import PrepareError
-from geoavatar.prep.workers import WorkerPool, default_workers, report_progress, split_range, worker_cache
+from geoavatar.workers import WorkerPool, default_workers, report_progress, split_range, worker_cache
 
 STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write", "sound", "gaussian")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the

@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from geoavatar.prep.workers import WorkerPool, report_progress, split_range, worker_cache
+from geoavatar.workers import WorkerPool, report_progress, split_range, worker_cache
 
 
 @dataclass(frozen=True)

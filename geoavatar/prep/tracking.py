@@ -43,7 +43,7 @@ from geoavatar.head import landmarks_mediapipe as mpids
 from geoavatar.head.base import HeadModel, HeadModelData
 from geoavatar.head.params import HeadParams
 from geoavatar.head.smooth_offset import SmoothOffset
-from geoavatar.prep.workers import split_range
+from geoavatar.workers import split_range
 from geoavatar.render.camera import focal_length, project
 
 # Landmark groups: weight in the data term, and whether the rigid stage uses them.

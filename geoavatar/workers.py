@@ -1,4 +1,5 @@
-"""Worker processes for `prepare`'s stages: both cores busy without threads fighting inside one process.
+"""Worker processes for `prepare`'s stages and `train`'s held-out fit: both cores busy without threads fighting inside one
+process.
 
     with WorkerPool(workers=2) as pool:                      # spawned on first use, once per prepare run
         results = pool.map(function, tasks, progress=bar.update)      # ordered; function(task) in a worker
