@@ -59,6 +59,8 @@ def grow(state, target: int, seed: int) -> None:
         "f_dc": p["f_dc"][parent] + 0.5 * torch.randn(extra, 3, generator=g),
         "opacities": math.log(0.07 / 0.93) + 1.5 * torch.randn(extra, generator=g),
     }
+    for name in p.keys() - new.keys():  # the optional ones a tree's avatar has (f_normal, f_pose, means_pose): copied
+        new[name] = p[name][parent]
     new = {k: v.to(avatar.binding.device) for k, v in new.items()}
     binding = densify.append_gaussians(avatar.params, [state.optimizers["gaussians"]], avatar.binding, new,
                                        avatar.binding[parent.to(avatar.binding.device)], state.stats)

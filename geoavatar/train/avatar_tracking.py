@@ -49,6 +49,9 @@ class AvatarTrackingConfig:
 
     steps: int = 30
     keys: tuple[str, ...] = FRAME_KEYS  # the per-frame parameters that move
+    # start each frame from its tracked value plus the correction the previous frame of the sequence got, when that
+    # start renders closer to the image than the tracked value: neighbouring frames share most of their tracker error
+    carry: bool = False
     rates: dict[str, float] = field(default_factory=lambda: {
         "rotation": 1e-3, "translation": 2e-4, "neck_pose": 1e-3, "jaw_pose": 1e-3, "eyes_pose": 1e-3, "expr": 1e-2})
 
@@ -88,9 +91,22 @@ def image_loss(avatar: GaussianAvatar, head: HeadModel, deformer: MouthDeformer 
     return (rgb - target).abs().mean()
 
 
+def carried_start(avatar: GaussianAvatar, head: HeadModel, deformer: MouthDeformer | None, frame: AvatarFrame,
+                  correction: dict[str, Tensor]) -> tuple[AvatarFrame, float]:
+    """(`frame` starting from its tracked parameters plus `correction` (key -> [1, ...], the previous frame's fitted
+    minus tracked) when that renders closer to its image, else `frame` as it is; the tracked parameters' L1)."""
+    target = composite_target(frame.image, frame.mask, frame.background)  # [H, W, 3]
+    carried = frame.params.replace(**{key: getattr(frame.params, key) + value for key, value in correction.items()})
+    with torch.no_grad():
+        tracked = float(image_loss(avatar, head, deformer, frame.params, frame, target))
+        better = float(image_loss(avatar, head, deformer, carried, frame, target)) < tracked
+    return (frame._replace(params=carried.detach()) if better else frame), tracked
+
+
 def track_frame(avatar: GaussianAvatar, head: HeadModel, deformer: MouthDeformer | None, frame: AvatarFrame,
                 config: AvatarTrackingConfig) -> tuple[HeadParams, float, float]:
-    """One frame's fitted parameters [1, ...] and its L1 before and after (NaN, NaN: empty mask, unchanged)."""
+    """One frame's fitted parameters [1, ...] and its L1 before and after (NaN, NaN: empty mask, unchanged).
+    `before` is the L1 of `frame.params`, the start."""
     if not bool(frame.mask.sum() > 0):
         return frame.params.detach(), math.nan, math.nan
     frozen(avatar)  # gradients for the frame's parameters only
@@ -119,11 +135,20 @@ def track_frame(avatar: GaussianAvatar, head: HeadModel, deformer: MouthDeformer
 def track_frames(avatar: GaussianAvatar, head: HeadModel, deformer: MouthDeformer | None, frames: Iterable[AvatarFrame],
                  config: AvatarTrackingConfig = AvatarTrackingConfig(),
                  progress: Callable[[int], None] | None = None) -> AvatarTrackingResult:
-    """Fit every frame alone (see the module docstring); `progress(1)` after each frame."""
+    """Fit every frame alone (see the module docstring), in order: with `config.carry`, each from the previous
+    frame's correction when it helps; `progress(1)` after each frame. The L1 before is the tracked parameters'."""
     fitted, before, after = [], [], []
+    correction = None  # key -> [1, ...]: the previous fitted frame's fitted minus tracked
     with torch.enable_grad():
         for frame in frames:
-            params, loss_before, loss_after = track_frame(avatar, head, deformer, frame, config)
+            start, tracked_loss = frame, None
+            if config.carry and correction is not None and bool(frame.mask.sum() > 0):
+                start, tracked_loss = carried_start(avatar, head, deformer, frame, correction)
+            params, loss_before, loss_after = track_frame(avatar, head, deformer, start, config)
+            if tracked_loss is not None:  # report against the tracked start, as without carry
+                loss_before = tracked_loss
+            if not math.isnan(loss_after):
+                correction = {key: (getattr(params, key) - getattr(frame.params, key)).detach() for key in config.keys}
             fitted.append(params)
             before.append(loss_before)
             after.append(loss_after)
@@ -145,5 +170,5 @@ def dataset_frames(dataset, indices: Iterable[int], device: torch.device | str) 
                           item["background"])
 
 
-__all__ = ["AvatarFrame", "AvatarTrackingConfig", "AvatarTrackingResult", "dataset_frames", "frozen", "image_loss",
-           "track_frame", "track_frames"]
+__all__ = ["AvatarFrame", "AvatarTrackingConfig", "AvatarTrackingResult", "carried_start", "dataset_frames", "frozen",
+           "image_loss", "track_frame", "track_frames"]
