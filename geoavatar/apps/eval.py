@@ -29,6 +29,7 @@ def eval_runs(
     max_frames: Optional[int] = None,
     device: str = "auto",
     data: Optional[Path] = None,
+    test_params: Literal["fitted", "dataset"] = "fitted",
     checkpoint: Literal["last", "final"] = "last",
     save_images: bool = False,
     lpips_unit_inputs: bool = False,
@@ -52,7 +53,9 @@ def eval_runs(
     Renders every frame of the split, composites the ground truth on the dataset's background as
     GaussianAvatars and INSTA do, and measures MSE, PSNR, SSIM and LPIPS per frame (mean ± std), plus
     PSNR and LPIPS of the mouth region (mouth-structure + lips faces). Test frames are unseen
-    timesteps: they use the dataset's tracked parameters and T = 0 for the mouth deformer.
+    timesteps: T = 0 for the mouth deformer, and the parameters `train` fitted for them against the finished avatar
+    (its held-out fit; a run without one, or another copy of the dataset: the dataset's tracked parameters);
+    metrics.json says which (settings.test_params).
     Writes RUN/eval/SPLIT/metrics.json (per frame, summary, settings) and metrics.md (Table 1 layout)
     for each run (RUN/eval/SPLIT@COPY with --data COPY, another copy of the run's dataset); with several runs
     also one comparison table (Table 1 and ablation layouts). Face metrics (--no-faces skips them): dlib identity
@@ -76,6 +79,10 @@ def eval_runs(
         data: Dataset folder, when it moved since training (default: the one the run recorded), or another copy of
             it, e.g. `geoavatar track --avatar`'s: while the recorded folder exists, the report of a copy goes to
             RUN/eval/SPLIT@COPY (COPY: the copy's folder name), so the run's own report is kept.
+        test_params: The parameters of the held-out frames: fitted (those `train` fitted against the finished
+            avatar, its last stage) or dataset (the tracker's, as the dataset holds them: the GaussianAvatars
+            protocol, nothing fitted at test time; reported in RUN/eval/SPLIT@dataset_params). A run trained with
+            --no-held-out-fit, or another copy of the dataset (--data COPY), always uses the dataset's.
         checkpoint: Which checkpoint of each run: last or final.
         save_images: Also write RUN/eval/SPLIT/frames/*.png (gt | render | error x4 | mouth mask).
         lpips_unit_inputs: Feed [0, 1] images to LPIPS unscaled, as the 3DGS scripts do (only then are
@@ -123,7 +130,7 @@ def eval_runs(
         raise SystemExit("geoavatar eval: give at least one RUN folder")
     config = EvalConfig(split=split, lpips_net=lpips_net, lpips_unit_inputs=lpips_unit_inputs, max_frames=max_frames,
                         mouth=mouth, backend=backend, keep_images=save_images, floaters=floaters,
-                        floater_frames=floater_frames, faces=faces)
+                        floater_frames=floater_frames, faces=faces, test_params=test_params)
     config.validate()  # OptionError naming the option
     if out is not None:
         check_comparison_target(out)  # before the evaluation, not after it
@@ -136,7 +143,10 @@ def eval_runs(
         # RunError, DatasetError, LPIPSWeightsError...: GeoAvatarErrors, one line at the CLI
         run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
         result = evaluate_run(run, config, data=data, progress=progress, flame_dir=flame_dir)
-        written = write_run_report(result, report_dir(run.info.run_dir, split, run.info.data_root, data))
+        folder = report_dir(run.info.run_dir, split, run.info.data_root, data)
+        if test_params == "dataset" and folder.name == split:  # the run's own dataset: beside the fitted report
+            folder = folder.with_name(f"{split}@dataset_params")
+        written = write_run_report(result, folder)
         results.append(result)
         print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
     if len(results) == 1 and out is None:

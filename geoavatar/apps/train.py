@@ -75,6 +75,10 @@ class TrainArgs:
     # reset-opacity-every, lr.position-decay-steps) scale with --steps unless set here: a value set here is
     # a step of this run.
     config: CommandLineConfig = field(default_factory=CommandLineConfig)
+    # At the end, fit the held-out (test) frames' head parameters against the finished avatar, as training fitted
+    # its own frames' (RUN/held_out.npz; eval and every command then render them so). The avatar never sees their
+    # pixels while it learns. --no-held-out-fit keeps the tracker's parameters for them.
+    held_out_fit: bool = True
     # Also learn the voice model when the dataset has speech (geoavatar voice; RUN/voice/): sound -> face, from the
     # training frames only. --no-voice skips it.
     voice: bool = True
@@ -167,9 +171,18 @@ def train(args: TrainArgs) -> int:
     print(f"{summary}\nrun: {result.run_dir}")
     if result.status != "finished":
         return 130
+    if args.held_out_fit:
+        _fit_held_out(result.run_dir, options)
     if args.voice:
         _learn_voice(result.run_dir, options)
     return 0
+
+
+def _fit_held_out(run_dir, options: RunOptions) -> None:
+    """The held-out frames fitted against the finished avatar (train/held_out_fit.py); silent without test frames."""
+    from geoavatar.train.held_out_fit import fit_held_out
+
+    fit_held_out(run_dir, progress=options.progress)
 
 
 def _learn_voice(run_dir, options: RunOptions) -> None:

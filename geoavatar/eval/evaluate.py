@@ -70,6 +70,7 @@ from geoavatar.head.regions import skull_vertex_ids
 from geoavatar.render import composite_target
 
 SPLITS = ("test", "val", "train", "novel")
+TEST_PARAMS = ("fitted", "dataset")  # EvalConfig.test_params
 TRAINED_VIEW_TOLERANCE = 5.0  # degrees: a frame's view counts as trained when a training frame saw the face so
 METRIC_NAMES = ("mse", "psnr", "ssim", "lpips", "mouth_psnr", "mouth_lpips", "outside", "gt_outside", "id_similarity",
                 "expression_similarity")
@@ -104,10 +105,16 @@ class EvalConfig:
     faces: bool = True
     """Score the face of each render against its ground-truth frame (eval/face_scores.py): dlib identity similarity
     to the avatar's training frames, FER2013 expression similarity, landmark agreement over the clip."""
+    test_params: str = "fitted"
+    """The parameters of the frames outside training on the run's own dataset: fitted (train's held-out fit, when the
+    run has one) or dataset (the tracker's, as the dataset holds them: the GaussianAvatars protocol, no fit at test
+    time)."""
 
     def validate(self) -> "EvalConfig":
         if self.split not in SPLITS:
             raise OptionError(f"--split must be one of {', '.join(SPLITS)}, got {self.split!r}")
+        if self.test_params not in TEST_PARAMS:
+            raise OptionError(f"--test-params must be one of {', '.join(TEST_PARAMS)}, got {self.test_params!r}")
         if self.lpips_net not in LPIPS_NETS:
             raise OptionError(f"--lpips-net must be one of {', '.join(LPIPS_NETS)}, got {self.lpips_net!r}")
         if self.max_frames is not None and self.max_frames <= 0:
@@ -193,16 +200,19 @@ def render_run_frames(
     indices: Sequence[int] | None = None,
     timestep_mode: TimestepMode = "auto",
     backend: str = "auto",
+    fitted: bool = True,
 ) -> Iterator[RenderedFrame]:
     """Render frames of `dataset` with the run's avatar: each frame's parameters and T by RunFrames (the rule in the
-    module docstring), a frame outside training with the dataset's own tracked parameters.
+    module docstring, train/run_frames.py), a frame outside training with the run's held-out fit on the run's own
+    dataset (unless not `fitted`), else with the dataset's own tracked parameters.
 
     Yields RenderedFrame(index, item, pred, target, vertices, alpha, params, T) on the device of the run's modules.
     """
     frames = RunFrames(run)
+    own = fitted and frames.is_own_dataset(dataset.subject.root)
     for index in (range(len(dataset)) if indices is None else indices):
         item = item_to(dataset[index], frames.device)
-        params, timestep = frames.params(item["timestep"], HeadParams.from_npz(item["params"]), timestep_mode)
+        params, timestep = frames.params(item["timestep"], HeadParams.from_npz(item["params"]), timestep_mode, own)
         frame = render_avatar(run.avatar, run.head, params, item_camera(item), timestep, run.deformer,
                               item["background"], backend)
         pred = frame.result.rgb.clamp(0.0, 1.0)
@@ -411,7 +421,8 @@ class _Evaluation:
             "ssim": "Gaussian window 11x11, sigma 1.5, K1 0.01, K2 0.03, zero padding (3DGS ssim)",
             "composite": "pred: render on the dataset background; gt: image * mask + background * (1 - mask)",
             "timestep_mode": config.timestep_mode,
-            "params": "refined per-frame parameters for training timesteps, the dataset's tracking otherwise",
+            "params": "refined per-frame parameters for training timesteps; the others: see test_params",
+            "test_params": test_params_source(run, dataset, config.test_params == "fitted"),
             "mouth": ({"faces": "mouth structure (F_m) + lips faces, z-buffered",
                        "dilate_fraction": config.mouth_dilate, "min_crop": config.mouth_min_crop}
                       if config.mouth else None),
@@ -457,7 +468,8 @@ def evaluate_run(
     bar = tqdm(total=len(indices), disable=not progress, dynamic_ncols=True, unit="frame",
                desc=f"eval {run_label(run)[0]}")
     try:
-        for frame in render_run_frames(run, dataset, indices, config.timestep_mode, config.backend):
+        for frame in render_run_frames(run, dataset, indices, config.timestep_mode, config.backend,
+                                       fitted=config.test_params == "fitted"):
             record = evaluation.measure(frame)
             bar.update(1)
             bar.set_postfix(psnr=f"{record.psnr:.2f}", refresh=False)
@@ -475,6 +487,41 @@ def face_scorer(run: LoadedRun, data: str | Path | None = None, flame_dir: str |
     images = (to_uint8(composite_target(item["image"], item["mask"], item["background"]))
               for item in (train[i] for i in picked))
     return FaceScorer(images)
+
+
+def test_params_source(run: LoadedRun, dataset: HeadAvatarDataset, fitted: bool = True) -> str:
+    """Where the parameters of the frames the run did not train on came from (the scores depend on it): train's
+    held-out fit (unless not `fitted`), `geoavatar track` (a copy's track.json), or `prepare`'s tracking (its
+    report.json)."""
+    root = Path(dataset.subject.root)
+    if fitted and run.info.held_out and RunFrames(run).is_own_dataset(root):
+        report = _read_json(Path(run.info.run_dir) / "held_out.json")
+        steps = f", {report['steps']} Adam steps a frame" if "steps" in report else ""
+        return f"fitted against this avatar after training (geoavatar train's held-out fit{steps})"
+    track = _read_json(root / "track.json")
+    if "avatar_tracking" in track:
+        return f"geoavatar track --avatar {track['avatar_tracking'].get('avatar', '?')} (the copy's track.json)"
+    if track:
+        return "geoavatar track: photometric fit (the copy's track.json)"
+    prepared = _read_json(root.parent / "report.json")
+    if "photometric_residual" not in prepared and "capture" not in prepared:
+        return "as the dataset holds them (no prepare or track report beside it)"
+    how = "landmark + photometric fit" if prepared.get("photometric_residual") else "landmark fit"
+    refit = prepared.get("gaussian_refit")
+    if isinstance(refit, dict) and refit.get("frames"):
+        how += ", refitted against a Gaussian head of the whole video"
+    return f"geoavatar prepare: {how}"
+
+
+def _read_json(path: Path) -> dict:
+    """A JSON object from `path`, or {} when it is missing or unreadable."""
+    import json
+
+    try:
+        value = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return value if isinstance(value, dict) else {}
 
 
 def face_settings(scorer: FaceScorer) -> dict:

@@ -225,7 +225,8 @@ def _settings_lines(result: EvalResult) -> str:
         f"- images composited on the dataset background {s['background']}; LPIPS {s['lpips_net']}, inputs "
         f"{s['lpips_inputs']}; SSIM {s['ssim']}",
         f"- {mouth_text}",
-        f"- mean ± std ({s['std']}); test frames: T = 0 and tracked parameters",
+        f"- mean ± std ({s['std']}); frames outside training: T = 0, parameters from "
+        f"{s.get('test_params', 'the dataset')}",
     ]) + "\n"
 
 

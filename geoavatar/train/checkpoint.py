@@ -9,6 +9,9 @@ RUN layout (what later commands — eval, render, reenact, export — read):
     RUN/checkpoints/last.pt      newest checkpoint (rewritten every --ckpt-every steps, on Ctrl-C, at the end)
     RUN/checkpoints/final.pt     the checkpoint of the finished run (same content as last.pt then)
     RUN/aps.json                 the APS decision: Distance(k) per part, tau_part, rigid/flexible
+    RUN/held_out.npz, .json      the test frames' parameters fitted against the finished avatar (train's last
+                                 stage, train/held_out_fit.py), tagged with the checkpoint's step; load_run lays them
+                                 over frame_params while that step is the checkpoint's (RunInfo.held_out)
     RUN/train.log                one line per logged step, densification and APS events, validation PSNR
     RUN/val/step_XXXXXX.png      progress images: ground truth | render, one row per validation frame
 
@@ -312,6 +315,27 @@ class RunInfo:
     aps: dict  # APSState.to_dict()
     face_sets: torch.Tensor  # [F]
     run_options: dict = field(default_factory=dict)
+    held_out: list[int] = field(default_factory=list)  # timesteps whose rows train's held-out fit wrote
+
+
+def _lay_held_out_over(info: RunInfo) -> None:
+    """The held-out fit's rows (train/held_out_fit.py) over `info.frame_params`, while they belong to its step."""
+    from geoavatar.train.held_out_fit import read_held_out
+
+    held_out = read_held_out(info.run_dir, info.step)
+    if held_out is None:
+        return
+    timesteps, rows = held_out
+    row_of = {t: i for i, t in enumerate(info.timesteps["all"])}
+    if any(t not in row_of for t in timesteps):
+        return  # fitted on other frames: not this run's rows
+    index = torch.as_tensor([row_of[t] for t in timesteps])
+    for key, values in rows.items():
+        if key in info.frame_params:
+            merged = info.frame_params[key].clone()
+            merged[index] = torch.as_tensor(values, dtype=merged.dtype)
+            info.frame_params[key] = merged
+    info.held_out = list(timesteps)
 
 
 class LoadedRun(NamedTuple):
@@ -396,6 +420,7 @@ def load_run(
             face_sets=ckpt["face_sets"],
             run_options=run_options,
         )
+        _lay_held_out_over(info)
     except KeyError as err:
         raise RunError(f"{path}: checkpoint lacks the entry {err}") from err
     except (ValueError, RuntimeError) as err:

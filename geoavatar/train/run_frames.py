@@ -5,11 +5,13 @@
     params, T = frames.params(timestep, tracked)        # a dataset frame: its own tracked parameters unless trained
 
 The rule: a training timestep renders with the run's refined parameters and its own T, which reproduces what
-training saw; any other timestep (test frames, the novel split's views of them) renders with its tracked
-parameters and T = 0 (None), the paper's inference setting, since gamma(T) was never trained there
-(avatar.frame_timestep; `mode` overrides the T rule as `geoavatar eval`'s timestep_mode does). The tracked
-parameters are the dataset item's when the caller has one (eval), else the run's stored row, which training never
-refines for a frame it does not render (train/frame_params.py).
+training saw; any other timestep (test frames, the novel split's views of them) renders with T = 0 (None), the
+paper's inference setting, since gamma(T) was never trained there (avatar.frame_timestep; `mode` overrides the T
+rule as `geoavatar eval`'s timestep_mode does), and with: the run's held-out fit when train fitted the frame
+against the finished avatar (train/held_out_fit.py) and the caller's frame comes from the run's own dataset (or the
+caller has none); else the parameters the caller's dataset holds for it (eval with another copy, e.g. `geoavatar
+track --avatar`'s); else the run's stored row (the dataset's, which training never refines for a frame it does
+not render, train/frame_params.py).
 
 Naming (docs/ARCHITECTURE.md, "A frame's identity"): a `timestep` is the frame's number in its video, its `row`
 the row of the per-timestep parameter tensors [T, ...] (row i = timesteps[i]).
@@ -33,6 +35,7 @@ class RunFrames:
         self.device = run.device
         self.timesteps: list[int] = list(run.info.timesteps["all"])
         self.trained: set[int] = set(run.info.timesteps.get("train", []))
+        self.fitted: set[int] = set(run.info.held_out)  # held-out timesteps fitted against the finished avatar
         self._row = {t: i for i, t in enumerate(self.timesteps)}
         self.values = HeadParams.from_npz(run.info.frame_params).to(self.device)  # [T, ...]; shape [S]
         rows = self.values.batch
@@ -55,14 +58,23 @@ class RunFrames:
         """The row of `timestep` in the per-timestep parameters."""
         return self._row[self.resolve(timestep)]
 
-    def params(self, timestep: int, tracked: HeadParams | None = None,
-               mode: TimestepMode = "auto") -> tuple[HeadParams, int | None]:
+    def params(self, timestep: int, tracked: HeadParams | None = None, mode: TimestepMode = "auto",
+               own_dataset: bool = True) -> tuple[HeadParams, int | None]:
         """(HeadParams of a timestep, per-frame keys [1, ...]; its T, None = T = 0): the run's refined row for a
-        training timestep, else `tracked` (a dataset's parameters for the frame) or, without it, the run's row."""
+        training timestep and its held-out fit for a fitted one (`tracked` from the run's own dataset), else
+        `tracked` (a dataset's parameters for the frame) or, without it, the run's row."""
         timestep = self.resolve(timestep)
-        trained = timestep in self.trained
-        params = self.values.frame(self._row[timestep]) if trained or tracked is None else tracked
+        from_run = timestep in self.trained or (timestep in self.fitted and own_dataset) or tracked is None
+        params = self.values.frame(self._row[timestep]) if from_run else tracked
         return params, frame_timestep(timestep, self.trained, mode)
+
+    def is_own_dataset(self, root) -> bool:
+        """Whether the dataset folder `root` is the run's own: the one it recorded, or any folder once that one is
+        gone (a moved dataset); else another copy (e.g. `geoavatar track --avatar`'s)."""
+        from pathlib import Path
+
+        recorded = Path(self.run.info.data_root)
+        return not recorded.is_dir() or Path(root).resolve() == recorded.resolve()
 
     def identity(self) -> dict[str, Tensor]:
         """The subject keys (shape [S], static_offset [1, V, 3] when present): the avatar's identity."""

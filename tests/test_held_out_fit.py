@@ -1,0 +1,121 @@
+"""train's held-out fit (geoavatar.train.held_out_fit): the test frames fitted against the finished avatar, kept
+beside the checkpoint, laid over the run's parameters while they belong to its step, used by eval on the run's
+own dataset (and said so in metrics.json), never for another copy; the carry between neighbouring frames."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from apps_fixtures import make_subject, make_untrained_run
+from geoavatar.avatar import render_avatar
+from geoavatar.data.dataset import DataConfig, HeadAvatarDataset, open_subject
+from geoavatar.head.params import FRAME_KEYS, HeadParams
+from geoavatar.render.camera import Camera
+from geoavatar.train import held_out_fit
+from geoavatar.train.avatar_tracking import AvatarFrame, AvatarTrackingConfig, track_frames
+from geoavatar.train.checkpoint import load_run
+from geoavatar.train.held_out_fit import HELD_OUT_FILE, HeldOutFitConfig, fit_held_out
+from geoavatar.train.run_frames import RunFrames
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("held_out")
+    data = make_subject(root / "data", frames=10, size=64)
+    run = make_untrained_run(data, root / "run", init_opacity=0.9)
+    return data, run
+
+
+def _own_render_frames(run, data, offset: dict[str, torch.Tensor], count: int = 5):
+    """The first `count` frames of the dataset with the avatar's own render as its image (the truth: its parameters), and its
+    start moved by the same `offset` (key -> [1, ...]): a tracker error the frames share."""
+    dataset = HeadAvatarDataset(open_subject(data), "all", DataConfig(resolution=run.info.resolution))
+    frames, truths = [], []
+    for index in range(count):
+        item = dataset[index]
+        truth = HeadParams.from_npz(item["params"])
+        camera = Camera(item["viewmat"], item["K"], item["width"], item["height"])
+        with torch.no_grad():
+            image = render_avatar(run.avatar, run.head, truth, camera, None, run.deformer, item["background"]).result.rgb
+        moved = truth.replace(**{key: getattr(truth, key) + value for key, value in offset.items()})
+        frames.append(AvatarFrame(moved, camera, image.clamp(0, 1), torch.ones(*image.shape[:2], 1), item["background"]))
+        truths.append(truth)
+    return frames, truths
+
+
+def _vertex_error(run, fitted: HeadParams, truths: list[HeadParams]) -> float:
+    errors = []
+    with torch.no_grad():
+        for row, truth in enumerate(truths):
+            frame = fitted.replace(**{key: getattr(fitted, key)[row:row + 1] for key in FRAME_KEYS})
+            errors.append(float((run.head.forward_params(frame).vertices
+                                 - run.head.forward_params(truth).vertices).norm(dim=-1).mean()))
+    return float(np.mean(errors[1:]))  # the first frame has nothing to carry from
+
+
+def test_the_carry_reaches_a_shared_tracker_error_in_fewer_steps(tiny):
+    data, run_dir = tiny
+    run = load_run(run_dir, torch.device("cpu"))
+    offset = {"translation": torch.tensor([[0.004, -0.003, 0.002]]), "rotation": torch.tensor([[0.0, 0.03, 0.01]])}
+    frames, truths = _own_render_frames(run, data, offset)
+    keys = ("rotation", "translation")
+    plain = track_frames(run.avatar, run.head, run.deformer, frames, AvatarTrackingConfig(steps=6, keys=keys))
+    carried = track_frames(run.avatar, run.head, run.deformer, frames,
+                           AvatarTrackingConfig(steps=6, keys=keys, carry=True))
+    assert _vertex_error(run, carried.params, truths) < 0.7 * _vertex_error(run, plain.params, truths)
+    # the L1 before is the tracked start's either way
+    assert np.allclose(carried.loss_before, plain.loss_before)
+
+
+def test_the_fit_is_kept_with_its_step_and_rendered_on_the_runs_own_dataset_only(tiny, tmp_path, monkeypatch):
+    data, run_dir = tiny
+    before = load_run(run_dir, torch.device("cpu"))
+    test = before.info.timesteps["test"]
+    assert test and not before.info.held_out
+    monkeypatch.setattr(held_out_fit, "BLOCK", 1)  # one task a frame: two workers share them
+    report = fit_held_out(run_dir, HeldOutFitConfig(steps=3), workers=2, progress=False, log=lambda line: None)
+    assert report["frames"] == len(test) and report["checkpoint_step"] == before.info.step
+    assert json.loads((run_dir / "held_out.json").read_text())["steps"] == 3
+    run = load_run(run_dir, torch.device("cpu"))
+    assert sorted(run.info.held_out) == sorted(test)
+    frames = RunFrames(run)
+    tracked = open_subject(data).params
+    moved = False
+    for t in test:
+        row = frames.row(t)
+        from_dataset = HeadParams.from_npz({k: v[row:row + 1].float() for k, v in tracked.items()})
+        own, _ = frames.params(t, from_dataset)
+        copy, _ = frames.params(t, from_dataset, own_dataset=False)
+        assert torch.equal(own.translation, run.info.frame_params["translation"][row:row + 1])
+        assert torch.equal(copy.translation, from_dataset.translation)
+        moved |= not torch.allclose(own.translation, from_dataset.translation)
+    assert moved
+    for t in run.info.timesteps["train"]:  # the training frames' rows are untouched
+        row = frames.row(t)
+        assert torch.equal(run.info.frame_params["expr"][row], before.info.frame_params["expr"][row])
+    # one worker gives the same rows (the blocks do not depend on the worker count)
+    first = dict(np.load(run_dir / HELD_OUT_FILE))
+    fit_held_out(run_dir, HeldOutFitConfig(steps=3), workers=1, progress=False, log=lambda line: None)
+    again = dict(np.load(run_dir / HELD_OUT_FILE))
+    assert all(np.allclose(first[key], again[key], atol=1e-6) for key in FRAME_KEYS)
+
+
+def test_eval_says_where_the_test_parameters_came_from_and_a_stale_fit_is_ignored(tiny):
+    from geoavatar.apps.eval import eval_runs
+    from geoavatar.io.atomic import atomic_write_npz
+
+    data, run_dir = tiny
+    fit_held_out(run_dir, HeldOutFitConfig(steps=1), workers=1, progress=False, log=lambda line: None)
+    assert eval_runs([run_dir], mouth=False, floaters=False, faces=False, max_frames=1, progress=False) == 0
+    settings = json.loads((run_dir / "eval" / "test" / "metrics.json").read_text())["settings"]
+    assert settings["test_params"].startswith("fitted against this avatar")
+    stored = dict(np.load(run_dir / HELD_OUT_FILE))
+    atomic_write_npz(run_dir / HELD_OUT_FILE, **{**stored, "step": np.asarray(int(stored["step"]) + 5)})
+    assert load_run(run_dir, torch.device("cpu")).info.held_out == []  # trained on since: stale
+    assert eval_runs([run_dir], mouth=False, floaters=False, faces=False, max_frames=1, progress=False) == 0
+    settings = json.loads((run_dir / "eval" / "test" / "metrics.json").read_text())["settings"]
+    assert settings["test_params"] == "as the dataset holds them (no prepare or track report beside it)"
