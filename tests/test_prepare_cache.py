@@ -38,15 +38,12 @@ def test_a_changed_field_redoes_its_stage_and_the_dependants_only(config, ran):
     assert rerun(config, ran) == []  # everything cached
     changed = config
     for change, redone in [
-        ({"test_fraction": 0.3}, ["write", "sound", "gaussian"]),
-        ({"mask_backend": "other"}, ["masks", "photometric", "write", "sound", "gaussian"]),  # the tracking does not read masks
-        ({"tracking_steps": (10, 20)}, ["tracking", "photometric", "write", "sound", "gaussian"]),
-        ({"static_offset": False}, ["tracking", "photometric", "write", "sound", "gaussian"]),
-        ({"missing": "drop"}, ["landmarks", "masks", "tracking", "photometric", "write", "sound", "gaussian"]),
-        ({"photometric_epochs": (1, 1)}, ["photometric", "write", "sound", "gaussian"]),
-        ({"gaussian_steps": 10}, []),  # the refit is off (the library's default): its settings are not read
-        ({"gaussian_refit": True}, ["gaussian"]),
-        ({"gaussian_resolution": 64}, ["gaussian"]),
+        ({"test_fraction": 0.3}, ["write", "sound"]),
+        ({"mask_backend": "other"}, ["masks", "photometric", "write", "sound"]),  # the tracking does not read masks
+        ({"tracking_steps": (10, 20)}, ["tracking", "photometric", "write", "sound"]),
+        ({"static_offset": False}, ["tracking", "photometric", "write", "sound"]),
+        ({"missing": "drop"}, ["landmarks", "masks", "tracking", "photometric", "write", "sound"]),
+        ({"photometric_epochs": (1, 1)}, ["photometric", "write", "sound"]),
         ({"crop_sigma": 3.0}, list(STAGES)),
     ]:
         changed = replace(changed, **change)
@@ -64,23 +61,23 @@ def test_no_photometric_ignores_the_photometric_settings(config, ran):
     plain = replace(config, photometric=False)
     assert rerun(plain, ran) == list(STAGES)
     assert rerun(replace(plain, photometric_epochs=(1, 1)), ran) == []
-    assert rerun(config, ran) == ["photometric", "write", "sound", "gaussian"]
-    assert rerun(plain, ran) == ["photometric", "write", "sound", "gaussian"]
+    assert rerun(config, ran) == ["photometric", "write", "sound"]
+    assert rerun(plain, ran) == ["photometric", "write", "sound"]
 
 
 def test_an_interrupted_stage_redoes_its_dependants(config, ran):
     run_prepare(config)
     (config.out / pipeline.WORK / "landmarks.json").unlink()  # killed while the landmarks were being redone
-    assert rerun(config, ran) == ["landmarks", "masks", "tracking", "photometric", "write", "sound", "gaussian"]
+    assert rerun(config, ran) == ["landmarks", "masks", "tracking", "photometric", "write", "sound"]
 
 
 def test_a_changed_tracking_default_or_stage_version_is_not_reused(config, ran, monkeypatch):
     run_prepare(config)
     original = pipeline.tracking_config
     monkeypatch.setattr(pipeline, "tracking_config", lambda c: replace(original(c), offset_decay=0.2))
-    assert rerun(config, ran) == ["tracking", "photometric", "write", "sound", "gaussian"]
+    assert rerun(config, ran) == ["tracking", "photometric", "write", "sound"]
     monkeypatch.setitem(pipeline.STAGE_VERSIONS, "masks", pipeline.STAGE_VERSIONS["masks"] + 1)
-    assert rerun(config, ran) == ["masks", "photometric", "write", "sound", "gaussian"]
+    assert rerun(config, ran) == ["masks", "photometric", "write", "sound"]
 
 
 def test_a_changed_video_file_redoes_everything(config, ran):
@@ -92,9 +89,8 @@ def test_a_changed_video_file_redoes_everything(config, ran):
 def test_every_config_field_belongs_to_one_stage_key(config):
     stages = {f.name: f.metadata["stage"] for f in fields(PrepareConfig)}
     assert set(stages.values()) <= set(STAGES) | {UNKEYED}
-    assert {name for name, stage in stages.items() if stage == UNKEYED} == {"out", "progress", "log", "workers",
-                                                                          "gaussian_runner"}
-    configs = stage_configs(replace(config, gaussian_refit=True))
+    assert {name for name, stage in stages.items() if stage == UNKEYED} == {"out", "progress", "log", "workers"}
+    configs = stage_configs(config)
     for name, stage in stages.items():
         if stage != UNKEYED:
             assert name in configs[stage]

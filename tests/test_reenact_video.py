@@ -90,7 +90,7 @@ def test_driver_video_is_tracked_cached_and_reenacted(run_dir, clip, tmp_path, c
     assert reenact_app.reenact(run_dir, driver_video=clip, driver_size=64, out=second, max_frames=3, device="cpu",
                                progress=False) == 0
     printed = capsys.readouterr().out
-    assert printed.count("is complete, skipped") == len(STAGES), printed  # the gaussian refit's too: off for a driver
+    assert printed.count("is complete, skipped") == len(STAGES), printed
     assert (cache / "dataset" / "transforms.json").stat().st_mtime_ns == written
     assert len(decode(second)) == 3
 

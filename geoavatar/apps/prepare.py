@@ -30,7 +30,6 @@ def prepare(
     flame_landmarks: Optional[Path] = None,
     static_offset: bool = True,
     photometric: bool = True,
-    gaussian_refit: bool = True,
     overlay: bool = True,
     workers: Optional[int] = None,
     progress: bool = True,
@@ -64,12 +63,6 @@ def prepare(
             model rendered with the CPU rasterizer against the masked crops, landmarks kept as a term);
             --no-photometric writes the landmark fit as is (faster). Re-running with it on over a
             --no-photometric folder reuses every earlier stage and adds the photometric one.
-        gaussian_refit: Last, train a quick Gaussian head on every frame (3000 steps at 256 px) and refit every
-            frame's head parameters against it: the training frames get those its training refined, the test frames a
-            fit of their own (12 minutes for 354 frames on 2 CPU cores). The photometric stage cannot see the hair's
-            outline; on an expressive video this put the test frames' heads ~1° and 4 mm off and cost them 2.5 dB
-            (docs/expressive_video.md). --no-gaussian-refit keeps the photometric fit (faster; re-running with it on
-            reuses every earlier stage).
         overlay: Write OUT/overlay.mp4.
         workers: Worker processes (default: one per core this process may use, at most 8; each holds up to
             0.9 GB). The dataset does not depend on it.
@@ -81,7 +74,7 @@ def prepare(
         video=video, out=out, head=head, size=size, fps=fps, max_frames=max_frames, missing=missing,
         test_fraction=test_fraction, flame_dir=flame_dir, flame_landmarks=flame_landmarks,
         static_offset=static_offset, photometric=photometric, overlay=overlay, workers=workers,
-        progress=progress, gaussian_refit=gaussian_refit, gaussian_runner=_gaussian_refit,
+        progress=progress,
     )
     try:
         _check_out(Path(out))
@@ -90,7 +83,8 @@ def prepare(
     except PrepareError as err:
         print(f"geoavatar prepare: {err}", file=sys.stderr)
         return 2
-    print(f"dataset: {dataset}\noverlay: {Path(out) / 'overlay.mp4'}\nreport: {Path(out) / 'report.json'}")
+    overlay_line = f"overlay: {Path(out) / 'overlay.mp4'}\n" if overlay else ""
+    print(f"dataset: {dataset}\n{overlay_line}report: {Path(out) / 'report.json'}")
     print(capture_verdict(Path(out)))
     return 0
 
@@ -104,14 +98,6 @@ def _check_out(out: Path) -> None:
                 raise PrepareError(f"--out {out}: {what}, not a folder (prepare writes a folder: dataset/, "
                                    "report.json, overlay.mp4)")
             return
-
-
-def _gaussian_refit(dataset: Path, work: Path, config: PrepareConfig) -> dict:
-    """The pipeline's gaussian stage (it trains: geoavatar.train, a layer beside geoavatar.prep)."""
-    from geoavatar.train.gaussian_refit import GaussianRefitConfig, refit_dataset
-
-    refit = GaussianRefitConfig(steps=config.gaussian_steps, resolution=config.gaussian_resolution)
-    return refit_dataset(dataset, work, refit, progress=config.progress, log=config.log)
 
 
 def capture_verdict(out: Path) -> str:

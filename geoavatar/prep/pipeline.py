@@ -23,7 +23,6 @@ holds the key it would have now, and redoes it and every stage that depends on i
     write      the dataset through LayoutWriter, then the overlay video, the capture check and the report
     sound      the video's sound track resampled once into the dataset, each frame timed on it, and where the speech is
                (geoavatar.data.sound); a video without sound, or without speech, prepares as before and says so
-    gaussian   every frame's parameters refitted against a quick Gaussian head (with --gaussian-refit; see below)
 
 Every stage splits its frames into tasks for a WorkerPool (geoavatar.workers: spawned processes, one torch
 thread each, `workers` of them, by default one per core): decoding + face detection and the crops one range of the
@@ -63,11 +62,10 @@ from geoavatar.io.atomic import atomic_write_json, atomic_write_npz, atomic_writ
 from geoavatar.prep.errors import PrepareError
 from geoavatar.workers import WorkerPool, default_workers, report_progress, split_range, worker_cache
 
-STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write", "sound", "gaussian")
+STAGES = ("frames", "landmarks", "masks", "tracking", "photometric", "write", "sound")
 # Part of a stage's key: bumped when the stage's method changes, so a re-run redoes that stage (and the
 # ones depending on it) instead of keeping outputs made the old way.
-STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 3, "write": 5, "sound": 1,
-                  "gaussian": 1}
+STAGE_VERSIONS = {"frames": 1, "landmarks": 1, "masks": 2, "tracking": 2, "photometric": 3, "write": 5, "sound": 1}
 # The stages whose outputs a stage reads: a rerun of one redoes these dependants.
 DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "frames": (),
@@ -77,7 +75,6 @@ DEPENDS_ON: dict[str, tuple[str, ...]] = {
     "photometric": ("frames", "landmarks", "masks", "tracking"),
     "write": ("frames", "landmarks", "masks", "tracking", "photometric"),
     "sound": ("frames", "landmarks", "write"),  # the write stage replaces the dataset folder, sound files included
-    "gaussian": ("frames", "landmarks", "masks", "tracking", "photometric", "write"),
 }
 WORK = ".prepare"
 # Torch (and native rasterizer) threads of the photometric stage. Its renders are small (128 px, ~10k Gaussians), so
@@ -95,7 +92,6 @@ MASK_BLOCK = 256
 PHOTOMETRIC_SEGMENT = 300
 PHOTOMETRIC_OVERLAP = 8
 OVERLAY_BLOCK = 32  # overlay pictures per worker task
-GAUSSIAN_APPLIED = "gaussian.applied"  # in the work folder while the dataset holds refitted parameters
 
 
 def _stage_field(stage: str, *default: Any, **kwargs) -> Any:
@@ -131,12 +127,6 @@ class PrepareConfig:
     photometric: bool = _stage_field("photometric", True)  # False (--no-photometric): the landmark fit is written
     photometric_epochs: tuple[int, int] = _stage_field("photometric", (16, 12))  # at 64 px, at 128 px (PhotometricConfig's)
     overlay: bool = _stage_field("write", True)
-    # every frame's parameters refitted against a quick Gaussian head of the whole video (train/gaussian_refit.py), by
-    # `gaussian_runner`, which the caller passes: it trains, a layer beside this one. `geoavatar prepare` turns it on.
-    gaussian_refit: bool = _stage_field("gaussian", False)
-    gaussian_steps: int = _stage_field("gaussian", 3000)  # the head's training steps
-    gaussian_resolution: int = _stage_field("gaussian", 256)  # and its image side
-    gaussian_runner: Callable[[Path, Path, "PrepareConfig"], dict] | None = _stage_field(UNKEYED, None, repr=False)
     mask_backend: str = _stage_field("masks", "selfie")
     # worker processes (None: the cores this process may use, at most 8); the dataset does not depend on it
     workers: int | None = _stage_field(UNKEYED, None)
@@ -245,8 +235,6 @@ def stage_configs(config: PrepareConfig) -> dict[str, dict[str, Any]]:
         out["photometric"]["segments"] = {"length": PHOTOMETRIC_SEGMENT, "overlap": PHOTOMETRIC_OVERLAP}
     else:  # skipped: its settings are not read, so changing them must not redo the dataset written without them
         out["photometric"] = {"photometric": False}
-    if not config.gaussian_refit:
-        out["gaussian"] = {"gaussian_refit": False}
     return out
 
 
@@ -637,7 +625,6 @@ def stage_write(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
             writer.add_frame(t, work / "frames" / f"{k:05d}.png", _written_frame(params, t), fit["viewmat"],
                              fit["K"][t], mask=work / "masks" / f"{k:05d}.png")
             bar.update(1)
-    (work / GAUSSIAN_APPLIED).unlink(missing_ok=True)  # the new dataset holds the written rows
     if config.overlay:
         write_overlay(config, work, Path(config.out) / "overlay.mp4", pool)
     errors = fit["errors"]
@@ -700,32 +687,6 @@ def stage_sound(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
                        "to speak only from a video with speech)")
     report_path = Path(config.out) / "report.json"
     atomic_write_json(report_path, {**json.loads(report_path.read_text()), "sound": info})
-    return info
-
-
-def stage_gaussian(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
-    """Every frame's parameters refitted against a quick Gaussian head (config.gaussian_runner); with the refit off,
-    the dataset gets the written rows back if an earlier run refitted them."""
-    from geoavatar.data.layout import rewrite_frame_params
-
-    dataset, applied = Path(config.out) / "dataset", work / GAUSSIAN_APPLIED
-    if applied.is_file():  # refitted by an earlier run with other settings: start again from the written rows
-        params = _fit_params(dict(np.load(fit_file(config, work))))
-        rewrite_frame_params(dataset, {t: _written_frame(params, t) for t in range(len(params["rotation"]))})
-        applied.unlink()
-    head = work / f"gaussian-{_stage_keys(config)['gaussian'][:12]}"
-    for old in work.glob("gaussian-*"):  # a head trained with other settings or data, or the refit is off
-        if old != head or not config.gaussian_refit:
-            shutil.rmtree(old, ignore_errors=True)
-    if not config.gaussian_refit:
-        return {"gaussian_refit": False}
-    if config.gaussian_runner is None:
-        raise PrepareError("the gaussian refit needs its runner (PrepareConfig.gaussian_runner); geoavatar prepare "
-                           "passes it")
-    applied.touch()  # before the first parameter file changes
-    info = config.gaussian_runner(dataset, head, config)
-    report_path = Path(config.out) / "report.json"
-    atomic_write_json(report_path, {**json.loads(report_path.read_text()), "gaussian_refit": info})
     return info
 
 
@@ -834,7 +795,7 @@ def write_overlay(config: PrepareConfig, work: Path, path: Path, pool: WorkerPoo
 # --- the run ----------------------------------------------------------------------------------------
 
 _RUNNERS = {"frames": stage_frames, "landmarks": stage_landmarks, "masks": stage_masks, "tracking": stage_tracking,
-            "photometric": stage_photometric, "write": stage_write, "sound": stage_sound, "gaussian": stage_gaussian}
+            "photometric": stage_photometric, "write": stage_write, "sound": stage_sound}
 
 
 def run_prepare(config: PrepareConfig) -> Path:
