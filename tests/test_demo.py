@@ -1,5 +1,5 @@
-"""`geoavatar demo` end to end on a tiny budget: every stage of a user's path runs (train, track the test frames
-against the avatar, eval on that copy, learn the voice, score it, speak), the report leads with the tracked score,
+"""`geoavatar demo` end to end on a tiny budget: every stage of a user's path runs (train, fit the test frames
+against the avatar, eval, learn the voice, score it, speak), the report leads with the fitted test frames' score,
 the pictures are larger than the training images, and the report points at real files."""
 
 import functools
@@ -12,12 +12,12 @@ import pytest
 from PIL import Image
 
 from geoavatar import cli
-from geoavatar.apps.demo import TRACKED_NAME, demo
+from geoavatar.apps.demo import demo
 
 # 128 px generated images, trained at 32 px: the pictures (128 px) are larger than the training images; 60 frames hold
 # 2.1 s of the subject's voice, enough to learn one (8 frames would not: the speech stages would be skipped)
 PICTURES = 128
-TINY = dict(steps=4, frames=60, size=PICTURES, resolution=32, picture_resolution=PICTURES, track_steps=2,
+TINY = dict(steps=4, frames=60, size=PICTURES, resolution=32, picture_resolution=PICTURES,
             driver_frames=3, voice_steps=20, device="cpu", backend="torch")
 TEST_FRAMES = 15
 
@@ -53,33 +53,39 @@ def test_demo_writes_report_with_metrics_videos_and_stills(demo_out, capsys):
     assert (out / "report.md").read_text() == report
 
 
-def test_demo_tracks_only_the_test_frames_against_its_avatar(demo_out):
-    tracked = json.loads((demo_out / "data" / TRACKED_NAME / "track.json").read_text())["avatar_tracking"]
-    run = json.loads((demo_out / "run" / "config.json").read_text())
+def test_demo_fits_only_the_test_frames_against_its_avatar(demo_out):
+    import torch
+
+    from geoavatar.train.checkpoint import load_run
+
+    fit = json.loads((demo_out / "run" / "held_out.json").read_text())
+    run = load_run(demo_out / "run", torch.device("cpu"))
     test = sorted(json.loads((demo_out / "data" / "subject0" / "transforms_test.json").read_text())["frames"],
                   key=lambda f: f["timestep_index"])
-    assert tracked["steps"] == TINY["track_steps"] and tracked["avatar"] == str((demo_out / "run").resolve())
-    assert tracked["fitted"] == [f["timestep_index"] for f in test]  # the held-out frames, and only they
-    assert sorted(tracked["from_run"]) == sorted(run["dataset"]["timesteps"]["train"])  # they keep training's
-    assert not set(tracked["fitted"]) & set(tracked["from_run"])
+    assert fit["frames"] == TEST_FRAMES and fit["checkpoint_step"] == TINY["steps"]
+    assert sorted(run.info.held_out) == [f["timestep_index"] for f in test]  # the held-out frames, and only they
+    settings = json.loads((demo_out / "run" / "eval" / "test" / "metrics.json").read_text())["settings"]
+    assert settings["test_params"].startswith("fitted against this avatar")
+    written = json.loads((demo_out / "run" / "eval" / "test@dataset_params" / "metrics.json").read_text())["settings"]
+    assert written["test_params"] == "as the dataset holds them (no prepare or track report beside it)"
 
 
-def test_demo_report_leads_with_the_tracked_score(demo_out):
+def test_demo_report_leads_with_the_fitted_score(demo_out):
     out = demo_out
     report = (out / "report.md").read_text()
-    tracked = _summary(out / "run" / "eval" / f"test@{TRACKED_NAME}" / "metrics.json")
-    written = _summary(out / "run" / "eval" / "test" / "metrics.json")
+    tracked = _summary(out / "run" / "eval" / "test" / "metrics.json")
+    written = _summary(out / "run" / "eval" / "test@dataset_params" / "metrics.json")
 
-    # the first figure of the report is the tracked test PSNR, with its SSIM and LPIPS
+    # the first figure of the report is the fitted test frames' PSNR, with its SSIM and LPIPS
     first = re.search(r"\*\*PSNR ([\d.]+) dB · SSIM ([\d.]+) · LPIPS ([\d.]+)\*\*", report)
     assert first and re.search(r"[\d.]+ dB", report).group(0) == f"{first.group(1)} dB"
     assert float(first.group(1)) == pytest.approx(tracked["psnr"]["mean"], abs=0.006)
     assert float(first.group(2)) == pytest.approx(tracked["ssim"]["mean"], abs=6e-4)
     assert float(first.group(3)) == pytest.approx(tracked["lpips"]["mean"], abs=6e-4)
     assert report.index(first.group(0)) < report.index("## Pictures")
-    # the plain eval's score beside it, in the row below the tracked one, with its one-line explanation
+    # the written parameters' score beside it, in the row below the fitted one, with its one-line explanation
     lines = report.splitlines()
-    rows = [i for i, line in enumerate(lines) if line.startswith(("| **tracked against the avatar**", "| written "))]
+    rows = [i for i, line in enumerate(lines) if line.startswith(("| **fitted against the avatar**", "| written "))]
     assert len(rows) == 2 and rows[1] == rows[0] + 1
     rows = [lines[i] for i in rows]
     assert f"**{tracked['psnr']['mean']:.2f}** ± {tracked['psnr']['std']:.2f}" in rows[0]
@@ -88,12 +94,12 @@ def test_demo_report_leads_with_the_tracked_score(demo_out):
     assert "simulated tracker error" in report
 
     summary = json.loads((out / "report.json").read_text())
-    assert summary["test"]["lead"] == "tracked"
-    assert summary["test"]["tracked"]["psnr"]["mean"] == pytest.approx(tracked["psnr"]["mean"])
+    assert summary["test"]["lead"] == "fitted"
+    assert summary["test"]["fitted"]["psnr"]["mean"] == pytest.approx(tracked["psnr"]["mean"])
     assert summary["test"]["written"]["psnr"]["mean"] == pytest.approx(written["psnr"]["mean"])
-    assert summary["frames_evaluated"] == TEST_FRAMES and summary["tracking"]["frames_fitted"] == TEST_FRAMES
+    assert summary["frames_evaluated"] == TEST_FRAMES and summary["held_out_fit"]["frames"] == TEST_FRAMES
     assert summary["pictures"]["resolution"] == PICTURES
-    assert set(summary["seconds"]) >= {"track the test frames against the avatar", "evaluate (test split, tracked)"}
+    assert set(summary["seconds"]) >= {"fit the test frames against the avatar", "evaluate (test split)"}
 
 
 def test_demo_speaks_a_clip_with_its_sound_and_reports_its_voice(demo_out):
@@ -141,6 +147,5 @@ def test_demo_report_commands_parse_with_the_cli(demo_out, monkeypatch):
     for line in lines:
         assert cli.main(shlex.split(line)[1:]) == 0, line
     commands = [target.split(":")[1] for target, _ in calls]
-    assert commands[:4] == ["synth", "train", "track", "eval_runs"] and "render" in commands
-    track = calls[2][1]
-    assert track["avatar"] == demo_out / "run" and track["out"] == demo_out / "data" / TRACKED_NAME
+    assert commands[:4] == ["synth", "train", "eval_runs", "eval_runs"] and "render" in commands
+    assert calls[3][1]["test_params"] == "dataset"

@@ -1,12 +1,12 @@
 """`geoavatar demo`: the main job on the embedded default, end to end, with a report to open.
 
-The steps a user's own video takes after `prepare` (#31): generate a subject → train GeoAvatar (preset E) → track
-the held-out test frames against the trained avatar (`geoavatar track DATA --avatar RUN --out COPY`, the README's
-advice) → evaluate them (`geoavatar eval RUN --data COPY`; the plain `geoavatar eval RUN` on the generated subject's
-written parameters beside it) → render the self re-enactment of the tracked test frames, a novel-view orbit and a
-cross re-enactment driven by a second generated subject, at 256 px (larger than the training images) → the browser
-player of the avatar (demo_output/web/, `export --format web`) → demo_output/report.md (and report.json) led by the
-tracked test score, with the time of every stage and pictures.
+The steps a user's own video takes after `prepare` (#31): generate a subject → train GeoAvatar (preset E) → fit the
+held-out test frames against the trained avatar (`train`'s last stage, train/held_out_fit.py) → evaluate them
+(`geoavatar eval RUN`; with the generated subject's written parameters beside it, `--test-params dataset`) → render
+the self re-enactment of the test frames, a novel-view orbit and a cross re-enactment driven by a second generated
+subject, at 256 px (larger than the training images) → the browser player of the avatar (demo_output/web/, `export
+--format web`) → the voice: learned, scored, speaking → demo_output/report.md (and report.json) led by the test
+score, with the time of every stage and pictures.
 
 Each stage writes into its own folder and is skipped when its output is already complete, so an
 interrupted demo continues where it stopped (training itself resumes from its last checkpoint).
@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Callable, Literal
 
 from geoavatar.io.atomic import atomic_write_png, atomic_write_text
+from geoavatar.train.held_out_fit import HELD_OUT_REPORT
 
 DRIVER_SUBJECT = 1
 
@@ -36,7 +37,6 @@ class DemoSettings:
     resolution: int = 128  # training / evaluation resolution (longer side)
     picture_resolution: int = 256  # the videos' and stills' longer side (at most `size`: images are never enlarged)
     steps: int = 1500  # training steps (the paper: 200k on a GPU)
-    track_steps: int = 30  # Adam steps per test frame against the avatar (track --avatar's default; 10 lose 3.4 dB)
     driver_frames: int = 60  # length of the cross re-enactment driver
     orbit_frames: int = 48
     seed: int = 0
@@ -72,7 +72,6 @@ class StageTimer:
         print(f"[demo] {name}: {self.seconds[name]:.0f} s", flush=True)
 
 
-TRACKED_NAME = "subject0_tracked"  # the copy of the subject with its test frames tracked against the avatar
 REPORT_KEYS = ("psnr", "ssim", "lpips", "mse", "mouth_psnr", "mouth_lpips")  # report.json's per-path figures
 
 
@@ -88,7 +87,6 @@ def demo(
     size: int = DemoSettings.size,
     resolution: int = DemoSettings.resolution,
     picture_resolution: int = DemoSettings.picture_resolution,
-    track_steps: int = DemoSettings.track_steps,
     driver_frames: int = DemoSettings.driver_frames,
     voice_steps: int = DemoSettings.voice_steps,
     seed: int = DemoSettings.seed,
@@ -99,15 +97,14 @@ def demo(
     """Run the whole pipeline on a generated subject and write OUT/report.md.
 
     Generates subject 0 with its voice (and subject 1 as a driver), trains GeoAvatar (preset E) on the first 75 %
-    of the video, tracks the held-out last 25 % against the trained avatar as the README advises for a user's
-    own video (`geoavatar track DATA --avatar RUN --out COPY`), evaluates MSE/PSNR/SSIM/LPIPS on them
-    (`geoavatar eval RUN --data COPY`) and, beside it, on the generated subject's written parameters (the plain
-    `geoavatar eval RUN`: their simulated tracker error, which the avatar never saw), renders the tracked test
-    re-enactment (ground truth | render | error), a novel-view orbit and a cross re-enactment at
+    of the video, fits the held-out last 25 % against the trained avatar as `geoavatar train` does at its end,
+    evaluates MSE/PSNR/SSIM/LPIPS on them (`geoavatar eval RUN`) and, beside it, on the generated subject's written
+    parameters (`--test-params dataset`: their simulated tracker error, which the avatar never saw), renders the
+    test re-enactment (ground truth | render | error), a novel-view orbit and a cross re-enactment at
     --picture-resolution, learns the subject's voice from its training frames, scores it on the held-out frames'
     sound (`geoavatar eval RUN --speech`) and makes the avatar say a clip it never heard (`geoavatar speak`), and
-    writes report.md (led by the tracked test score) and report.json with timings and pictures. Re-running
-    continues an interrupted demo. The defaults take an estimated 5 minutes on 2 quiet CPU cores (docs/demo.md).
+    writes report.md (led by the test score) and report.json with timings and pictures. Re-running continues an
+    interrupted demo. The defaults take about 5 minutes on 2 CPU cores (docs/demo.md).
 
     Args:
         out: Output folder (data/, run/, videos, stills and report.md go here).
@@ -116,7 +113,6 @@ def demo(
         size: Size of the generated images.
         resolution: Training and evaluation resolution (longer side, pixels).
         picture_resolution: Longer side of the videos and stills (pixels; at most --size).
-        track_steps: Adam steps per test frame when tracking them against the avatar (`track --steps`).
         driver_frames: Length of the second subject's video that drives the cross re-enactment.
         voice_steps: Training steps of the voice model (`geoavatar voice --steps`).
         seed: Seed of the generated motion and of training.
@@ -126,12 +122,12 @@ def demo(
             native kernel.
         progress: Show progress bars.
     """
-    if (steps <= 0 or frames < 8 or size < 32 or resolution < 32 or picture_resolution < 32 or track_steps <= 0
-            or driver_frames < 2 or voice_steps <= 0):
+    if (steps <= 0 or frames < 8 or size < 32 or resolution < 32 or picture_resolution < 32 or driver_frames < 2
+            or voice_steps <= 0):
         raise SystemExit("geoavatar demo: need --steps > 0, --frames >= 8, --size >= 32, --resolution >= 32, "
-                         "--picture-resolution >= 32, --track-steps > 0, --driver-frames >= 2, --voice-steps > 0")
+                         "--picture-resolution >= 32, --driver-frames >= 2, --voice-steps > 0")
     plan = DemoPlan(Path(out), DemoSettings(frames, size, resolution, min(picture_resolution, size), steps,
-                                            track_steps, driver_frames, seed=seed, voice_steps=voice_steps),
+                                            driver_frames, seed=seed, voice_steps=voice_steps),
                     device, backend, progress)
     plan.out.mkdir(parents=True, exist_ok=True)
     timer = StageTimer(plan.out / "timings.json")
@@ -163,12 +159,11 @@ class DemoPlan:
     def __post_init__(self) -> None:
         out = self.out
         self.data, self.driver, self.run = out / "data" / "subject0", out / "data" / "driver", out / "run"
-        self.tracked = out / "data" / TRACKED_NAME
         self.new_speech = out / "data" / "new_speech.wav"  # a clip of the subject's voice it never said
         self.videos = {"render": out / "render_test.mp4", "orbit": out / "orbit.mp4", "reenact": out / "reenact.mp4",
                        "speak": out / "speak.mp4"}
-        self.metrics = {"tracked": self.run / "eval" / f"test@{TRACKED_NAME}" / "metrics.json",  # --data COPY's
-                        "written": self.run / "eval" / "test" / "metrics.json"}
+        self.metrics = {"fitted": self.run / "eval" / "test" / "metrics.json",  # the held-out fit's parameters
+                        "written": self.run / "eval" / "test@dataset_params" / "metrics.json"}  # the generator's
         self.speech_metrics = self.run / "eval" / "speech" / "metrics.json"
         self.player = out / "web"
 
@@ -194,27 +189,24 @@ class DemoPlan:
              lambda: _checked(train(TrainArgs(
                  RunOptions(out=run, data=self.data, preset=None if resume else "E", resolution=s.resolution,
                             seed=s.seed, device=self.device, backend=self.backend, progress=self.progress),
-                 steps=None if resume else s.steps, resume=resume, voice=False)), "train")),
+                 steps=None if resume else s.steps, resume=resume, held_out_fit=False, voice=False)), "train")),
         ]
 
     def _evaluation_stages(self):
         from geoavatar.apps.eval import eval_runs
-        from geoavatar.apps.track import REPORT_FILE as TRACK_REPORT
-        from geoavatar.apps.track import track
+        from geoavatar.train.held_out_fit import fit_held_out
 
         common = {"device": self.device, "progress": self.progress}
-        # the user's path: the held-out frames tracked against the avatar (the training frames keep the parameters
-        # training refined), then scored on that copy; beside it the plain eval on the written parameters
+        # the user's path: train ends by fitting the held-out frames against the avatar (a stage of its own here, to
+        # time it), then they are scored; beside them the eval on the generator's written parameters
         return [
-            ("track the test frames against the avatar", (self.tracked / TRACK_REPORT).is_file,
-             lambda: _checked(track(self.data, out=self.tracked, avatar=self.run, steps=self.settings.track_steps,
-                                    overwrite=True, **common), "track")),
-            ("evaluate (test split, tracked)", self.metrics["tracked"].is_file,
-             lambda: _checked(eval_runs([self.run], split="test", data=self.tracked, backend=self.backend, **common),
-                              "eval")),
+            ("fit the test frames against the avatar", (self.run / HELD_OUT_REPORT).is_file,
+             lambda: fit_held_out(self.run, progress=self.progress)),
+            ("evaluate (test split)", self.metrics["fitted"].is_file,
+             lambda: _checked(eval_runs([self.run], split="test", backend=self.backend, **common), "eval")),
             ("evaluate (test split, written parameters)", self.metrics["written"].is_file,
              lambda: _checked(eval_runs([self.run], split="test", faces=False, floaters=False, backend=self.backend,
-                                        **common), "eval")),
+                                        test_params="dataset", **common), "eval")),
         ]
 
     def _picture_stages(self):
@@ -227,8 +219,8 @@ class DemoPlan:
         common = {"device": self.device, "backend": self.backend, "progress": self.progress}
         return [
             ("render test re-enactment", videos["render"].is_file,
-             lambda: _checked(render(self.run, split="test", out=videos["render"], data=self.tracked, resolution=px,
-                                     **common), "render")),
+             lambda: _checked(render(self.run, split="test", out=videos["render"], resolution=px, **common),
+                              "render")),
             ("render novel-view orbit", videos["orbit"].is_file,
              lambda: _checked(orbit(self.run, out=videos["orbit"], frames=DemoSettings.orbit_frames, resolution=px,
                                     **common), "orbit")),
@@ -253,7 +245,7 @@ class DemoPlan:
             ("learn the voice", lambda: VoiceModel.exists(self.run) or self.mute,
              lambda: learn_voice(open_run(self.run, "cpu"), config=VoiceConfig(steps=s.voice_steps, seed=s.seed))),
             ("evaluate the voice (held-out sound)", lambda: self.speech_metrics.is_file() or self.mute,
-             lambda: _checked(eval_runs([self.run], speech=True, data=self.tracked, max_frames=s.speech_pictures,
+             lambda: _checked(eval_runs([self.run], speech=True, max_frames=s.speech_pictures,
                                         device=self.device, backend=self.backend, progress=self.progress),
                               "eval --speech")),
             ("speak a clip it never heard", lambda: self.videos["speak"].is_file() or self.mute,
@@ -291,22 +283,22 @@ def save_still(video: Path, png: Path, position: float = 0.5) -> Path:
 
 
 def write_report(plan: DemoPlan, stills: dict[str, Path], seconds: dict[str, float]) -> Path:
-    """OUT/report.md, led by the test score of the tracked test frames with the written parameters' beside it, and
-    OUT/report.json with the same figures (per path: mean and std of PSNR, SSIM, LPIPS, MSE and the mouth's)."""
+    """OUT/report.md, led by the test score of the test frames fitted against the avatar with the written parameters'
+    beside it, and OUT/report.json with the same figures (per path: mean and std of PSNR, SSIM, LPIPS, MSE and the mouth's)."""
     out, settings = plan.out, plan.settings
     scores = {path: json.loads(file.read_text()) for path, file in plan.metrics.items()}
     figures = {path: _figures(score["summary"]) for path, score in scores.items()}
     speech = json.loads(plan.speech_metrics.read_text()) if plan.speech_metrics.is_file() else None
-    tracking = _tracking_summary(plan.tracked)
+    fit = json.loads((plan.run / HELD_OUT_REPORT).read_text())
     rel = lambda p: Path(p).relative_to(out).as_posix()  # noqa: E731
-    lines = [*_score_lines(plan, figures, tracking, len(scores["tracked"]["frames"]), rel),
+    lines = [*_score_lines(plan, figures, fit, len(scores["fitted"]["frames"]), rel),
              *_speech_lines(plan, speech, rel), *_picture_lines(plan, stills, rel), _aps_text(plan.run),
              *_time_lines(seconds), *_reproduce_lines(plan, rel)]
     atomic_write_text(out / "report.json", json.dumps({
         "format": "geoavatar-demo", "version": 1,
-        "test": {"lead": "tracked", **figures},  # per path: the test frames' parameters
-        "frames_evaluated": len(scores["tracked"]["frames"]),
-        "tracking": tracking,
+        "test": {"lead": "fitted", **figures},  # per path: the test frames' parameters
+        "frames_evaluated": len(scores["fitted"]["frames"]),
+        "held_out_fit": fit,
         "speech": None if speech is None else ({key: speech.get(key) for key in SPEECH_KEYS}
                                                | {"baselines": speech.get("baselines", {})}),
         "metrics": {path: rel(file) for path, file in plan.metrics.items()}
@@ -314,8 +306,8 @@ def write_report(plan: DemoPlan, stills: dict[str, Path], seconds: dict[str, flo
         "pictures": {"resolution": settings.picture_resolution,
                      "stills": {n: rel(png) for n, png in stills.items() if png.is_file()},
                      "videos": {name: rel(video) for name, video in plan.videos.items() if video.is_file()}},
-        "settings": {key: getattr(settings, key) for key in ("frames", "size", "steps", "resolution", "track_steps",
-                                                             "voice_steps", "seed")} | {"backend": plan.backend},
+        "settings": {key: getattr(settings, key) for key in ("frames", "size", "steps", "resolution", "voice_steps",
+                                                             "seed")} | {"backend": plan.backend},
         "seconds": {name: round(sec, 1) for name, sec in seconds.items()},
         "total_seconds": round(sum(seconds.values()), 1),
     }, indent=1) + "\n")
@@ -326,31 +318,31 @@ SPEECH_KEYS = ("lip_vertex_error", "mouth_open_correlation", "lag_ms", "upper_fa
                "mouth_psnr")
 
 
-def _score_lines(plan: DemoPlan, figures: dict, tracking: dict, evaluated: int, rel) -> list[str]:
-    s, lead = plan.settings, figures["tracked"]
-    # the tracked eval's report without its own title, its sections one level down, so it nests under this heading
+def _score_lines(plan: DemoPlan, figures: dict, fit: dict, evaluated: int, rel) -> list[str]:
+    s, lead = plan.settings, figures["fitted"]
+    # the eval's report without its own title, its sections one level down, so it nests under this heading
     table = "\n".join("##" + line if line.startswith("## ") else line
-                      for line in (plan.metrics["tracked"].parent / "metrics.md").read_text().strip().splitlines()
+                      for line in (plan.metrics["fitted"].parent / "metrics.md").read_text().strip().splitlines()
                       if not line.startswith("# "))
     return [
         "# GeoAvatar demo", "",
         f"A generated subject ({s.frames} frames, with its voice), GeoAvatar (preset E) trained for {s.steps} steps at "
         f"{s.resolution} px on {platform.processor() or platform.machine()} (rasterizer backend '{plan.backend}') "
         "on the first 75 % of the video, and tested on the held-out last 25 % (poses and expressions not seen in "
-        "training) the way your own video is: its frames tracked against the trained avatar, then scored.", "",
+        "training) the way your own video is: their parameters fitted against the trained avatar (`geoavatar "
+        "train`'s last stage), then scored.", "",
         "## Test-split score", "",
-        f"**{_headline(lead)}** on the {evaluated} held-out frames tracked against the avatar "
-        "(`geoavatar track DATA --avatar RUN --out COPY`, then `geoavatar eval RUN --data COPY`).", "",
-        "| test frames' parameters | PSNR ↑ | SSIM ↑ | LPIPS ↓ | mouth PSNR ↑ |", "|---|---:|---:|---:|---:|",
-        f"| **tracked against the avatar** (`{rel(plan.tracked)}`) | {_row(lead, bold=True)} |",
-        f"| written by the generator (the plain `geoavatar eval RUN`) | {_row(figures['written'])} |", "",
+        f"**{_headline(lead)}** on the {evaluated} held-out frames fitted against the avatar (`geoavatar eval RUN`).",
+        "", "| test frames' parameters | PSNR ↑ | SSIM ↑ | LPIPS ↓ | mouth PSNR ↑ |", "|---|---:|---:|---:|---:|",
+        f"| **fitted against the avatar** (`{rel(plan.run / HELD_OUT_REPORT)}`) | {_row(lead, bold=True)} |",
+        f"| written by the generator (`geoavatar eval RUN --test-params dataset`) | {_row(figures['written'])} |", "",
         "The written parameters carry the generator's simulated tracker error, which the avatar never saw (on the test "
-        "frames mostly a drift in depth); tracking against the avatar fits it away as it would a real tracker's, so "
-        "the plain score measures that error more than the avatar.", "",
-        _tracking_line(tracking, rel(plan.tracked / "track.json")), "",
-        f"### The tracked test frames in full (`geoavatar eval RUN --data {rel(plan.tracked)}`)", "",
+        "frames mostly a drift in depth); the fit against the avatar takes it away as it would a real tracker's, so "
+        "the second score measures that error more than the avatar.", "",
+        _fit_line(fit, rel(plan.run / HELD_OUT_REPORT)), "",
+        "### The test frames in full (`geoavatar eval RUN`)", "",
         table, "",
-        f"Frames evaluated: {evaluated}. Per-frame values: `{rel(plan.metrics['tracked'])}`; with the written "
+        f"Frames evaluated: {evaluated}. Per-frame values: `{rel(plan.metrics['fitted'])}`; with the written "
         f"parameters: `{rel(plan.metrics['written'])}`.", "",
     ]
 
@@ -367,8 +359,8 @@ def _speech_lines(plan: DemoPlan, speech: dict | None, rel) -> list[str]:
     return [
         "## The avatar speaks", "",
         f"The subject's voice model, learned from its training frames' sound, drives the {speech['frames']} held-out "
-        f"frames by their own sound (never heard in training; `geoavatar eval RUN --speech --data COPY`, the head "
-        f"pose and the reference parameters from the tracked copy; pictures on {plan.settings.speech_pictures} of the "
+        f"frames by their own sound (never heard in training; `geoavatar eval RUN --speech`, the head pose and the "
+        f"reference parameters from the held-out fit; pictures on {plan.settings.speech_pictures} of the "
         f"frames): **{headline}** "
         f"(`{rel(plan.speech_metrics)}`).", "",
         *table, "",
@@ -382,7 +374,7 @@ def _picture_lines(plan: DemoPlan, stills: dict[str, Path], rel) -> list[str]:
     return [
         "## Pictures", "",
         f"At {plan.settings.picture_resolution} px (the avatar was trained at {plan.settings.resolution} px).", "",
-        f"Self re-enactment of the tracked test frames (ground truth | render | error): `{rel(videos['render'])}`", "",
+        f"Self re-enactment of the test frames (ground truth | render | error): `{rel(videos['render'])}`", "",
         f"![test re-enactment]({rel(stills['render'])})", "",
         f"Novel views (yaw/pitch orbit): `{rel(videos['orbit'])}`", "",
         f"![orbit]({rel(stills['orbit'])})", "",
@@ -414,8 +406,7 @@ def _reproduce_lines(plan: DemoPlan, rel) -> list[str]:
     return [
         "## Reproduce", "", "```bash",
         f"geoavatar demo --out {plan.out} --steps {s.steps} --frames {s.frames} --size {s.size} "
-        f"--resolution {s.resolution} --picture-resolution {s.picture_resolution} --track-steps {s.track_steps} "
-        f"--voice-steps {s.voice_steps}",
+        f"--resolution {s.resolution} --picture-resolution {s.picture_resolution} --voice-steps {s.voice_steps}",
         "```", "", "or the same steps one by one, as for your own video after `geoavatar prepare`:", "", "```bash",
         *_user_path(plan), "```", "",
         f"Training log: `{rel(plan.run / 'train.log')}`; validation images: `{rel(plan.run / 'val')}`.", "",
@@ -439,38 +430,26 @@ def _row(figures: dict, bold: bool = False) -> str:
             f"{mark}{figures['ssim']['mean']:.3f}{mark} | {mark}{figures['lpips']['mean']:.3f}{mark} | {mouth}")
 
 
-def _tracking_summary(tracked: Path) -> dict:
-    """What `track --avatar` did, from COPY/track.json: frames fitted, steps, L1 before and after, seconds."""
-    from geoavatar.apps.track import REPORT_FILE
-
-    report = json.loads((tracked / REPORT_FILE).read_text())
-    fitted = report["avatar_tracking"]
-    return {"frames_fitted": len(fitted["fitted"]), "frames_from_run": len(fitted["from_run"]),
-            "steps": fitted["steps"], "l1_before": fitted["l1"]["mean_before"], "l1_after": fitted["l1"]["mean"],
-            "seconds": report["seconds"]}
-
-
-def _tracking_line(tracking: dict, report: str) -> str:
-    return (f"Tracking: {tracking['frames_fitted']} test frames, {tracking['steps']} Adam steps each against the "
-            f"frozen avatar (the {tracking['frames_from_run']} training frames keep the parameters training refined); "
-            f"L1 {tracking['l1_before']:.4f} -> {tracking['l1_after']:.4f} in {tracking['seconds']:.0f} s "
+def _fit_line(fit: dict, report: str) -> str:
+    return (f"The fit: {fit['frames']} test frames, {fit['steps']} Adam steps each against the frozen avatar, each from "
+            f"its neighbour's correction (the training frames keep the parameters training refined); L1 "
+            f"{fit['l1_before']:.4f} -> {fit['l1']:.4f} in {fit['seconds']:.0f} s on {fit['workers']} worker(s) "
             f"(`{report}`).")
 
 
 def _user_path(plan: DemoPlan) -> list[str]:
     """The demo's stages as the commands a user types (the generated subject stands for `prepare`'s dataset)."""
-    s, data, run, tracked = plan.settings, plan.data, plan.run, plan.tracked
+    s, data, run = plan.settings, plan.data, plan.run
     return [
         f"geoavatar synth --out {data} --subject 0 --frames {s.frames} --size {s.size} --seed {s.seed} --preview "
         "--sound",
         f"geoavatar train --data {data} --out {run} --preset E --steps {s.steps} --resolution {s.resolution} "
-        f"--seed {s.seed} --no-voice",
-        f"geoavatar track {data} --avatar {run} --out {tracked} --steps {s.track_steps}",
-        f"geoavatar eval {run} --data {tracked}",
-        f"geoavatar eval {run} --no-faces --no-floaters      # the written parameters",
-        f"geoavatar render {run} --data {tracked} --resolution {s.picture_resolution} --out {plan.videos['render']}",
+        f"--seed {s.seed} --no-voice      # ends with the held-out fit",
+        f"geoavatar eval {run}",
+        f"geoavatar eval {run} --test-params dataset --no-faces --no-floaters      # the written parameters",
+        f"geoavatar render {run} --split test --resolution {s.picture_resolution} --out {plan.videos['render']}",
         f"geoavatar voice {run} --steps {s.voice_steps}      # train learns it itself without --no-voice",
-        f"geoavatar eval {run} --speech --data {tracked} --max-frames {s.speech_pictures}",
+        f"geoavatar eval {run} --speech --max-frames {s.speech_pictures}",
         f"geoavatar speak {run} --audio {plan.new_speech} --out {plan.videos['speak']}",
     ]
 
