@@ -171,18 +171,25 @@ def train(args: TrainArgs) -> int:
     print(f"{summary}\nrun: {result.run_dir}")
     if result.status != "finished":
         return 130
-    if args.held_out_fit:
-        _fit_held_out(result.run_dir, options)
+    if args.held_out_fit and not _fit_held_out(result.run_dir, options):
+        return 130
     if args.voice:
         _learn_voice(result.run_dir, options)
     return 0
 
 
-def _fit_held_out(run_dir, options: RunOptions) -> None:
-    """The held-out frames fitted against the finished avatar (train/held_out_fit.py); silent without test frames."""
+def _fit_held_out(run_dir, options: RunOptions) -> bool:
+    """The held-out frames fitted against the finished avatar (train/held_out_fit.py; silent without test frames);
+    False on Ctrl-C (the avatar is saved; the fit writes nothing until it is complete)."""
     from geoavatar.train.held_out_fit import fit_held_out
 
-    fit_held_out(run_dir, progress=options.progress)
+    try:
+        fit_held_out(run_dir, progress=options.progress)
+    except KeyboardInterrupt:
+        print(f"held-out fit: interrupted; the avatar is saved, and its held-out frames keep the tracker's parameters "
+              f"until `geoavatar train --out {run_dir} --resume` fits them")
+        return False
+    return True
 
 
 def _learn_voice(run_dir, options: RunOptions) -> None:
