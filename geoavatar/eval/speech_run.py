@@ -82,9 +82,11 @@ def picture_scores(run: LoadedRun, dataset, index_of: dict[int, int], timesteps:
     mouth_faces = mouth_face_mask(run.head)
     totals = {name: {"psnr": [], "lpips": [], "mouth_psnr": []} for name in ("tracked", *faces)}
     device = run.device
+    frames = RunFrames(run)  # the run's held-out fit on its own dataset, a copy's parameters otherwise
+    own = frames.is_own_dataset(dataset.subject.root)
     for row, timestep in enumerate(tqdm(timesteps, disable=not progress, desc="eval speech: render", leave=False)):
         item = item_to(dataset[index_of[timestep]], device)
-        tracked = HeadParams.from_npz(item["params"])
+        tracked = frames.params(timestep, HeadParams.from_npz(item["params"]), own_dataset=own)[0].to(device)
         target = composite_target(item["image"], item["mask"], item["background"])
         camera = item_camera(item)
         tracked_vertices = None  # the tracked render comes first: its mesh gives every face's mouth pixels
