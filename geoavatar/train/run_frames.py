@@ -19,6 +19,8 @@ the row of the per-timestep parameter tensors [T, ...] (row i = timesteps[i]).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from torch import Tensor
 
 from geoavatar.avatar import TimestepMode, frame_timestep
@@ -71,8 +73,6 @@ class RunFrames:
     def is_own_dataset(self, root) -> bool:
         """Whether the dataset folder `root` is the run's own: the one it recorded, or any folder once that one is
         gone (a moved dataset); else another copy (e.g. `geoavatar track --avatar`'s)."""
-        from pathlib import Path
-
         recorded = Path(self.run.info.data_root)
         return not recorded.is_dir() or Path(root).resolve() == recorded.resolve()
 
