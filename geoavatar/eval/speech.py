@@ -26,16 +26,13 @@ statistics, as a new recording is.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from geoavatar.data.sound import DatasetSound
 from geoavatar.io.atomic import atomic_write_json, atomic_write_text
-from geoavatar.sound import FRAME_RATE
 from geoavatar.sound.features import mfcc, power_frames
 from geoavatar.voice.face import FaceProbe
 from geoavatar.voice.inputs import log_mel_torch, normalise, speech_stats, windows
@@ -213,8 +210,9 @@ def write_speech_report(result: SpeechResult, folder: Path) -> dict[str, Path]:
                 + ".\n\n"
                 + speech_table(result.scores)
                 + "\nvoice: the voice model; tracked: the held-out frames' tracked parameters (the reference the face "
-                  "scores compare with; its pictures are the avatar's best). Baselines: mean_face, nearest, linear "
-                  "(geoavatar/eval/speech.py).\n")
+                  "scores compare with; its pictures are the avatar's best), from "
+                + str(result.settings.get("test_params", "the dataset"))
+                + ". Baselines: mean_face, nearest, linear (geoavatar/eval/speech.py).\n")
     return {"json": atomic_write_json(folder / "metrics.json", payload),
             "markdown": atomic_write_text(folder / "metrics.md", markdown)}
 

@@ -17,7 +17,8 @@ from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.data.errors import DatasetError
 from geoavatar.data.sound import read_dataset_sound
 from geoavatar.eval import metrics
-from geoavatar.eval.evaluate import EvalConfig, RenderedFrame, image_metrics, measure_mouth, mouth_face_mask, run_label
+from geoavatar.eval.evaluate import (EvalConfig, RenderedFrame, image_metrics, measure_mouth, mouth_face_mask, run_label,
+                                     test_params_source)
 from geoavatar.eval.speech import (SpeechInputs, SpeechResult, baseline_faces, face_scores, normalised_mel)
 from geoavatar.head.params import HeadParams
 from geoavatar.render import composite_target
@@ -147,7 +148,8 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     settings = {"voice": {k: voice.config.to_dict()[k] for k in ("past", "ahead", "members")},
                 "held_out_frames": len(test), "picture_frames": len(rows),
                 "normalisation": "the held-out sound by its own speech statistics", "render": render,
-                "head_pose": "tracked (rotation, neck, translation, eyes); T = 0", "metrics": metrics.__name__}
+                "head_pose": "tracked (rotation, neck, translation, eyes); T = 0", "metrics": metrics.__name__,
+                "test_params": test_params_source(run, dataset if dataset is not None else _test_items(run, None)[0])}
     return SpeechResult(run.info.run_dir, run_label(run)[0], len(test), fps, scores, settings,
                         time.perf_counter() - started)
 
