@@ -43,6 +43,8 @@ def test_segments_have_balanced_cores_and_overlapping_fits():
     spans = segments(400, 300, 8)
     assert [(s.start, s.stop, s.fit_start, s.fit_stop) for s in spans] == [(0, 200, 0, 208), (200, 400, 192, 400)]
     assert [(s.start, s.stop) for s in segments(252, 300, 8)] == [(0, 252)]
+    assert [(s.start, s.stop) for s in segments(252, 300, 8, min_parts=2)] == [(0, 126), (126, 252)]  # both cores
+    assert len(segments(400, 300, 8, min_parts=2)) == 2 and len(segments(1, 300, 8, min_parts=2)) == 1
     spans = segments(5400, 300, 8)
     assert len(spans) == 18 and all(s.stop - s.start == 300 for s in spans) and spans[-1].stop == 5400
     # the written parameters pass from one fit to the next across the overlap: shares sum to 1 on every frame

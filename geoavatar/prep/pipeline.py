@@ -91,6 +91,9 @@ MASK_BLOCK = 256
 # workers (geoavatar.prep.segments); both are part of the stage's key.
 PHOTOMETRIC_SEGMENT = 300
 PHOTOMETRIC_OVERLAP = 8
+# A video of at least twice this many frames is fitted in two segments or more, so both cores work on it (one segment
+# of 252 frames kept one core idle for most of duda.mp4's prepare; #40).
+PHOTOMETRIC_MIN_SEGMENT = 100
 OVERLAY_BLOCK = 32  # overlay pictures per worker task
 
 
@@ -232,7 +235,8 @@ def stage_configs(config: PrepareConfig) -> dict[str, dict[str, Any]]:
     out["tracking"]["tracking_config"] = _canonical(tracking_config(config))
     if config.photometric:
         out["photometric"]["photometric_config"] = _canonical(photometric_config(config))
-        out["photometric"]["segments"] = {"length": PHOTOMETRIC_SEGMENT, "overlap": PHOTOMETRIC_OVERLAP}
+        out["photometric"]["segments"] = {"length": PHOTOMETRIC_SEGMENT, "overlap": PHOTOMETRIC_OVERLAP,
+                                          "min_length": PHOTOMETRIC_MIN_SEGMENT}
     else:  # skipped: its settings are not read, so changing them must not redo the dataset written without them
         out["photometric"] = {"photometric": False}
     return out
@@ -530,7 +534,8 @@ def _segment_jobs(config: PrepareConfig, work: Path, head, init, fit, marks) -> 
             viewmat=viewmat[rows], K=fit["K"][rows], boxes=boxes[rows],
             landmarks={**{k: v[rows] for k, v in landmarks.items()}, "weights": weights})
 
-    jobs = [job(*segment_rows(span), settings) for span in segments(T, PHOTOMETRIC_SEGMENT, PHOTOMETRIC_OVERLAP)]
+    spans = segments(T, PHOTOMETRIC_SEGMENT, PHOTOMETRIC_OVERLAP, 2 if T >= 2 * PHOTOMETRIC_MIN_SEGMENT else 1)
+    jobs = [job(*segment_rows(span), settings) for span in spans]
     sample = job(np.array(evenly_spaced(T, PHOTOMETRIC_SEGMENT)), slice(0, 0),
                  replace(settings, epochs=(0,) * len(settings.epochs)))
     return jobs, sample

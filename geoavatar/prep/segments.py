@@ -6,7 +6,8 @@
 
 `fit_photometric` holds every frame's crops and renders them every epoch; one call over a 3-minute video
 (5,400 frames) would hold gigabytes and use one core. Here the video is cut into segments of at most
-`length` frames (balanced: a 400-frame video gives two of 200), each fitted by `fit_photometric` on its own,
+`length` frames (balanced: a 400-frame video gives two of 200; the caller may ask for two of a shorter one, so both
+cores work), each fitted by `fit_photometric` on its own,
 in a worker process, with `overlap` neighbouring frames on each side. The segments share one appearance model
 (albedo and lighting), fitted first on a sample of frames spread over the whole video with the poses held
 (`shared_appearance`; the segments then skip their own appearance-only epochs), refined by each segment as the
@@ -43,12 +44,13 @@ class Segment:
         return self.fit_stop - self.fit_start
 
 
-def segments(count: int, length: int, overlap: int) -> list[Segment]:
-    """Balanced cores of at most `length` frames covering range(count), each fitted with `overlap` more frames
-    on each side where the video has them."""
-    if length < 1 or overlap < 0:
-        raise ValueError(f"segments: length must be >= 1 and overlap >= 0, got {length}, {overlap}")
-    parts = -(-count // length)
+def segments(count: int, length: int, overlap: int, min_parts: int = 1) -> list[Segment]:
+    """Balanced cores of at most `length` frames covering range(count), at least `min_parts` of them (two keep two
+    workers busy on a short video), each fitted with `overlap` more frames on each side where the video has them."""
+    if length < 1 or overlap < 0 or min_parts < 1:
+        raise ValueError(f"segments: length and min_parts must be >= 1 and overlap >= 0, got {length}, {min_parts}, "
+                         f"{overlap}")
+    parts = max(-(-count // length), min(min_parts, count))
     return [Segment(a, b, max(0, a - overlap), min(count, b + overlap)) for a, b in split_range(count, parts)]
 
 
