@@ -253,9 +253,10 @@ def evaluate_cross(run, driven, modes: Sequence[str], driver: str, max_frames: i
 def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> Path:
     """RUN/eval/SPLIT, or RUN/eval/SPLIT@NAME for a copy NAME of the dataset given while the recorded one exists."""
     from geoavatar.eval.report import eval_dir
+    from geoavatar.train.run_frames import is_own_dataset
 
     folder = eval_dir(run_dir, split)
-    if data is None or not Path(recorded).is_dir() or Path(data).resolve() == Path(recorded).resolve():
+    if data is None or is_own_dataset(recorded, data):
         return folder
     return folder.with_name(f"{split}@{Path(data).resolve().name}")
 

@@ -64,7 +64,8 @@ from geoavatar.imaging import to_uint8
 from geoavatar.render.camera import world_to_camera
 from geoavatar.render.mesh import dilation_pixels, rasterize_mesh
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
-from geoavatar.train.run_frames import RunFrames
+from geoavatar.train.held_out_fit import HELD_OUT_REPORT
+from geoavatar.train.run_frames import RunFrames, is_own_dataset
 from geoavatar.head.params import HeadParams
 from geoavatar.head.regions import skull_vertex_ids
 from geoavatar.render import composite_target
@@ -422,7 +423,7 @@ class _Evaluation:
             "composite": "pred: render on the dataset background; gt: image * mask + background * (1 - mask)",
             "timestep_mode": config.timestep_mode,
             "params": "refined per-frame parameters for training timesteps; the others: see test_params",
-            "test_params": test_params_source(run, dataset, config.test_params == "fitted"),
+            "test_params": test_params_source(run, dataset.subject.root, config.test_params == "fitted"),
             "mouth": ({"faces": "mouth structure (F_m) + lips faces, z-buffered",
                        "dilate_fraction": config.mouth_dilate, "min_crop": config.mouth_min_crop}
                       if config.mouth else None),
@@ -489,13 +490,13 @@ def face_scorer(run: LoadedRun, data: str | Path | None = None, flame_dir: str |
     return FaceScorer(images)
 
 
-def test_params_source(run: LoadedRun, dataset: HeadAvatarDataset, fitted: bool = True) -> str:
-    """Where the parameters of the frames the run did not train on came from (the scores depend on it): train's
-    held-out fit (unless not `fitted`), `geoavatar track` (a copy's track.json), or `prepare`'s tracking (its
-    report.json)."""
-    root = Path(dataset.subject.root)
-    if fitted and run.info.held_out and RunFrames(run).is_own_dataset(root):
-        report = _read_json(Path(run.info.run_dir) / "held_out.json")
+def test_params_source(run: LoadedRun, root: str | Path, fitted: bool = True) -> str:
+    """Where the parameters of the frames the run did not train on came from, for its dataset folder `root` (the
+    scores depend on it): train's held-out fit (unless not `fitted`), `geoavatar track` (a copy's track.json), or
+    `prepare`'s tracking (its report.json)."""
+    root = Path(root)
+    if fitted and run.info.held_out and is_own_dataset(run.info.data_root, root):
+        report = _read_json(Path(run.info.run_dir) / HELD_OUT_REPORT)
         steps = f", {report['steps']} Adam steps a frame" if "steps" in report else ""
         return f"fitted against this avatar after training (geoavatar train's held-out fit{steps})"
     track = _read_json(root / "track.json")

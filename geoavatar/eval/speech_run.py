@@ -149,7 +149,7 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
                 "held_out_frames": len(test), "picture_frames": len(rows),
                 "normalisation": "the held-out sound by its own speech statistics", "render": render,
                 "head_pose": "tracked (rotation, neck, translation, eyes); T = 0", "metrics": metrics.__name__,
-                "test_params": test_params_source(run, dataset if dataset is not None else _test_items(run, None)[0])}
+                "test_params": test_params_source(run, root)}
     return SpeechResult(run.info.run_dir, run_label(run)[0], len(test), fps, scores, settings,
                         time.perf_counter() - started)
 

@@ -71,14 +71,18 @@ class RunFrames:
         return params, frame_timestep(timestep, self.trained, mode)
 
     def is_own_dataset(self, root) -> bool:
-        """Whether the dataset folder `root` is the run's own: the one it recorded, or any folder once that one is
-        gone (a moved dataset); else another copy (e.g. `geoavatar track --avatar`'s)."""
-        recorded = Path(self.run.info.data_root)
-        return not recorded.is_dir() or Path(root).resolve() == recorded.resolve()
+        """Whether the dataset folder `root` is the run's own (is_own_dataset)."""
+        return is_own_dataset(self.run.info.data_root, root)
 
     def identity(self) -> dict[str, Tensor]:
         """The subject keys (shape [S], static_offset [1, V, 3] when present): the avatar's identity."""
         return {k: v for k, v in self.values.to_npz().items() if k in SUBJECT_KEYS}
 
 
-__all__ = ["RunFrames"]
+def is_own_dataset(recorded, root) -> bool:
+    """Whether the dataset folder `root` is a run's own, whose recorded folder is `recorded`: that folder, or any
+    folder once that one is gone (a moved dataset); else another copy (e.g. `geoavatar track --avatar`'s)."""
+    return not Path(recorded).is_dir() or Path(root).resolve() == Path(recorded).resolve()
+
+
+__all__ = ["RunFrames", "is_own_dataset"]
