@@ -13,8 +13,10 @@ result is the one `--steps N` gives for the chosen N: the warm-up changes nothin
 The step time grows with the Gaussian count as densification adds Gaussians. The model: the time of
 a step is linear in the count (fitted to the two measurements), and the count grows linearly from the
 initial one to GROWTH times it over the densification window (densify.start .. densify.stop), staying
-there afterwards. GROWTH = 6: our CPU runs ended with 5-7x their initial count (15k -> 76k in 1500
-steps at 128 px, -> 101k-106k in 6000 steps at 256 px; BENCHMARKS.md). The time left after the warm-up
+there afterwards. GROWTH = 6: our CPU runs ended with 5-7x their initial count when densification ran to
+the end (15k -> 76k in 1500 steps at 128 px, -> 101k-106k in 6000 steps at 256 px); since it stops at half
+the run (#40), 3000 steps at 256 px end with 3.6-3.9x on the calm test videos and 6.4x on the expressive d3,
+whose count is kept so that a budget rarely overruns (BENCHMARKS.md). The time left after the warm-up
 (and the second opening of the data) pays for the steps, the validation images (every --val-every,
 default 5 % of the run, and one at the end) and the checkpoints (every --ckpt-every, default 5 %, and
 last + final at the end). It is an estimate: other load on the machine and a different growth of the
