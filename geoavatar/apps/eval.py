@@ -6,12 +6,17 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
-from typing import Literal, Optional, Sequence
+from typing import TYPE_CHECKING, Literal, Optional, Sequence
 
 import tyro
 
 from geoavatar.animation.expression_transfer import TransferMode
 from geoavatar.errors import OptionError
+
+if TYPE_CHECKING:
+    import torch
+
+    from geoavatar.eval.evaluate import EvalConfig, EvalResult
 
 
 def _common_parent(paths: list[Path]) -> Path:
@@ -109,21 +114,41 @@ def eval_runs(
             the picture scores 40 of them spread evenly (--max-frames N: N of them). With --data COPY (track
             --avatar's), the copy's parameters of the held-out frames are the reference and give the head pose.
     """
+    mode = _eval_mode(runs, split, out, driver, driver_video, driver_cache, relative, transfer, speech)
+    if mode == "speech":
+        return eval_speech(runs[0], max_frames, device, data, checkpoint, backend, flame_dir, progress)
+    if mode == "cross":
+        return eval_cross(runs[0], driver, driver_video, driver_cache, relative, transfer, max_frames, device, data,
+                          checkpoint, backend, flame_dir, progress)
+    return _eval_split(runs, split, lpips_net, out, max_frames, device, data, test_params, checkpoint, save_images,
+                       lpips_unit_inputs, mouth, floaters, floater_frames, backend, flame_dir, progress, faces)
+
+
+def _eval_mode(runs: list[Path], split: str, out: Path | None, driver: Path | None, driver_video: Path | None,
+               driver_cache: Path | None, relative: bool, transfer: tuple[str, ...], speech: bool) -> str:
+    """What `geoavatar eval` was asked to do: "speech" (--speech), "cross" (--driver / --driver-video) or "split"
+    (score runs on a split of their datasets). OptionError for options that do not go with it."""
     if speech:
         if len(runs) != 1 or split != "test" or out is not None or driver is not None or driver_video is not None:
             raise OptionError("--speech scores one RUN's held-out frames (no --split, --out, --driver)")
-        return eval_speech(runs[0], max_frames, device, data, checkpoint, backend, flame_dir, progress)
+        return "speech"
     if driver is not None or driver_video is not None or driver_cache is not None:
         if len(runs) != 1 or split != "test" or out is not None:
             raise OptionError("--driver / --driver-video score one RUN (no --split, no --out)")
-        return eval_cross(runs[0], driver, driver_video, driver_cache, relative, transfer, max_frames, device, data,
-                          checkpoint, backend, flame_dir, progress)
+        return "cross"
     if relative or transfer:
         raise OptionError("--relative and --transfer go with --driver or --driver-video")
-    from geoavatar.eval.evaluate import EvalConfig, evaluate_run
-    from geoavatar.eval.report import (check_comparison_target, comparison_markdown, distinct_labels, extra_sections,
-                                       metric_table, write_comparison, write_run_report)
-    from geoavatar.train.checkpoint import load_run
+    return "split"
+
+
+def _eval_split(runs: list[Path], split: str, lpips_net: str, out: Path | None, max_frames: int | None, device: str,
+                data: Path | None, test_params: str, checkpoint: str, save_images: bool, lpips_unit_inputs: bool,
+                mouth: bool, floaters: bool, floater_frames: int, backend: str, flame_dir: Path | None,
+                progress: bool, faces: bool) -> int:
+    """`geoavatar eval RUN [RUN ...]`: each run's RUN/eval/SPLIT report, then its metric table (one run) or the
+    comparison of the runs (several, or --out)."""
+    from geoavatar.eval.evaluate import EvalConfig
+    from geoavatar.eval.report import check_comparison_target
     from geoavatar.runtime import resolve_device
 
     if not runs:
@@ -138,27 +163,52 @@ def eval_runs(
         torch_device = resolve_device(device)
     except ValueError as err:  # resolve_device's messages name --device
         raise OptionError(str(err)) from err
-    results = []
-    for run_dir in runs:
-        # RunError, DatasetError, LPIPSWeightsError...: GeoAvatarErrors, one line at the CLI
-        run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
-        result = evaluate_run(run, config, data=data, progress=progress, flame_dir=flame_dir)
-        folder = report_dir(run.info.run_dir, split, run.info.data_root, data)
-        if test_params == "dataset" and folder.name == split:  # the run's own dataset: beside the fitted report
-            folder = folder.with_name(f"{split}@dataset_params")
-        written = write_run_report(result, folder)
-        results.append(result)
-        print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
+    # RunError, DatasetError, LPIPSWeightsError...: GeoAvatarErrors, one line at the CLI
+    results = [_evaluate_and_report(run_dir, config, split, test_params, torch_device, data, checkpoint, flame_dir,
+                                    progress) for run_dir in runs]
     if len(results) == 1 and out is None:
-        print(metric_table(results, mark_best=False), end="")
-        print(extra_sections(results), end="")
-        return 0
+        _print_run_tables(results)
+    else:
+        _write_comparison(results, runs, split, out)
+    return 0
+
+
+def _evaluate_and_report(run_dir: Path, config: EvalConfig, split: str, test_params: str, torch_device: torch.device,
+                         data: Path | None, checkpoint: str, flame_dir: Path | None, progress: bool) -> EvalResult:
+    """Evaluate one run, write its report (report_dir; the dataset's own parameters beside the
+    fitted report) and say where it went."""
+    from geoavatar.eval.evaluate import evaluate_run
+    from geoavatar.eval.report import write_run_report
+    from geoavatar.train.checkpoint import load_run
+
+    run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
+    result = evaluate_run(run, config, data=data, progress=progress, flame_dir=flame_dir)
+    folder = report_dir(run.info.run_dir, split, run.info.data_root, data)
+    if test_params == "dataset" and folder.name == split:  # the run's own dataset: beside the fitted report
+        folder = folder.with_name(f"{split}@dataset_params")
+    written = write_run_report(result, folder)
+    print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
+    return result
+
+
+def _print_run_tables(results: list[EvalResult]) -> None:
+    """One run's metric table and extra sections, on stdout."""
+    from geoavatar.eval.report import extra_sections, metric_table
+
+    print(metric_table(results, mark_best=False), end="")
+    print(extra_sections(results), end="")
+
+
+def _write_comparison(results: list[EvalResult], runs: list[Path], split: str, out: Path | None) -> None:
+    """The comparison table of the runs, at `out` (default: eval_SPLIT_comparison.md in the runs' common parent
+    folder) and on stdout."""
+    from geoavatar.eval.report import comparison_markdown, distinct_labels, write_comparison
+
     results = distinct_labels(results)  # two runs of one preset on one dataset: their folders tell them apart
     target = out if out is not None else _common_parent(list(runs)) / f"eval_{split}_comparison.md"
     written = write_comparison(results, target)
     print(comparison_markdown(results), end="")
     print(f"comparison: {written['markdown']} (+ {written['json'].name})")
-    return 0
 
 
 def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, driver_cache: Path | None,

@@ -47,7 +47,7 @@ from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.data.synth.actor import HEAD_MODEL, MOUTH_KIND, Actor, actor_for_subject
 from geoavatar.data.synth.motion import Motion, script_motion
 from geoavatar.data.synth.render import ActorRenderer, Camera, frontal_camera, orbit_camera
-from geoavatar.data.synth.subjects import get_subject
+from geoavatar.data.synth.subjects import Subject, get_subject
 from geoavatar.data.synth.tracking import TrackingNoise, apply_tracking_noise
 from geoavatar.errors import OptionError, disk_full_error, is_disk_full
 from geoavatar.head.base import FLAME_EXPR_DIM, FLAME_SHAPE_DIM
@@ -231,11 +231,22 @@ def preview_frames(motion: Motion, count: int = 10) -> list[int]:
     return sorted(picks)[:count + 2]
 
 
-def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, progress: bool = True) -> Path:
-    """Render and write the dataset to `out` (see the module docstring). Returns `out`."""
-    started = time.perf_counter()
-    out = Path(out)
-    subject = get_subject(config.subject)
+@dataclass
+class _Scene:
+    """What one dataset shows: the actor before its camera, the motion and the parameters it becomes."""
+
+    actor: Actor
+    camera: Camera  # the dataset's camera (camera 0)
+    renderer: ActorRenderer
+    motion: Motion
+    gt: dict[str, np.ndarray]  # exact ground-truth parameters [N, ...] (flame_param_gt/)
+    mapping: dict[str, int]  # motion channel -> expression mode of the head model
+    written: dict[str, np.ndarray]  # ground truth + tracker error (flame_param/)
+    static_offset: np.ndarray  # [1, V, 3] zeros: what the head model lacks is not in the parameters
+
+
+def _check_config(config: SynthConfig) -> None:
+    """OptionError naming the option for a config that cannot make a dataset."""
     if config.frames < 2:
         raise OptionError(f"--frames must be at least 2 (training and test frames), got {config.frames}")
     if config.size < 16:
@@ -244,8 +255,10 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
         raise OptionError(f"workers must be at least 1, got {config.workers}")
     if config.novel_every < 1:
         raise OptionError(f"--novel-every must be at least 1, got {config.novel_every}")
-    replace = check_output_folder(out)
 
+
+def _stage_scene(subject: Subject, config: SynthConfig) -> _Scene:
+    """The subject's actor, its camera and renderer, the scripted motion and its true and tracked parameters."""
     actor = actor_for_subject(subject.index)
     camera = frontal_camera(actor, config.size, config.fov_deg)
     renderer = ActorRenderer(actor, camera, subject.background_rgb, ssaa=config.ssaa)
@@ -255,76 +268,30 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
                                    num_expr_used=actor.head.exprdirs.shape[-1],
                                    num_shape_used=actor.head.shapedirs.shape[-1])
     static_offset = np.zeros((1, actor.num_model_vertices, 3), np.float32)
-    seen = set(preview_frames(motion)) if preview else set()
-    kept: dict[int, np.ndarray] = {}
+    return _Scene(actor, camera, renderer, motion, gt, mapping, written, static_offset)
 
-    writer = LayoutWriter(
-        out, head_model=HEAD_MODEL, image_size=(config.size, config.size), shape=written["shape"],
-        static_offset=static_offset, background=subject.background_rgb, mouth=MOUTH_KIND,
+
+def _layout_writer(out: Path, subject: Subject, config: SynthConfig, scene: _Scene, replace: bool) -> LayoutWriter:
+    """The writer of the dataset's folder (its files appear at `out` on finish)."""
+    return LayoutWriter(
+        out, head_model=HEAD_MODEL, image_size=(config.size, config.size), shape=scene.written["shape"],
+        static_offset=scene.static_offset, background=subject.background_rgb, mouth=MOUTH_KIND,
         source=f"{SOURCE_PREFIX} subject={config.subject} seed={config.seed}", overwrite=replace,
         png_compress_level=config.png_compress_level,
     )
-    try:
-        (writer.tmp / GT_DIR).mkdir()
-        viewmat, K = camera.viewmat, camera.K
-        novel = novel_jobs(actor, camera, gt, motion.test_start, config) if config.novel_views else []
-        bar = _progress(config.frames + len(novel), progress)
-        try:
-            jobs = [(t, 0, None) for t in range(config.frames)]
-            with closing(_render_frames(actor, renderer, gt, jobs, config.workers)) as frames:
-                for t, _, image_u8, mask_u8 in frames:
-                    if t in seen:
-                        kept[t] = image_u8
-                    _write_frame(writer, t, image_u8, mask_u8, _frame_params(written, t), viewmat, K,
-                                 _npz_arrays(gt, t, static_offset))
-                    bar.update(1)
-            views = {index: (name, yaw, pitch) for index, name, yaw, pitch in NOVEL_VIEWS}
-            for t in sorted({t for t, _, _ in novel}):
-                writer.list_frame(NOVEL_SPLIT, t, 0, view={"name": FRONT_VIEW, "yaw": 0.0, "pitch": 0.0})
-            cameras = {(t, index): cam for t, index, cam in novel}
-            with closing(_render_frames(actor, renderer, gt, novel, config.workers)) as frames:
-                for t, index, image_u8, mask_u8 in frames:
-                    name, yaw, pitch = views[index]
-                    cam = cameras[(t, index)]
-                    writer.add_frame(t, image_u8, _frame_params(written, t), cam.viewmat, cam.K, mask=mask_u8,
-                                     camera=index, split=NOVEL_SPLIT, view={"name": name, "yaw": yaw, "pitch": pitch})
-                    bar.update(1)
-        finally:
-            bar.close()
 
-        render_seconds = time.perf_counter() - started
-        meta = {
-            "generator": SOURCE_PREFIX,
-            "subject": subject.summary(),
-            "seed": config.seed,
-            "frames": config.frames,
-            "still_head": config.still_head,
-            "fps": config.fps,
-            "size": config.size,
-            "fov_deg_vertical": config.fov_deg,
-            "ssaa": config.ssaa,
-            "test_start": motion.test_start,
-            "segments": [{"start": a, "stop": b, "label": label} for a, b, label in motion.segments],
-            "tracking_noise": config.tracking_noise.to_dict(),
-            "expression_channels": {k: int(v) for k, v in mapping.items()},
-            "channels_unmapped": sorted(set(motion.expressions) - set(mapping)),
-            "actor": actor.info,
-            "ground_truth": f"{GT_DIR}/<timestep>.npz (flame_param/ = ground truth + tracker error)",
-            "render_seconds": round(render_seconds, 2),
-        }
-        if config.novel_views:
-            meta["novel_views"] = {
-                "file": "transforms_novel.json", "timesteps": sorted({t for t, _, _ in novel}),
-                "every": config.novel_every, "pivot": "head.regions.skull_centre of the true posed head, per frame",
-                "lights": "fixed to the room (the dataset camera's axes), not to the novel camera",
-                "views": [{"camera": i, "name": n, "yaw": y, "pitch": p} for i, n, y, p in NOVEL_VIEWS],
-            }
-        if preview:
-            sheet = contact_sheet(actor, renderer, motion, gt, kept)
-            sheet.save(writer.tmp / PREVIEW_FILE, optimize=True)
-        if config.sound:
-            meta["sound"] = _write_sound(writer.tmp, motion, config)
-        (writer.tmp / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+
+def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, progress: bool = True) -> Path:
+    """Render and write the dataset to `out` (see the module docstring). Returns `out`."""
+    started = time.perf_counter()
+    out = Path(out)
+    subject = get_subject(config.subject)
+    _check_config(config)
+    replace = check_output_folder(out)
+    scene = _stage_scene(subject, config)
+    writer = _layout_writer(out, subject, config, scene, replace)
+    try:
+        _write_contents(writer, subject, config, scene, preview, progress, started)
         with warnings.catch_warnings():
             # A short video holds out its last 25 %: expected here, the motion script is built for it.
             warnings.simplefilter("ignore", ShortVideoWarning)
@@ -339,6 +306,98 @@ def generate_dataset(out: Path, config: SynthConfig, preview: bool = False, prog
         raise
     log.info("synthetic dataset written to %s in %.1f s", out, time.perf_counter() - started)
     return out
+
+
+def _write_contents(writer: LayoutWriter, subject: Subject, config: SynthConfig, scene: _Scene, preview: bool,
+                    progress: bool, started: float) -> None:
+    """Everything of the dataset into the writer's folder, before it finishes: the frames, the novel views,
+    synth.json, preview.png and the voice. `started`: perf_counter at the start (synth.json's render_seconds)."""
+    (writer.tmp / GT_DIR).mkdir()
+    novel = (novel_jobs(scene.actor, scene.camera, scene.gt, scene.motion.test_start, config)
+             if config.novel_views else [])
+    seen = set(preview_frames(scene.motion)) if preview else set()
+    bar = _progress(config.frames + len(novel), progress)
+    try:
+        kept = _write_dataset_frames(writer, config, scene, seen, bar)
+        _write_novel_frames(writer, config, scene, novel, bar)
+    finally:
+        bar.close()
+    meta = _synth_meta(subject, config, scene, novel, time.perf_counter() - started)
+    if preview:
+        sheet = contact_sheet(scene.actor, scene.renderer, scene.motion, scene.gt, kept)
+        sheet.save(writer.tmp / PREVIEW_FILE, optimize=True)
+    if config.sound:
+        meta["sound"] = _write_sound(writer.tmp, scene.motion, config)
+    (writer.tmp / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def _write_dataset_frames(writer: LayoutWriter, config: SynthConfig, scene: _Scene, seen: set[int],
+                          bar) -> dict[int, np.ndarray]:
+    """Render every timestep with the dataset camera and write it, its parameters and its ground truth.
+
+    Returns the images (uint8 [H, W, 3]) of the timesteps in `seen`, for the contact sheet.
+    """
+    kept: dict[int, np.ndarray] = {}
+    viewmat, K = scene.camera.viewmat, scene.camera.K
+    jobs = [(t, 0, None) for t in range(config.frames)]
+    with closing(_render_frames(scene.actor, scene.renderer, scene.gt, jobs, config.workers)) as frames:
+        for t, _, image_u8, mask_u8 in frames:
+            if t in seen:
+                kept[t] = image_u8
+            _write_frame(writer, t, image_u8, mask_u8, _frame_params(scene.written, t), viewmat, K,
+                         _npz_arrays(scene.gt, t, scene.static_offset))
+            bar.update(1)
+    return kept
+
+
+def _write_novel_frames(writer: LayoutWriter, config: SynthConfig, scene: _Scene,
+                        novel: list[tuple[int, int, Camera]], bar) -> None:
+    """List the novel split: each timestep of `novel` as the dataset camera sees it (the test split's image, as the
+    front reference), then render and write its views from the novel cameras."""
+    views = {index: (name, yaw, pitch) for index, name, yaw, pitch in NOVEL_VIEWS}
+    for t in sorted({t for t, _, _ in novel}):
+        writer.list_frame(NOVEL_SPLIT, t, 0, view={"name": FRONT_VIEW, "yaw": 0.0, "pitch": 0.0})
+    cameras = {(t, index): cam for t, index, cam in novel}
+    with closing(_render_frames(scene.actor, scene.renderer, scene.gt, novel, config.workers)) as frames:
+        for t, index, image_u8, mask_u8 in frames:
+            name, yaw, pitch = views[index]
+            cam = cameras[(t, index)]
+            writer.add_frame(t, image_u8, _frame_params(scene.written, t), cam.viewmat, cam.K, mask=mask_u8,
+                             camera=index, split=NOVEL_SPLIT, view={"name": name, "yaw": yaw, "pitch": pitch})
+            bar.update(1)
+
+
+def _synth_meta(subject: Subject, config: SynthConfig, scene: _Scene, novel: list[tuple[int, int, Camera]],
+                render_seconds: float) -> dict:
+    """synth.json (without its "sound" entry): what was generated, how, and where the ground truth is."""
+    motion, mapping = scene.motion, scene.mapping
+    meta = {
+        "generator": SOURCE_PREFIX,
+        "subject": subject.summary(),
+        "seed": config.seed,
+        "frames": config.frames,
+        "still_head": config.still_head,
+        "fps": config.fps,
+        "size": config.size,
+        "fov_deg_vertical": config.fov_deg,
+        "ssaa": config.ssaa,
+        "test_start": motion.test_start,
+        "segments": [{"start": a, "stop": b, "label": label} for a, b, label in motion.segments],
+        "tracking_noise": config.tracking_noise.to_dict(),
+        "expression_channels": {k: int(v) for k, v in mapping.items()},
+        "channels_unmapped": sorted(set(motion.expressions) - set(mapping)),
+        "actor": scene.actor.info,
+        "ground_truth": f"{GT_DIR}/<timestep>.npz (flame_param/ = ground truth + tracker error)",
+        "render_seconds": round(render_seconds, 2),
+    }
+    if config.novel_views:
+        meta["novel_views"] = {
+            "file": "transforms_novel.json", "timesteps": sorted({t for t, _, _ in novel}),
+            "every": config.novel_every, "pivot": "head.regions.skull_centre of the true posed head, per frame",
+            "lights": "fixed to the room (the dataset camera's axes), not to the novel camera",
+            "views": [{"camera": i, "name": n, "yaw": y, "pitch": p} for i, n, y, p in NOVEL_VIEWS],
+        }
+    return meta
 
 
 def _write_sound(folder: Path, motion: Motion, config: SynthConfig) -> dict:

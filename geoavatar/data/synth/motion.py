@@ -181,6 +181,153 @@ def _talking(rng: np.random.Generator, times: np.ndarray, envelope: np.ndarray) 
     return jaw * envelope, {k: v * envelope for k, v in shapes.items()}
 
 
+# Shares of the training part's normalised time: talking until _TALK_END, then the held expressions;
+# _RAMP_U: the ramp length of the talking and head-sweep envelopes.
+_TALK_END = 0.3
+_RAMP_U = 0.04
+
+
+@dataclass(frozen=True)
+class _Timeline:
+    """The clocks of one video, per frame: seconds, and the normalised time of its training and test parts."""
+
+    train_frames: int
+    test_frames: int
+    times: np.ndarray  # [N] seconds
+    frame: np.ndarray  # [N] frame index (float64)
+    u: np.ndarray  # [N] 0..1 inside the training part (beyond 1 in the test part)
+    w: np.ndarray  # [N] 0..1 inside the test part (negative in the training part)
+    in_train: np.ndarray  # [N] bool
+    in_test: np.ndarray  # [N] bool
+
+
+def _timeline(num_frames: int, fps: float) -> _Timeline:
+    """The clocks of a `num_frames` video whose last `held_out_frame_count` frames are the test part."""
+    test_frames = held_out_frame_count(num_frames)
+    train_frames = num_frames - test_frames
+    frame = np.arange(num_frames, dtype=np.float64)
+    in_train = frame < train_frames
+    return _Timeline(
+        train_frames=train_frames, test_frames=test_frames, times=np.arange(num_frames) / fps, frame=frame,
+        u=frame / max(train_frames - 1, 1), w=(frame - train_frames) / max(test_frames - 1, 1),
+        in_train=in_train, in_test=~in_train,
+    )
+
+
+def _add(tracks: dict[str, np.ndarray], name: str, values: np.ndarray) -> None:
+    """Add `values` [N] to track `name` (a new track starts at zero).
+
+    Every term goes through here in script order, so each track is the same sum, term by term, for a seed.
+    """
+    tracks[name] = tracks.get(name, np.zeros(values.shape[0])) + values
+
+
+def _script_training_talk(rng: np.random.Generator, clock: _Timeline, pose: dict[str, np.ndarray],
+                          channels: dict[str, np.ndarray]) -> None:
+    """The first 30 % of the training part: talking with a little nodding and turning."""
+    u = clock.u
+    talk_env = _hold_envelope(u, -1.0, _TALK_END, _RAMP_U) * clock.in_train
+    talk_jaw, talk_shapes = _talking(rng, clock.times, talk_env)
+    _add(pose, "jaw", talk_jaw)
+    for name, values in talk_shapes.items():
+        _add(channels, name, values)
+    _add(pose, "yaw", np.radians(8.0) * np.sin(2 * np.pi * u / _TALK_END * 0.5) * talk_env)
+    _add(pose, "pitch", np.radians(5.0) * np.sin(2 * np.pi * u / _TALK_END) * talk_env)
+
+
+def _script_held_expressions(rng: np.random.Generator, clock: _Timeline, pose: dict[str, np.ndarray],
+                             channels: dict[str, np.ndarray]) -> np.ndarray:
+    """The rest of the training part: TRAIN_EXPRESSIONS held one after another, in an order shuffled per seed.
+
+    They share the part evenly. Returns the order [len(TRAIN_EXPRESSIONS)] (indices into TRAIN_EXPRESSIONS).
+    """
+    order = rng.permutation(len(TRAIN_EXPRESSIONS))
+    slot = (1.0 - _TALK_END) / len(order)
+    for k, idx in enumerate(order):
+        _, weights, jaw_open = TRAIN_EXPRESSIONS[idx]
+        start = _TALK_END + k * slot
+        env = _hold_envelope(clock.u, start + 0.15 * slot, start + slot, 0.2 * slot) * clock.in_train
+        strength = rng.uniform(0.85, 1.0)
+        for name, value in weights.items():
+            _add(channels, name, strength * value * env)
+        _add(pose, "jaw", jaw_open * env)
+    return order
+
+
+def _script_head_sweep(clock: _Timeline, pose: dict[str, np.ndarray]) -> None:
+    """Slow turns and nods over the held expressions (one yaw cycle, 1.5 pitch cycles), roll all through training."""
+    u = clock.u
+    sweep = np.clip((u - _TALK_END) / (1.0 - _TALK_END), 0.0, 1.0)
+    sweep_env = _hold_envelope(u, _TALK_END, 1.0, _RAMP_U) * clock.in_train
+    yaw_mid = np.radians(0.5 * (TRAIN_YAW_RANGE[0] + TRAIN_YAW_RANGE[1]))
+    yaw_amp = np.radians(0.5 * (TRAIN_YAW_RANGE[1] - TRAIN_YAW_RANGE[0]))
+    pitch_mid = np.radians(0.5 * (TRAIN_PITCH_RANGE[0] + TRAIN_PITCH_RANGE[1]))
+    pitch_amp = np.radians(0.5 * (TRAIN_PITCH_RANGE[1] - TRAIN_PITCH_RANGE[0]))
+    # envelope in [0, 1] times a value inside the range stays inside the range (which contains 0).
+    _add(pose, "yaw", sweep_env * (yaw_mid + yaw_amp * np.sin(2 * np.pi * sweep)))
+    _add(pose, "pitch", sweep_env * (pitch_mid + pitch_amp * np.cos(3 * np.pi * sweep)))
+    _add(pose, "roll", np.radians(TRAIN_ROLL_MAX) * np.sin(2 * np.pi * 2.0 * u) * clock.in_train)
+
+
+def _script_test_speech(rng: np.random.Generator, clock: _Timeline, pose: dict[str, np.ndarray],
+                        channels: dict[str, np.ndarray]) -> None:
+    """The test part: open-mouth speech in novel expression combinations, at poses inside the training ranges."""
+    w, in_test = clock.w, clock.in_test
+    ramp_w = 0.12
+    # Ease in from the training part over at most 8 frames (short videos: straight to the pose).
+    ease_frames = min(8.0, 0.1 * clock.test_frames)
+    ease_in = _smoothstep((clock.frame - clock.train_frames + 1) / max(ease_frames, 1.0))
+    first = _hold_envelope(w, -1.0, 0.4, ramp_w) * ease_in * in_test  # grinning, turned right
+    pulled = _hold_envelope(w, 0.3, 0.65, ramp_w) * in_test  # mouth pulled right under lowered brows, head front
+    second = _hold_envelope(w, 0.55, 2.0, ramp_w) * in_test  # raised brows, turned left
+    speech = ease_in * in_test  # talking through the whole test part
+    test_talk_jaw, test_talk_shapes = _talking(rng, clock.times, speech)
+    # Syllables on top of an open mouth, scaled so that the jaw stays within the training range.
+    _add(pose, "jaw", speech * TEST_JAW_FLOOR + test_talk_jaw * (JAW_MAX - TEST_JAW_FLOOR) / JAW_MAX)
+    for name, values in test_talk_shapes.items():
+        _add(channels, name, 0.5 * values)  # lighter lip shapes: the grin / brows carry the expression
+    _add(channels, "smile", first * 0.9)
+    _add(channels, "mouth_stretch", first * 0.6)
+    _add(channels, "mouth_right", pulled * 0.9)
+    _add(channels, "brow_lower", pulled * 0.8)
+    _add(channels, "brow_raise", second * 0.8)
+    _add(pose, "yaw", first * np.radians(TEST_YAW[0]) + second * np.radians(TEST_YAW[1]))
+    _add(pose, "pitch", first * np.radians(TEST_PITCH[0]) + second * np.radians(TEST_PITCH[1]))
+    _add(pose, "roll", np.radians(TRAIN_ROLL_MAX) * np.sin(2 * np.pi * w) * in_test)
+
+
+def _eyelids(rng: np.random.Generator, clock: _Timeline, eyes_wide: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Left and right lid closure [N] each: blinks through both parts, and a wink of the left eye in the test part.
+
+    `eyes_wide` [N]: the expression channel; wide eyes blink less deeply.
+    """
+    wink = _hold_envelope(clock.w, 0.75, 0.92, 0.06) * clock.in_test
+    blink = _blink_track(rng, clock.times)
+    blink = blink * (1.0 - 0.5 * np.clip(eyes_wide, 0.0, 1.0))
+    return np.clip(blink + wink, 0.0, 1.0), blink.copy()
+
+
+def _sway(rng: np.random.Generator, num_frames: int, fps: float) -> np.ndarray:
+    """A little translation sway of the head [N, 3], metres, correlated over 0.8 s."""
+    corr = 0.8 * fps
+    return np.stack(
+        [0.006 * _smooth_noise(rng, num_frames, corr), 0.004 * _smooth_noise(rng, num_frames, corr),
+         0.008 * _smooth_noise(rng, num_frames, corr)], axis=-1,
+    )
+
+
+def _segments(order: np.ndarray, train_frames: int, num_frames: int) -> list[tuple[int, int, str]]:
+    """(start, stop, label) of the talking, each held expression (in `order`) and the test speech."""
+    slot = (1.0 - _TALK_END) / len(order)
+    segments = [(0, int(round(_TALK_END * (train_frames - 1))) + 1, "talking")]
+    for k, idx in enumerate(order):
+        a = int(round((_TALK_END + k * slot) * (train_frames - 1))) + 1
+        b = int(round((_TALK_END + (k + 1) * slot) * (train_frames - 1))) + 1
+        segments.append((min(a, train_frames), min(b, train_frames), f"hold:{TRAIN_EXPRESSIONS[idx][0]}"))
+    segments.append((train_frames, num_frames, "test:speech"))
+    return segments
+
+
 def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0, still_head: bool = False) -> Motion:
     """The motion of one synthetic video (deterministic for a given num_frames and seed).
 
@@ -189,112 +336,26 @@ def script_motion(num_frames: int, seed: int = 0, fps: float = 25.0, still_head:
     `still_head`: the head never turns, nods or rolls (the sway, the face and the eyes move as scripted):
     the video a user makes who looks straight into the camera throughout.
     """
-    test_frames = held_out_frame_count(num_frames)
-    train_frames = num_frames - test_frames
+    clock = _timeline(num_frames, fps)
     rng = np.random.default_rng([seed, 0x5EED, num_frames])
-    times = np.arange(num_frames) / fps  # [N] seconds
-    frame = np.arange(num_frames, dtype=np.float64)
-    # Normalised time of each part: u in [0, 1] inside the training part, w inside the test part.
-    u = frame / max(train_frames - 1, 1)
-    w = (frame - train_frames) / max(test_frames - 1, 1)
-    in_train = frame < train_frames
-    in_test = ~in_train
-
-    yaw = np.zeros(num_frames)
-    pitch = np.zeros(num_frames)
-    roll = np.zeros(num_frames)
-    jaw = np.zeros(num_frames)
-    channels: dict[str, np.ndarray] = {}
-
-    def add(name: str, values: np.ndarray) -> None:
-        channels[name] = channels.get(name, np.zeros(num_frames)) + values
-
-    # --- training part: talking (first 30 %), then held expressions while the head turns ------
-    talk_end = 0.3
-    ramp_u = 0.04
-    talk_env = _hold_envelope(u, -1.0, talk_end, ramp_u) * in_train
-    talk_jaw, talk_shapes = _talking(rng, times, talk_env)
-    jaw += talk_jaw
-    for name, values in talk_shapes.items():
-        add(name, values)
-    yaw += np.radians(8.0) * np.sin(2 * np.pi * u / talk_end * 0.5) * talk_env
-    pitch += np.radians(5.0) * np.sin(2 * np.pi * u / talk_end) * talk_env
-
-    # Held expressions share the rest of the training part evenly; the order is shuffled per seed.
-    order = rng.permutation(len(TRAIN_EXPRESSIONS))
-    slot = (1.0 - talk_end) / len(order)
-    for k, idx in enumerate(order):
-        _, weights, jaw_open = TRAIN_EXPRESSIONS[idx]
-        start = talk_end + k * slot
-        env = _hold_envelope(u, start + 0.15 * slot, start + slot, 0.2 * slot) * in_train
-        strength = rng.uniform(0.85, 1.0)
-        for name, value in weights.items():
-            add(name, strength * value * env)
-        jaw += jaw_open * env
-
-    # Head sweep over the expression part: one yaw cycle and 1.5 pitch cycles (slow nods/turns).
-    sweep = np.clip((u - talk_end) / (1.0 - talk_end), 0.0, 1.0)
-    sweep_env = _hold_envelope(u, talk_end, 1.0, ramp_u) * in_train
-    yaw_mid = np.radians(0.5 * (TRAIN_YAW_RANGE[0] + TRAIN_YAW_RANGE[1]))
-    yaw_amp = np.radians(0.5 * (TRAIN_YAW_RANGE[1] - TRAIN_YAW_RANGE[0]))
-    pitch_mid = np.radians(0.5 * (TRAIN_PITCH_RANGE[0] + TRAIN_PITCH_RANGE[1]))
-    pitch_amp = np.radians(0.5 * (TRAIN_PITCH_RANGE[1] - TRAIN_PITCH_RANGE[0]))
-    # envelope in [0, 1] times a value inside the range stays inside the range (which contains 0).
-    yaw += sweep_env * (yaw_mid + yaw_amp * np.sin(2 * np.pi * sweep))
-    pitch += sweep_env * (pitch_mid + pitch_amp * np.cos(3 * np.pi * sweep))
-    roll += np.radians(TRAIN_ROLL_MAX) * np.sin(2 * np.pi * 2.0 * u) * in_train
-
-    # --- test part: open-mouth speech in novel expression combinations, poses in range -------
-    ramp_w = 0.12
-    # Ease in from the training part over at most 8 frames (short videos: straight to the pose).
-    ease_frames = min(8.0, 0.1 * test_frames)
-    ease_in = _smoothstep((frame - train_frames + 1) / max(ease_frames, 1.0))
-    first = _hold_envelope(w, -1.0, 0.4, ramp_w) * ease_in * in_test  # grinning, turned right
-    pulled = _hold_envelope(w, 0.3, 0.65, ramp_w) * in_test  # mouth pulled right under lowered brows, head front
-    second = _hold_envelope(w, 0.55, 2.0, ramp_w) * in_test  # raised brows, turned left
-    speech = ease_in * in_test  # talking through the whole test part
-    test_talk_jaw, test_talk_shapes = _talking(rng, times, speech)
-    # Syllables on top of an open mouth, scaled so that the jaw stays within the training range.
-    jaw += speech * TEST_JAW_FLOOR + test_talk_jaw * (JAW_MAX - TEST_JAW_FLOOR) / JAW_MAX
-    for name, values in test_talk_shapes.items():
-        add(name, 0.5 * values)  # lighter lip shapes: the grin / brows carry the expression
-    add("smile", first * 0.9)
-    add("mouth_stretch", first * 0.6)
-    add("mouth_right", pulled * 0.9)
-    add("brow_lower", pulled * 0.8)
-    add("brow_raise", second * 0.8)
-    yaw += first * np.radians(TEST_YAW[0]) + second * np.radians(TEST_YAW[1])
-    pitch += first * np.radians(TEST_PITCH[0]) + second * np.radians(TEST_PITCH[1])
-    roll += np.radians(TRAIN_ROLL_MAX) * np.sin(2 * np.pi * w) * in_test
-    wink = _hold_envelope(w, 0.75, 0.92, 0.06) * in_test
-
-    # --- through both parts: blinks, gaze, a little translation sway --------------------------
-    blink = _blink_track(rng, times)
-    eyes_wide = channels.get("eyes_wide", np.zeros(num_frames))
-    blink = blink * (1.0 - 0.5 * np.clip(eyes_wide, 0.0, 1.0))  # wide eyes blink less deeply
-    blink_left = np.clip(blink + wink, 0.0, 1.0)
-    blink_right = blink.copy()
-    gaze = _gaze_track(rng, times)
-    corr = 0.8 * fps
-    translation = np.stack(
-        [0.006 * _smooth_noise(rng, num_frames, corr), 0.004 * _smooth_noise(rng, num_frames, corr),
-         0.008 * _smooth_noise(rng, num_frames, corr)], axis=-1,
-    )
-
+    pose = {name: np.zeros(num_frames) for name in ("yaw", "pitch", "roll", "jaw")}  # each [N]
+    channels: dict[str, np.ndarray] = {}  # expression channel -> [N] weights
+    # The parts below draw from `rng` in this order: reordering them changes every seed's video.
+    _script_training_talk(rng, clock, pose, channels)
+    order = _script_held_expressions(rng, clock, pose, channels)
+    _script_head_sweep(clock, pose)
+    _script_test_speech(rng, clock, pose, channels)
+    blink_left, blink_right = _eyelids(rng, clock, channels.get("eyes_wide", np.zeros(num_frames)))
+    gaze = _gaze_track(rng, clock.times)
+    translation = _sway(rng, num_frames, fps)
+    yaw, pitch, roll = pose["yaw"], pose["pitch"], pose["roll"]
     if still_head:
         yaw, pitch, roll = np.zeros(num_frames), np.zeros(num_frames), np.zeros(num_frames)
-
-    segments = [(0, int(round(talk_end * (train_frames - 1))) + 1, "talking")]
-    for k, idx in enumerate(order):
-        a = int(round((talk_end + k * slot) * (train_frames - 1))) + 1
-        b = int(round((talk_end + (k + 1) * slot) * (train_frames - 1))) + 1
-        segments.append((min(a, train_frames), min(b, train_frames), f"hold:{TRAIN_EXPRESSIONS[idx][0]}"))
-    segments.append((train_frames, num_frames, "test:speech"))
-
     return Motion(
-        fps=fps, test_start=train_frames, yaw=yaw, pitch=pitch, roll=roll, translation=translation,
-        jaw=np.clip(jaw, 0.0, None), gaze=gaze, blink_left=blink_left, blink_right=blink_right,
-        expressions={k: v for k, v in sorted(channels.items())}, segments=segments,
+        fps=fps, test_start=clock.train_frames, yaw=yaw, pitch=pitch, roll=roll, translation=translation,
+        jaw=np.clip(pose["jaw"], 0.0, None), gaze=gaze, blink_left=blink_left, blink_right=blink_right,
+        expressions={k: v for k, v in sorted(channels.items())},
+        segments=_segments(order, clock.train_frames, num_frames),
     )
 
 
