@@ -276,7 +276,7 @@ def test_prepare_photometric_stage_no_photometric_and_resume(tmp_path, monkeypat
 @needs_video
 def test_prepare_photometric_in_segments_over_workers(tmp_path, monkeypatch):
     """The photometric stage cut into segments (3 of 3-4 frames here, 2 frames of overlap, one appearance fitted
-    first on a sample): the same fit on one process or two, every frame refined."""
+    first on a sample of 3 frames): the same fit on one process or two, every frame refined."""
     import shutil
 
     from geoavatar.prep import pipeline
@@ -284,6 +284,7 @@ def test_prepare_photometric_in_segments_over_workers(tmp_path, monkeypatch):
 
     monkeypatch.setattr(pipeline, "PHOTOMETRIC_SEGMENT", 4)
     monkeypatch.setattr(pipeline, "PHOTOMETRIC_OVERLAP", 2)
+    monkeypatch.setattr(pipeline, "PHOTOMETRIC_SAMPLE", 3)
     options = dict(video=shared_video("wojtek.mp4"), size=96, max_frames=10, tracking_steps=(10, 10), progress=False, overlay=False,
                    photometric_epochs=(1, 1), log=lambda message: None)
     run_prepare(PrepareConfig(out=tmp_path / "one", photometric=False, workers=1, **options))
@@ -293,7 +294,7 @@ def test_prepare_photometric_in_segments_over_workers(tmp_path, monkeypatch):
         run_prepare(PrepareConfig(out=tmp_path / name, photometric=True, workers=workers, **options))
         fits.append(np.load(tmp_path / name / ".prepare" / "photometric.npz"))
     marker = json.loads((tmp_path / "two" / ".prepare" / "photometric.json").read_text())
-    assert marker["log"][0].startswith("3 segment(s)") and "one appearance fitted on 4 frames" in marker["log"][0]
+    assert marker["log"][0].startswith("3 segment(s)") and "one appearance fitted on 3 frames" in marker["log"][0]
     assert "segment 2 (frames 7-9)" in marker["log"][-1]
     for key in fits[0].files:
         np.testing.assert_array_equal(fits[0][key], fits[1][key], err_msg=key)

@@ -94,6 +94,9 @@ PHOTOMETRIC_OVERLAP = 8
 # A video of at least twice this many frames is fitted in two segments or more, so both cores work on it (one segment
 # of 252 frames kept one core idle for most of duda.mp4's prepare; #40).
 PHOTOMETRIC_MIN_SEGMENT = 100
+# Frames, spread over the whole video, of the one appearance (albedo, lighting) that several segments start from: fitted
+# first, on one core while the other waits, so it is kept short (#40).
+PHOTOMETRIC_SAMPLE = 100
 OVERLAY_BLOCK = 32  # overlay pictures per worker task
 
 
@@ -236,7 +239,7 @@ def stage_configs(config: PrepareConfig) -> dict[str, dict[str, Any]]:
     if config.photometric:
         out["photometric"]["photometric_config"] = _canonical(photometric_config(config))
         out["photometric"]["segments"] = {"length": PHOTOMETRIC_SEGMENT, "overlap": PHOTOMETRIC_OVERLAP,
-                                          "min_length": PHOTOMETRIC_MIN_SEGMENT}
+                                          "min_length": PHOTOMETRIC_MIN_SEGMENT, "sample": PHOTOMETRIC_SAMPLE}
     else:  # skipped: its settings are not read, so changing them must not redo the dataset written without them
         out["photometric"] = {"photometric": False}
     return out
@@ -536,7 +539,7 @@ def _segment_jobs(config: PrepareConfig, work: Path, head, init, fit, marks) -> 
 
     spans = segments(T, PHOTOMETRIC_SEGMENT, PHOTOMETRIC_OVERLAP, 2 if T >= 2 * PHOTOMETRIC_MIN_SEGMENT else 1)
     jobs = [job(*segment_rows(span), settings) for span in spans]
-    sample = job(np.array(evenly_spaced(T, PHOTOMETRIC_SEGMENT)), slice(0, 0),
+    sample = job(np.array(evenly_spaced(T, PHOTOMETRIC_SAMPLE)), slice(0, 0),
                  replace(settings, epochs=(0,) * len(settings.epochs)))
     return jobs, sample
 
