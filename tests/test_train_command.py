@@ -28,9 +28,10 @@ from geoavatar.train.trainer import train
 from test_trainer import STEPS, TOLERANCE, assert_same, learned_tensors, options, small_config, straight_run, subject  # noqa: F401
 
 QUIET = ["--no-progress", "--val-every", "1000", "--ckpt-every", "1000", "--seed", "3"]
-# small_config() on the command line: preset E, opacity 0.5 at the start, faster colours, no opacity reset
+# small_config() on the command line: preset E, opacity 0.5 at the start, faster colours, no opacity reset,
+# densification to the last step
 SMALL = ["--config.model.init-opacity", "0.5", "--config.lr.features", "0.05", "--config.lr.opacity", "0.1",
-         "--config.densify.reset-opacity-every", str(10 * STEPS)]
+         "--config.densify.reset-opacity-every", str(10 * STEPS), "--config.densify.stop", str(STEPS)]
 
 
 def geoavatar_train(capsys, *words) -> tuple[int, str, str]:
@@ -110,10 +111,12 @@ def test_overrides_reach_the_run_and_config_json_records_everything(subject, tmp
     assert _flat(record["config"]) == json.loads(json.dumps(config_values(saved)))  # as JSON holds them (no tuples)
     assert record["preset"] == "E"
     assert record["overrides"] == {"model.init_opacity": 0.5, "lr.features": 0.05, "lr.opacity": 0.1,
-                                   "densify.reset_opacity_every": 40, "aps_step": 1, "loss.lambda_angle": 0.05}
+                                   "densify.reset_opacity_every": 40, "densify.stop": STEPS, "aps_step": 1,
+                                   "loss.lambda_angle": 0.05}
     schedule = record["schedule"]
     assert schedule["steps"] == STEPS and schedule["chosen_by"] == "--steps" and schedule["scaled_from"] == 200_000
-    assert schedule["not_scaled"] == ["densify.reset_opacity_every", "aps_step"] and schedule["budget"] is None
+    assert schedule["not_scaled"] == ["densify.reset_opacity_every", "densify.stop", "aps_step"]
+    assert schedule["budget"] is None
     assert "overrides: model.init_opacity=0.5" in (out / "train.log").read_text()
     assert set(schedule["not_scaled"]) <= set(STEP_FIELDS)
 

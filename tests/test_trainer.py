@@ -50,6 +50,7 @@ def small_config():
       transparent) and colours learn 20x faster;
     - no opacity reset (scaled, it would fall every 2 steps and leave no step to recover; the reset
       itself is tested in test_avatar).
+    - densification to the last step (the default stops at half the run), so every step densifies.
     The scaled schedule densifies at every step and runs APS at step 2, so the resume test crosses
     densification (random split samples) and APS.
     """
@@ -58,7 +59,7 @@ def small_config():
         config,
         model=replace(config.model, init_opacity=0.5),
         lr=replace(config.lr, features=0.05, opacity=0.1),
-        densify=replace(config.densify, reset_opacity_every=10 * STEPS),
+        densify=replace(config.densify, reset_opacity_every=10 * STEPS, stop=STEPS),
     )
 
 
