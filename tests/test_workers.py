@@ -4,6 +4,10 @@ task raised in the parent with its own type, the same results inline and in work
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -25,6 +29,14 @@ def cached_once(_: int) -> int:
     calls = worker_cache("test-calls", list)  # made on the first call only
     calls.append(1)
     return len(calls)
+
+
+def sleep_and_tell(folder: str) -> None:
+    """Write this worker's pid into `folder`, then work for two minutes (a task whose parent is killed below)."""
+    import time
+
+    Path(folder, f"{os.getpid()}.pid").write_text("")
+    time.sleep(120)
 
 
 def fail_on_three(value: int) -> int:
@@ -85,3 +97,40 @@ def test_an_error_in_a_worker_is_raised_here_with_its_type():
 def test_bad_worker_count():
     with pytest.raises(ValueError, match="workers must be at least 1"):
         WorkerPool(0)
+
+
+def _running(pid: int) -> bool:
+    """True while `pid` exists and is not a zombie (an orphan that ended waits for a reaper that may never come)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc (Linux)")
+def test_workers_end_when_their_parent_is_killed(tmp_path):
+    """A parent killed outright (SIGKILL: no clean-up runs) leaves no worker computing: each ends itself."""
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from geoavatar.workers import WorkerPool\n"
+        "from test_workers import sleep_and_tell\n"
+        "if __name__ == '__main__':  # spawned workers import this script again\n"
+        "    with WorkerPool(2) as pool:\n"
+        f"        pool.map(sleep_and_tell, [{str(tmp_path)!r}] * 2)\n")
+    parent = subprocess.Popen([sys.executable, str(script)])
+    try:
+        deadline = time.monotonic() + 120  # two spawned workers import torch first
+        while len(list(tmp_path.glob("*.pid"))) < 2 and time.monotonic() < deadline and parent.poll() is None:
+            time.sleep(0.2)
+        pids = [int(path.stem) for path in tmp_path.glob("*.pid")]
+        assert len(pids) == 2 and all(_running(pid) for pid in pids)
+    finally:
+        parent.kill()
+        parent.wait()
+    deadline = time.monotonic() + 15
+    while any(_running(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(_running(pid) for pid in pids)
