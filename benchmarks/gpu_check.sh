@@ -1,8 +1,9 @@
 #!/bin/bash
 # The GPU check, as one short script for a borrowed CUDA machine that reaches no package index (about 9 minutes on
 # an H100): gsplat's build, the renderer's parity with gsplat, the training step on gsplat against the torch backend,
-# the user's path on CUDA (train, track --avatar, eval, render) with its timings, then the test suite with the time
-# that is left. Logs go to $OUT (default /tmp/gpu_check). BENCHMARKS.md, "On a GPU", has its first figures.
+# the user's path on CUDA (train, track --avatar, eval, render) with its timings, the trained avatar's render frame
+# rate at 512 and 1080 px, then the test suite with the time that is left. Logs go to
+# $OUT (default /tmp/gpu_check). BENCHMARKS.md, "On a GPU", has its first figures.
 #
 # That machine already has CUDA's compiler, PyTorch, numpy, scipy, pytest(-xdist, -timeout); the project's other
 # dependencies travel as wheels, downloaded here once into .whl/ (git-ignored; set PY to the machine's Python):
@@ -54,6 +55,11 @@ W=/tmp/gpu_check_path
   timeout 60 $G eval $W/run --data $W/tracked --no-faces --no-floaters --no-progress && stamp eval &&
   timeout 60 $G render $W/run --split test --data $W/tracked --resolution 256 --no-progress && stamp render
 } > "$OUT/user_path.log" 2>&1
+
+# Render frame rate of the trained avatar (posing + rasterizing a new frame's parameters, #40) against the paper's
+# 71.5 FPS on an RTX 3090 (512 x 512): the square dataset camera at 512 and at 1080 px.
+{ for R in 512 1080; do stamp "bench at $R px"; timeout 60 python3 -m geoavatar.cli bench $W/run --resolution $R \
+    --iterations 100 --warmup 10 --out "$OUT/bench_$R.json" --no-progress; done; stamp done; } > "$OUT/render_fps.log" 2>&1
 
 LEFT=$((BUDGET - ($(date +%s) - T0)))
 { stamp "suite, $LEFT s left"; timeout "$LEFT" python3 -m pytest -q -p no:cacheprovider -n "$(nproc)" --timeout 300 \

@@ -144,10 +144,13 @@ def child(args) -> dict:
     if args.mode == "profile":
         from torch.profiler import ProfilerActivity, profile
 
-        with profile(activities=[ProfilerActivity.CPU]) as prof:
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
             run(args.steps)
         out["table"] = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows)
         out["table_total"] = prof.key_averages().table(sort_by="cpu_time_total", row_limit=args.rows)
+        # the same ops split by their input shapes: which of the many small element-wise calls cost the most
+        out["table_shapes"] = prof.key_averages(group_by_input_shape=True).table(
+            sort_by="self_cpu_time_total", row_limit=args.rows)
         return out
     wall, cpu = time.perf_counter(), time.process_time()
     run(args.steps)
@@ -211,7 +214,8 @@ def main() -> None:
     if args.mode == "profile":
         for tree in args.trees:
             r = spawn(tree, args, env)
-            print(f"\n== {r['tree']} ({r['gaussians']} Gaussians, {args.steps} steps) ==\n{r['table']}\n{r['table_total']}")
+            print(f"\n== {r['tree']} ({r['gaussians']} Gaussians, {args.steps} steps) ==\n{r['table']}\n"
+                  f"{r['table_total']}\n{r['table_shapes']}")
         return
     if args.mode == "losses":
         runs = [spawn(tree, args, env) for tree in args.trees]
