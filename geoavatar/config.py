@@ -161,10 +161,12 @@ class DensifyConfig:
     """Adaptive density control (GaussianAvatars' values, written for a 200k-step run)."""
 
     start: int = 10_000  # densify when step > start ...
-    # ... and step < stop: half the run, as 3DGS (15k of 30k steps); GaussianAvatars densifies for the whole run. The
-    # second half then refines a fixed set (#40, 3000 steps at 256 px: d3 145k -> 99k Gaussians, train 15.6 -> 11.5 min,
-    # held-out PSNR +0.04 / +0.05 / +0.30 dB on d3 / duda / wojtek; BENCHMARKS.md "Time to a good avatar").
-    stop: int = PAPER_STEPS // 2
+    # ... and step < stop: a third of the run (ours, #40); GaussianAvatars densifies for the whole run, 3DGS for half
+    # of it. The rest then refines a fixed set. 3000 steps at 256 px, held-out frames of d3 / duda / wojtek: to the end
+    # -> half -> a third, Gaussians 145k -> 100k -> 70k on d3 (duda 55k -> 40k, wojtek 60k -> 43k), d3's train
+    # 15.6 -> 11.5 -> 10.1 min, PSNR from half to a third +0.00 / +0.11 / -0.05 dB, LPIPS +3 % / -1 % / +4 %; the
+    # avatar renders 1.3x faster (BENCHMARKS.md "Time to a good avatar"). 67k, not 66,666: scales to whole steps.
+    stop: int = 67_000
     every: int = 2_000  # densify and prune every this many steps
     reset_opacity_every: int = 60_000  # reset the opacities every this many steps (while densifying)
     reset_opacity_value: float = 0.01  # opacities are clamped to at most this value at a reset

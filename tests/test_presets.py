@@ -55,7 +55,7 @@ def test_paper_defaults():
     assert (c.loss.tau_rigid, c.loss.tau_flexible, c.loss.tau_mouth_value, c.loss.tau_angle) == (0.1, 2.0, 0.1, 0.78)
     assert c.loss.lambda_dssim == 0.2
     assert c.densify.start == 10_000 and c.densify.every == 2_000 and c.densify.reset_opacity_every == 60_000
-    assert c.densify.stop == 100_000  # ours (#40): half the run, as 3DGS; GaussianAvatars densifies to the end
+    assert c.densify.stop == 67_000  # ours (#40): a third of the run; GaussianAvatars densifies to the end
     assert c.densify.grad_threshold == 2e-4 and c.densify.prune_opacity == 0.005 and c.densify.percent_dense == 0.01
     assert (c.lr.position, c.lr.position_final, c.lr.features, c.lr.opacity, c.lr.scaling, c.lr.rotation) == (
         5e-3, 5e-5, 2.5e-3, 0.05, 0.017, 1e-3)
@@ -90,7 +90,7 @@ def test_a_stored_configuration_from_before_the_options_reads_as_trained():
 def test_scaled_to_keeps_every_milestone_proportional():
     c = preset("E").scaled_to(2_000)
     assert c.steps == 2_000 and c.aps_step == 1_000
-    assert (c.densify.start, c.densify.stop, c.densify.every, c.densify.reset_opacity_every) == (100, 1_000, 20, 600)
+    assert (c.densify.start, c.densify.stop, c.densify.every, c.densify.reset_opacity_every) == (100, 670, 20, 600)
     assert c.lr.position_decay_steps == 6_000  # GaussianAvatars' span: 3x the run
     tiny = preset("E", steps=10)
     assert tiny.densify.every >= 1 and tiny.densify.reset_opacity_every >= 1 and tiny.aps_step == 5
@@ -121,7 +121,7 @@ def test_scaled_to_leaves_the_kept_milestones_and_scales_the_rest():
     c = base.scaled_to(2_000, keep=("aps_step", "densify.every"))
     assert (c.steps, c.aps_step, c.densify.every) == (2_000, 700, 7)  # as set: steps of this run
     assert (c.densify.start, c.densify.stop, c.densify.reset_opacity_every, c.lr.position_decay_steps) == (
-        100, 1_000, 600, 6_000)  # the others scale as always
+        100, 670, 600, 6_000)  # the others scale as always
     assert base.scaled_to(2_000).aps_step == 7 and base.scaled_to(2_000).densify.every == 1  # scaled: 700/100, 7/100
     with pytest.raises(ValueError, match="keep names no step-based field: loss.tau_rigid"):
         base.scaled_to(2_000, keep=("loss.tau_rigid",))
@@ -133,7 +133,7 @@ def test_extended_adds_steps_and_keeps_every_milestone():
     longer = c.extended(100)
     assert longer.steps == 500
     assert dataclasses.replace(longer, steps=400) == c  # nothing else changes
-    assert longer.densify.stop == 200 and longer.lr.position_decay_steps == 1_200  # no densification after 200
+    assert longer.densify.stop == 134 and longer.lr.position_decay_steps == 1_200  # no densification after 134
     with pytest.raises(ValueError, match="extra_steps must be positive"):
         c.extended(0)
 

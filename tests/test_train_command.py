@@ -232,11 +232,11 @@ def test_budget_model_accounts_for_the_growing_gaussian_count():
     base = preset("E")
     # linear in the count through the two measurements (1x and GROWN x)
     assert budget.step_time(1.0, 1.0, 4.0) == 1.0 and budget.step_time(budget.GROWN, 1.0, 4.0) == 4.0
-    # E: 1x for the first 5 %, growing to GROWTH x until half the run (densify.stop), then GROWTH x:
-    # mean = 0.05 t(1) + 0.45 t((1 + G) / 2) + 0.5 t(G)
+    # E: 1x for the first 5 %, growing to GROWTH x until a third of the run (densify.stop, 33.5 %), then GROWTH x:
+    # mean = 0.05 t(1) + 0.285 t((1 + G) / 2) + 0.665 t(G)
     growth = budget.GROWTH
-    expected = (0.05 * 1.0 + 0.45 * budget.step_time((1 + growth) / 2, 1.0, 4.0)
-                + 0.5 * budget.step_time(growth, 1.0, 4.0))
+    expected = (0.05 * 1.0 + 0.285 * budget.step_time((1 + growth) / 2, 1.0, 4.0)
+                + 0.665 * budget.step_time(growth, 1.0, 4.0))
     assert budget.mean_step_seconds(base.scaled_to(1000), 1.0, 4.0) == pytest.approx(expected)
     assert budget.mean_step_seconds(base.scaled_to(1000), 1.0, 1.0) == pytest.approx(1.0)  # no slow-down measured
     no_densify = train_app.with_values(base, {"densify.stop": 0})

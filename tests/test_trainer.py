@@ -50,7 +50,7 @@ def small_config():
       transparent) and colours learn 20x faster;
     - no opacity reset (scaled, it would fall every 2 steps and leave no step to recover; the reset
       itself is tested in test_avatar).
-    - densification to the last step (the default stops at half the run), so every step densifies.
+    - densification to the last step (the default stops at a third of the run), so every step densifies.
     The scaled schedule densifies at every step and runs APS at step 2, so the resume test crosses
     densification (random split samples) and APS.
     """

@@ -60,7 +60,7 @@ class TrainArgs:
     # Training steps (default: chosen by --schedule for a new run; with --resume the run's own).
     steps: Optional[int] = None
     # Time budget of a new run, instead of --steps: a warm-up on a throwaway copy times a few steps at the
-    # initial Gaussian count and at 4x it; assuming the count grows to 6x over densification (as in our
+    # initial Gaussian count and at 4x it; assuming the count grows to 4.5x over densification (as in our
     # runs), the steps that fit are chosen, printed with the estimated end time and recorded in
     # config.json. The run equals --steps with that number.
     minutes: Optional[float] = None

@@ -13,9 +13,9 @@ result is the one `--steps N` gives for the chosen N: the warm-up changes nothin
 The step time grows with the Gaussian count as densification adds Gaussians. The model: the time of
 a step is linear in the count (fitted to the two measurements), and the count grows linearly from the
 initial one to GROWTH times it over the densification window (densify.start .. densify.stop), staying
-there afterwards. GROWTH = 6: our CPU runs ended with 5-7x their initial count when densification ran to
-the end (15k -> 76k in 1500 steps at 128 px, -> 101k-106k in 6000 steps at 256 px); since it stops at half
-the run (#40), 3000 steps at 256 px end with 3.6-3.9x on the calm test videos and 6.4x on the expressive d3,
+there afterwards. GROWTH = 4.5: our CPU runs ended with 5-7x their initial count when densification ran to
+the end (15k -> 76k in 1500 steps at 128 px, -> 101k-106k in 6000 steps at 256 px); since it stops at a third
+of the run (#40), 3000 steps at 256 px end with 2.6-2.8x on the calm test videos and 4.5x on the expressive d3,
 whose count is kept so that a budget rarely overruns (BENCHMARKS.md). The time left after the warm-up
 (and the second opening of the data) pays for the steps, the validation images (every --val-every,
 default 5 % of the run, and one at the end) and the checkpoints (every --ckpt-every, default 5 %, and
@@ -37,7 +37,7 @@ from geoavatar.config import TrainConfig
 from geoavatar.errors import OptionError
 from geoavatar.train.options import CKPT_EVERY_FRACTION, VAL_EVERY_FRACTION, default_interval
 
-GROWTH = 6.0  # expected Gaussian count at the end of densification / the initial count (see above)
+GROWTH = 4.5  # expected Gaussian count at the end of densification / the initial count (see above)
 GROWN = 4  # the warm-up times steps at this multiple of the initial count (two splits of every Gaussian)
 WARMUP_STEPS = 3  # timed steps at each count (after one untimed step)
 clock = time.perf_counter  # the warm-up's clock (tests replace it)
