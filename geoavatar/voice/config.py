@@ -23,8 +23,6 @@ class VoiceConfig:
     weight_decay: float = 1e-3
     velocity_weight: float = 1.0  # how much the frame-to-frame change counts beside the frame itself
     upper_weight: float = 0.5  # upper-face vertices against lip vertices in the loss
-    average: float = 0.0  # decay of the weights' moving average (0: no average)
-    tempo: float = 0.0  # each step's sound faster or slower by up to this share (0: never)
     augment: float = 0.8  # share of steps with a random recording condition (inputs.Augmentation)
     validation: float = 0.1  # the last share of the training frames, which chooses the step kept
     validate_every: int = 50

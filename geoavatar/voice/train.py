@@ -119,14 +119,6 @@ class _Trainer:
         self.clean = normalise(clean, speech_stats(clean))  # [F, M] validation features
         self.loud_power = float(data.power[loud_frames(clean)].sum(-1).mean())
         self.past, self.ahead = int(round(config.past * FRAME_RATE)), int(round(config.ahead * FRAME_RATE))
-        # the weights' moving average is what validation sees and what is kept: single steps' weights jump around
-        self.average = (torch.optim.swa_utils.AveragedModel(
-            net, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(config.average)) if config.average > 0 else None)
-
-    @property
-    def kept(self):
-        """The network that validation scores and the model keeps: the weights' average, or the weights."""
-        return self.average.module if self.average is not None else self.net
 
     def _features(self) -> torch.Tensor:
         """[F, M] the training sound as a new recording: a random condition, normalised by a random stretch of it."""
@@ -147,37 +139,23 @@ class _Trainer:
         velocity = torch.einsum("krld,de,krle->", change, self.metric, change) / max(1, count - error.shape[1])
         return frame + self.config.velocity_weight * velocity
 
-    def _tempo(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """([F', M] features, [N] centres): the sound spoken faster or slower (a random tempo within +-config.tempo,
-        the features stretched in time and every frame's centre with them), as another day's speech rate."""
-        if self.config.tempo <= 0:
-            return features, self.data.centres
-        scale = float(np.exp(self.rng.uniform(-1, 1) * np.log1p(self.config.tempo)))
-        length = max(2, int(round(features.shape[0] * scale)))
-        stretched = torch.nn.functional.interpolate(features.T[None], size=length, mode="linear", align_corners=True)
-        centres = torch.round(self.data.centres.double() * (length - 1) / (features.shape[0] - 1)).long()
-        return stretched[0].T.contiguous(), centres
-
     def step(self) -> float:
         self.net.train()
         rows = _runs(self.train_rows, self.config, self.rng)  # [R, L]
-        features, centres = self._tempo(self._features())
-        predicted = self.net(windows(features, centres[rows.reshape(-1)], self.past, self.ahead))
+        predicted = self.net(windows(self._features(), self.data.centres[rows.reshape(-1)], self.past, self.ahead))
         loss = self._loss(predicted.reshape(predicted.shape[0], *rows.shape, -1), self.z[rows])
         self.optimiser.zero_grad(set_to_none=True)
         loss.backward()
         self.optimiser.step()
         self.schedule.step()
-        if self.average is not None:
-            self.average.update_parameters(self.net)
         return float(loss.detach())
 
     @torch.no_grad()
     def gain(self, rows: slice, lip_metric: torch.Tensor) -> float:
         """The scale of the standardised output that minimises the lips' vertex error on the frames `rows` (clean
         sound): <predicted, target> / <predicted, predicted> in the lips' metric [D, D], within [1, 2]."""
-        self.kept.eval()
-        predicted = self.kept.predict(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
+        self.net.eval()
+        predicted = self.net.predict(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
         along = torch.einsum("nd,de,ne->", predicted, lip_metric, self.z[rows])
         norm = torch.einsum("nd,de,ne->", predicted, lip_metric, predicted)
         return float(min(2.0, max(1.0, float(along / norm)))) if float(norm) > 0 else 1.0
@@ -185,8 +163,8 @@ class _Trainer:
     @torch.no_grad()
     def validate(self, rows: slice) -> float:
         """Mean squared vertex error (m^2) of the frames `rows` on the clean sound."""
-        self.kept.eval()
-        predicted = self.kept.predict(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
+        self.net.eval()
+        predicted = self.net.predict(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
         error = predicted - self.z[rows]
         return float(torch.einsum("nd,de,ne->", error, self.metric, error) / max(1, error.shape[0]))
 
@@ -231,7 +209,7 @@ def _fit(run, frames, sound: DatasetSound, config: VoiceConfig, started: float, 
         history.append((step, float(np.mean(losses)), score))
         losses = []
         if score < best:
-            best, best_state = score, {k: v.clone() for k, v in trainer.kept.state_dict().items()}
+            best, best_state = score, {k: v.clone() for k, v in net.state_dict().items()}
         if (time.perf_counter() - started) / 60.0 > config.max_minutes:
             log(f"voice: stopped at step {step} of {config.steps}, the {config.max_minutes:g}-minute cap")
             break
