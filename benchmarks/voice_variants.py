@@ -1,0 +1,146 @@
+"""Voice-model settings against the seed: each setting learned with several seeds on one run, scored on its held-out
+frames (face scores only: LVE, lip-opening r, lag), and the seeds' models averaged (a larger ensemble).
+
+One voice model's held-out r moves by up to 0.09 with its seed on french.mp4 (BENCHMARKS.md, Speech), more than most
+settings do, so a setting is judged by its seeds together, never by one model.
+
+    .venv/bin/python benchmarks/voice_variants.py RUN --set '{}' '{"past": 0.15}' [--seeds 0,1,2]
+        [--reference fit|tracker] [--targets run|tracker]
+
+--set       VoiceConfig overrides as JSON, one setting each
+--reference the held-out frames' parameters the faces are scored against: the run's (train's fit against the
+            avatar, what `eval --speech` uses) or the tracker's rows in the dataset
+--targets   what the voice learns: the run's training rows (refined by train, the default) or the tracker's rows
+--smooth    also score each model with its output smoothed over time by these symmetric kernels ("1,2,1")
+It also prints the tracker's held-out rows scored against the run's: how far the two references disagree.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def tracker_frames(frames, subject):
+    """The run's frames with every per-frame row replaced by the tracker's (the dataset's) row."""
+    from geoavatar.head.params import HeadParams
+
+    values = frames.values.to_npz()
+    rows = {k: (subject.params[k].to(v.dtype) if k in subject.params and v.dim() > 1 and k != "static_offset" else v)
+            for k, v in values.items()}
+    out = copy.copy(frames)
+    out.values = HeadParams.from_npz(rows)
+    return out
+
+
+class Smoothed:
+    """A voice model whose faces are smoothed over frames by a symmetric kernel (needs that much more look-ahead)."""
+
+    def __init__(self, model, kernel):
+        self.model, self.kernel = model, np.asarray(kernel, float) / np.sum(kernel)
+
+    def __getattr__(self, name):
+        return getattr(self.model, name)
+
+    def predict_features(self, *args, **kwargs):
+        from scipy.ndimage import convolve1d
+
+        from geoavatar.voice import SpokenFace
+
+        face = self.model.predict_features(*args, **kwargs)
+        return SpokenFace(convolve1d(face.expr, self.kernel, axis=0, mode="nearest"),
+                          convolve1d(face.jaw, self.kernel, axis=0, mode="nearest"))
+
+
+class SeedAverage:
+    """Several voice models' faces averaged (stands in for one model in evaluate_speech)."""
+
+    def __init__(self, models):
+        self.models = models
+
+    def __getattr__(self, name):
+        return getattr(self.models[0], name)
+
+    def predict_features(self, *args, **kwargs):
+        from geoavatar.voice import SpokenFace
+
+        faces = [m.predict_features(*args, **kwargs) for m in self.models]
+        return SpokenFace(np.mean([f.expr for f in faces], 0), np.mean([f.jaw for f in faces], 0))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--set", nargs="+", default=["{}"], help="VoiceConfig overrides as JSON, one setting each")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--reference", choices=("fit", "tracker"), default="fit")
+    parser.add_argument("--targets", choices=("run", "tracker"), default="run")
+    parser.add_argument("--smooth", nargs="*", default=[], help="kernels such as 1,2,1")
+    args = parser.parse_args()
+
+    from geoavatar.runtime import setup_process
+
+    setup_process()
+    from geoavatar.data.sound import read_dataset_sound
+    from geoavatar.eval.speech import face_scores
+    from geoavatar.eval.speech_run import evaluate_speech
+    from geoavatar.runtime import num_threads
+    from geoavatar.train.checkpoint import open_run, open_run_dataset
+    from geoavatar.train.run_frames import RunFrames
+    from geoavatar.voice import SpokenFace
+    from geoavatar.voice.config import VoiceConfig
+    from geoavatar.voice.face import FaceProbe
+    from geoavatar.voice.train import _fit  # the trainer's core, given the frames to learn from
+
+    run = open_run(args.run, "cpu")
+    frames = RunFrames(run)
+    subject = open_run_dataset(run, "train").subject
+    sound = read_dataset_sound(run.info.data_root)
+    data = run.info.data_root if args.reference == "tracker" else None  # eval --speech --data: the dataset's rows
+
+    test = sorted(run.info.timesteps["test"])
+    rows = [frames.row(t) for t in test]
+    fitted = SpokenFace(frames.values.expr[rows].detach().numpy(), frames.values.jaw_pose[rows].detach().numpy())
+    tracked = SpokenFace(subject.params["expr"][rows].numpy(), subject.params["jaw_pose"][rows].numpy())
+    spread = face_scores(FaceProbe(run.head, frames.identity()), tracked, fitted, 30.0)
+    print(f"the tracker's held-out rows against the run's: LVE {spread['lip_vertex_error']:.3e} m2, "
+          f"r {spread['mouth_open_correlation']:.3f}")
+
+    learn_from = tracker_frames(frames, subject) if args.targets == "tracker" else frames
+
+    def show(label: str, voice) -> dict:
+        scores = evaluate_speech(run, voice, data=data, render=False, progress=False).scores
+        mine, mean, linear = (scores[k]["lip_vertex_error"] for k in ("voice", "mean_face", "linear"))
+        row = {"r": scores["voice"]["mouth_open_correlation"], "lve": mine, "lve_vs_mean_face": mine / mean,
+               "lve_vs_linear": mine / linear, "lag_ms": scores["voice"]["lag_ms"]}
+        print(f"{label:60s} r {row['r']:.3f}  LVE {mine:.3e} m2 ({row['lve_vs_mean_face']:.3f}x mean face, "
+              f"{row['lve_vs_linear']:.3f}x linear)  lag {row['lag_ms']:+.0f} ms", flush=True)
+        return row
+
+    results = {}
+    for setting in args.set:
+        overrides = json.loads(setting)
+        models = []
+        for seed in (int(s) for s in args.seeds.split(",")):
+            config = VoiceConfig(**{**overrides, "seed": seed})
+            started = time.perf_counter()
+            with num_threads(config.threads):
+                voice = _fit(run, learn_from, sound, config, started, lambda _: None)
+            models.append(voice)
+            label = f"{setting} seed {seed} (gain {voice.info['gain']:.2f}, {time.perf_counter() - started:.0f} s)"
+            results[f"{setting} seed {seed}"] = show(label, voice)
+            for kernel in args.smooth:
+                weights = [float(w) for w in kernel.split(",")]
+                results[f"{setting} seed {seed} smoothed {kernel}"] = show(f"  smoothed by {kernel}",
+                                                                           Smoothed(voice, weights))
+        results[f"{setting} seeds averaged"] = show(f"{setting} the seeds' models averaged", SeedAverage(models))
+    print(json.dumps(results))
+
+
+if __name__ == "__main__":
+    main()
