@@ -26,13 +26,20 @@ from pathlib import Path
 import numpy as np
 
 
+def subject_rows(subject, timesteps) -> list[int]:
+    """The dataset's parameter rows of `timesteps` (its rows need not be the run's)."""
+    row = {t: i for i, t in enumerate(subject.timesteps)}
+    return [row[t] for t in timesteps]
+
+
 def tracker_frames(frames, subject):
     """The run's frames with every per-frame row replaced by the tracker's (the dataset's) row."""
     from geoavatar.head.params import HeadParams
 
+    order = subject_rows(subject, frames.timesteps)
     values = frames.values.to_npz()
-    rows = {k: (subject.params[k].to(v.dtype) if k in subject.params and v.dim() > 1 and k != "static_offset" else v)
-            for k, v in values.items()}
+    rows = {k: (subject.params[k][order].to(v.dtype) if k in subject.params and v.dim() > 1 and k != "static_offset"
+                else v) for k, v in values.items()}
     out = copy.copy(frames)
     out.values = HeadParams.from_npz(rows)
     return out
@@ -103,11 +110,12 @@ def main() -> None:
     sound = read_dataset_sound(run.info.data_root)
     data = run.info.data_root if args.reference == "tracker" else None  # eval --speech --data: the dataset's rows
 
-    test = sorted(run.info.timesteps["test"])
-    rows = [frames.row(t) for t in test]
+    test = sorted(run.info.timesteps["test"], key=lambda t: sound.frame_times.get(t, t))
+    rows, own = [frames.row(t) for t in test], subject_rows(subject, test)
     fitted = SpokenFace(frames.values.expr[rows].detach().numpy(), frames.values.jaw_pose[rows].detach().numpy())
-    tracked = SpokenFace(subject.params["expr"][rows].numpy(), subject.params["jaw_pose"][rows].numpy())
-    spread = face_scores(FaceProbe(run.head, frames.identity()), tracked, fitted, 30.0)
+    tracked = SpokenFace(subject.params["expr"][own].numpy(), subject.params["jaw_pose"][own].numpy())
+    fps = 1.0 / float(np.median(np.diff(sound.times(test))))  # the lag is in frames of the video's own rate
+    spread = face_scores(FaceProbe(run.head, frames.identity()), tracked, fitted, fps)
     print(f"the tracker's held-out rows against the run's: LVE {spread['lip_vertex_error']:.3e} m2, "
           f"r {spread['mouth_open_correlation']:.3f}")
 
