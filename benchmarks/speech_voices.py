@@ -68,7 +68,7 @@ def main() -> None:
                 sounds[f"{engine} {voice_name or ''}".strip()] = speak_text(args.text, engine, voice_name)
     rows = {}
     rows_t = [frames.row(t) for t in test]
-    tracked = opening_mm(probe, SpokenFace(frames.values.expr[rows_t].numpy(), frames.values.jaw_pose[rows_t].numpy()))
+    tracked = opening_mm(probe, SpokenFace.from_rows(frames.values.expr, frames.values.jaw_pose, rows_t))
     for name, sound in sounds.items():
         times = np.arange(int(sound.seconds * args.fps)) / args.fps
         opening = opening_mm(probe, voice.predict(sound, times))

@@ -5,13 +5,15 @@ One voice model's held-out r moves by up to 0.09 with its seed on french.mp4 (BE
 settings do, so a setting is judged by its seeds together, never by one model.
 
     .venv/bin/python benchmarks/voice_variants.py RUN --set '{}' '{"past": 0.15}' [--seeds 0,1,2]
-        [--reference fit|tracker] [--targets run|tracker]
+        [--reference fit|tracker] [--targets run|tracker] [--shares 0.25,0.5,0.75,1]
 
 --set       VoiceConfig overrides as JSON, one setting each
 --reference the held-out frames' parameters the faces are scored against: the run's (train's fit against the
             avatar, what `eval --speech` uses) or the tracker's rows in the dataset
 --targets   what the voice learns: the run's training rows (refined by train, the default) or the tracker's rows
 --smooth    also score each model with its output smoothed over time by these symmetric kernels ("1,2,1")
+--shares    learn from the first share of the training frames only (in time; their sound cut after them, the
+            validation frames the last tenth of that share): how the held-out scores grow with the speech heard
 It also prints the tracker's held-out rows scored against the run's: how far the two references disagree.
 """
 
@@ -43,6 +45,14 @@ def tracker_frames(frames, subject):
     out = copy.copy(frames)
     out.values = HeadParams.from_npz(rows)
     return out
+
+
+def first_share(run, share: float, sound):
+    """The run as the voice trainer sees it, its training frames cut to the first `share` of them in time."""
+    train = sorted(run.info.timesteps["train"], key=lambda t: sound.frame_times.get(t, t))
+    info = copy.copy(run.info)
+    info.timesteps = {**run.info.timesteps, "train": train[:max(1, int(round(share * len(train))))]}
+    return run._replace(info=info)  # a LoadedRun
 
 
 class Smoothed:
@@ -88,6 +98,7 @@ def main() -> None:
     parser.add_argument("--reference", choices=("fit", "tracker"), default="fit")
     parser.add_argument("--targets", choices=("run", "tracker"), default="run")
     parser.add_argument("--smooth", nargs="*", default=[], help="kernels such as 1,2,1")
+    parser.add_argument("--shares", default="1", help="shares of the training frames learned from, such as 0.5,1")
     args = parser.parse_args()
 
     from geoavatar.runtime import setup_process
@@ -112,8 +123,8 @@ def main() -> None:
 
     test = sorted(run.info.timesteps["test"], key=lambda t: sound.frame_times.get(t, t))
     rows, own = [frames.row(t) for t in test], subject_rows(subject, test)
-    fitted = SpokenFace(frames.values.expr[rows].detach().numpy(), frames.values.jaw_pose[rows].detach().numpy())
-    tracked = SpokenFace(subject.params["expr"][own].numpy(), subject.params["jaw_pose"][own].numpy())
+    fitted = SpokenFace.from_rows(frames.values.expr, frames.values.jaw_pose, rows)
+    tracked = SpokenFace.from_rows(subject.params["expr"], subject.params["jaw_pose"], own)
     fps = 1.0 / float(np.median(np.diff(sound.times(test))))  # the lag is in frames of the video's own rate
     spread = face_scores(FaceProbe(run.head, frames.identity()), tracked, fitted, fps)
     print(f"the tracker's held-out rows against the run's: LVE {spread['lip_vertex_error']:.3e} m2, "
@@ -131,17 +142,20 @@ def main() -> None:
         return row
 
     results = {}
-    for setting in args.set:
+    for setting, share in ((s, float(f)) for s in args.set for f in args.shares.split(",")):
         overrides = json.loads(setting)
+        if share != 1.0:
+            setting = f"{setting} first {share:g}"
         models = []
         for seed in (int(s) for s in args.seeds.split(",")):
             config = VoiceConfig(**{**overrides, "seed": seed})
             started = time.perf_counter()
             with num_threads(config.threads):
-                voice = _fit(run, learn_from, sound, config, started, lambda _: None)
+                voice = _fit(first_share(run, share, sound), learn_from, sound, config, started, lambda _: None)
             models.append(voice)
-            label = f"{setting} seed {seed} (gain {voice.info['gain']:.2f}, {time.perf_counter() - started:.0f} s)"
-            results[f"{setting} seed {seed}"] = show(label, voice)
+            label = (f"{setting} seed {seed} ({voice.info['speech_seconds']:.1f} s of speech, gain "
+                     f"{voice.info['gain']:.2f}, {time.perf_counter() - started:.0f} s)")
+            results[f"{setting} seed {seed}"] = {**show(label, voice), "speech_seconds": voice.info["speech_seconds"]}
             for kernel in args.smooth:
                 weights = [float(w) for w in kernel.split(",")]
                 results[f"{setting} seed {seed} smoothed {kernel}"] = show(f"  smoothed by {kernel}",

@@ -191,7 +191,7 @@ def test_speech_scores_have_known_values_and_follow_a_copys_parameters(talking, 
     # the held-out faces against themselves score perfectly; with the jaw opened further the lips err
     frames = RunFrames(run)
     rows = [frames.row(t) for t in run.info.timesteps["test"]]
-    tracked = SpokenFace(frames.values.expr[rows].detach().numpy(), frames.values.jaw_pose[rows].detach().numpy())
+    tracked = SpokenFace.from_rows(frames.values.expr, frames.values.jaw_pose, rows)
     probe = FaceProbe(run.head, frames.identity())
     same = face_scores(probe, tracked, tracked, 25.0)
     assert same["lip_vertex_error"] == 0.0 and same["lag_ms"] == 0.0

@@ -42,8 +42,7 @@ def _segment_inputs(run: LoadedRun, frames: RunFrames, sound, test: list[int], e
     inputs = SpeechInputs(data.targets.numpy(), train_mel, data.centres.numpy(), normalised_mel(held_out),
                           np.round((times - start) * FRAME_RATE).astype(np.int64), expr_dims, data.expr_width)
     rows = [frames.row(t) for t in test]
-    tracked = SpokenFace(frames.values.expr[rows].detach().cpu().numpy(),
-                         frames.values.jaw_pose[rows].detach().cpu().numpy())
+    tracked = SpokenFace.from_rows(frames.values.expr, frames.values.jaw_pose, rows)
     return inputs, tracked, data.fps
 
 

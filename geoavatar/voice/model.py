@@ -46,6 +46,14 @@ class SpokenFace:
     def take(self, rows: list[int]) -> "SpokenFace":
         return SpokenFace(self.expr[rows], self.jaw[rows])
 
+    @classmethod
+    def from_rows(cls, expr, jaw, rows: list[int]) -> "SpokenFace":
+        """Rows `rows` of per-frame expression [T, E] and jaw [T, 3] (tensors or arrays): a run's or a dataset's."""
+        def array(values) -> np.ndarray:
+            return np.asarray(values.detach().cpu() if isinstance(values, torch.Tensor) else values, np.float32)
+
+        return cls(array(expr[rows]), array(jaw[rows]))
+
 
 @dataclass
 class VoiceModel:
