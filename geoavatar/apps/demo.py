@@ -243,7 +243,9 @@ class DemoPlan:
         # a subject too short to learn a voice from: these stages are skipped (the report says so)
         return [
             ("learn the voice", lambda: VoiceModel.exists(self.run) or self.mute,
-             lambda: learn_voice(open_run(self.run, "cpu"), config=VoiceConfig(steps=s.voice_steps, seed=s.seed))),
+             # the generated sound is a known function of the mouth: a few seconds teach it, no advice to film more
+             lambda: learn_voice(open_run(self.run, "cpu"), config=VoiceConfig(steps=s.voice_steps, seed=s.seed),
+                                 advise=False)),
             ("evaluate the voice (held-out sound)", lambda: self.speech_metrics.is_file() or self.mute,
              lambda: _checked(eval_runs([self.run], speech=True, max_frames=s.speech_pictures,
                                         device=self.device, backend=self.backend, progress=self.progress),

@@ -12,13 +12,16 @@ from typing import Optional
 
 from geoavatar.apps.common import RunPath
 from geoavatar.errors import OptionError
+from geoavatar.sound.activity import ADVISED_SPEECH_SECONDS
 from geoavatar.voice.config import VoiceConfig
 
 _DEFAULTS = VoiceConfig()
 
 
-def learn_voice(run, data: Path | None = None, config: VoiceConfig | None = None, log=print) -> Path:
-    """Train and save the run's voice model; returns its folder. VoiceModelError when the dataset has no speech."""
+def learn_voice(run, data: Path | None = None, config: VoiceConfig | None = None, log=print,
+                advise: bool = True) -> Path:
+    """Train and save the run's voice model; returns its folder. VoiceModelError when the dataset has no speech.
+    `advise`: say when the video held little speech to learn from."""
     from geoavatar.voice.train import train_voice
 
     started = time.perf_counter()
@@ -27,6 +30,9 @@ def learn_voice(run, data: Path | None = None, config: VoiceConfig | None = None
     info = voice.info
     log(f"voice: learned from {info['frames']} training frames ({info['speech_seconds']:.0f} s of speech) in "
         f"{time.perf_counter() - started:.0f} s -> {folder}")
+    if advise and info["speech_seconds"] < ADVISED_SPEECH_SECONDS:
+        log(f"voice: {info['speech_seconds']:.0f} s of speech is little to learn from: the mouth follows the sound "
+            "closer with a minute or more of talking (docs/speech.md)")
     return folder
 
 

@@ -664,7 +664,7 @@ def stage_sound(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     from geoavatar.data.sound import remove_dataset_sound, write_dataset_sound
     from geoavatar.prep.video import frame_times
     from geoavatar.sound import SoundError, has_sound_track, read_sound
-    from geoavatar.sound.activity import speech_activity
+    from geoavatar.sound.activity import ADVISED_SPEECH_SECONDS, speech_activity
 
     dataset = Path(config.out) / "dataset"
     remove_dataset_sound(dataset)
@@ -688,8 +688,10 @@ def stage_sound(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
         info = {"track": True, "seconds": round(sound.seconds, 3), "speech_seconds": round(activity.speech_seconds, 3),
                 "has_speech": activity.has_speech, "rate": sound.rate}
         if activity.has_speech:
+            advice = ("" if activity.speech_seconds >= ADVISED_SPEECH_SECONDS else
+                      "; a minute or more of talking makes the mouth follow the sound closer")
             config.log(f"prepare: sound track: {activity.speech_seconds:.1f} s of speech in {sound.seconds:.1f} s "
-                       "(its avatar learns the voice)")
+                       f"(its avatar learns the voice{advice})")
         else:
             config.log(f"prepare: the sound track holds {activity.speech_seconds:.1f} s of speech (an avatar learns "
                        "to speak only from a video with speech)")
