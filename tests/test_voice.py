@@ -161,6 +161,29 @@ def test_idle_motion_keeps_the_lips_still_and_plays_the_training_motion(learned)
     assert brows > 5 * lips
 
 
+def test_each_member_of_the_ensemble_holds_out_its_own_block():
+    from types import SimpleNamespace
+
+    from geoavatar.voice.config import VoiceConfig
+    from geoavatar.voice.train import _Trainer, validation_blocks
+
+    # three members: blocks of a tenth ending at a third, two thirds and the end; one member: the last tenth
+    assert validation_blocks(100, VoiceConfig(members=3)) == [slice(23, 33), slice(57, 67), slice(90, 100)]
+    assert validation_blocks(100, VoiceConfig(members=1)) == [slice(90, 100)]
+    assert validation_blocks(100, VoiceConfig(members=2, validation=0.0)) == [slice(0, 100)] * 2
+
+    # the loss never reaches a member's prediction of a frame in its own block (nor that frame's change)
+    metric = torch.eye(4)
+    learns = torch.ones(2, 3, 8, dtype=torch.bool)  # [K, R, L]
+    learns[0, 1, 2:5] = False
+    predicted = torch.randn(2, 3, 8, 4, requires_grad=True)  # [K, R, L, D]
+    loss = _Trainer._loss(SimpleNamespace(metric=metric, config=VoiceConfig()), predicted, torch.zeros(3, 8, 4),
+                          learns)
+    loss.backward()
+    grad = predicted.grad.abs().sum(-1)  # [K, R, L]
+    assert torch.all(grad[0, 1, 2:5] == 0) and torch.all(grad[0, 1, :2] > 0) and torch.all(grad[1] > 0)
+
+
 def test_a_dataset_without_speech_says_how_to_get_a_voice(tmp_path):
     from apps_fixtures import make_subject, make_untrained_run
 

@@ -5,9 +5,9 @@ does over its autocorrelation features, then two dense layers. It sees `past` fr
 `ahead` after (the look-ahead that a live microphone waits for), nothing else: offline and live give the same output.
 
 VoiceEnsemble holds a few such networks, started from different weights and trained side by side on the same
-batches; their outputs are averaged. On french.mp4's validation frames (the last tenth of the training frames) three
-members' average lifted the lips' opening correlation from 0.69-0.78 (single networks over the settings and seeds
-tried) to 0.80 (docs/speech.md).
+batches, each blind to its own validation block of them (voice/train.py); their outputs are averaged. On french.mp4's
+validation frames (the last tenth of the training frames) three members' average lifted the lips' opening
+correlation from 0.69-0.78 (single networks over the settings and seeds tried) to 0.80 (docs/speech.md).
 """
 
 from __future__ import annotations

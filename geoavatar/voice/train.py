@@ -10,8 +10,9 @@ the held-out segment's sound is heard, not even by the last training frame's loo
 the face moves: the parameters' change mapped to lip and upper-face vertices (the head model linearised at the mean
 training face), plus the frame-to-frame change of the same (runs of consecutive frames), so the mouth moves as much
 and as smoothly as the tracked one. Every step hears a new recording condition (inputs.Augmentation) with statistics
-taken from a random stretch of the (augmented) training sound, as a new recording would be normalised. The last
-`validation` share of the training frames (in time) chooses the step kept (checked every `validate_every` steps).
+taken from a random stretch of the (augmented) training sound, as a new recording would be normalised. Each member
+of the ensemble holds out its own block of `validation` of the training frames (in time), which chooses the step it
+keeps (checked every `validate_every` steps) and which the others learn from: together they learn every frame.
 """
 
 from __future__ import annotations
@@ -96,6 +97,16 @@ def loss_metric(lips: torch.Tensor, upper: torch.Tensor, std: torch.Tensor, uppe
     return (metric + ridge * torch.eye(metric.shape[0], dtype=metric.dtype)).float()
 
 
+def validation_blocks(count: int, config: VoiceConfig) -> list[slice]:
+    """Each member's validation frames: a block of `validation` of the `count` frames (in time) ending at
+    (k + 1) / members of them; member k learns from the rest. One member: the last block."""
+    size = int(round(count * config.validation))
+    if size == 0:  # no validation share: the step and gain are chosen on the training frames themselves
+        return [slice(0, count)] * config.members
+    ends = [int(round(count * (k + 1) / config.members)) for k in range(config.members)]
+    return [slice(max(0, end - size), end) for end in ends]
+
+
 def _runs(count: int, config: VoiceConfig, rng: np.random.Generator) -> torch.Tensor:
     """[R, L] rows of a step: R = batch // run_length runs of L = run_length consecutive frames, starting anywhere."""
     runs = max(1, config.batch // config.run_length)
@@ -106,9 +117,15 @@ def _runs(count: int, config: VoiceConfig, rng: np.random.Generator) -> torch.Te
 class _Trainer:
     """One voice model's optimisation (see the module docstring); `step` and `validate` on the data given."""
 
-    def __init__(self, data: VoiceData, config: VoiceConfig, net, metric: torch.Tensor, mean, std, train_rows: int):
+    def __init__(self, data: VoiceData, config: VoiceConfig, net, metric: torch.Tensor, mean, std,
+                 blocks: list[slice]):
         self.data, self.config, self.net, self.metric = data, config, net, metric
-        self.mean, self.std, self.train_rows = mean, std, train_rows
+        self.mean, self.std, self.blocks = mean, std, blocks
+        count = len(data.targets)
+        self.learns = torch.ones(len(blocks), count, dtype=torch.bool)  # [K, N] the rows each member learns from
+        for member, block in enumerate(blocks):
+            if block.stop - block.start < count:
+                self.learns[member, block] = False
         self.z = (data.targets - mean) / std  # [N, D]
         self.rng = np.random.default_rng([config.seed, 0x701CE])
         self.optimiser = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -129,21 +146,24 @@ class _Trainer:
         start = int(self.rng.integers(0, max(1, len(mel) - span)))
         return normalise(mel, speech_stats(mel[start:start + span]))
 
-    def _loss(self, predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def _loss(self, predicted: torch.Tensor, target: torch.Tensor, learns: torch.Tensor) -> torch.Tensor:
         """Vertex-space error of frames and of their frame-to-frame change, summed over the ensemble's members (each
-        learns on its own); predicted [K, R, L, D] runs of L frames, target [R, L, D]."""
+        learns on its own rows); predicted [K, R, L, D] runs of L frames, target [R, L, D], learns [K, R, L]."""
         error = predicted - target
-        count = error.shape[1] * error.shape[2]
-        frame = torch.einsum("krld,de,krle->", error, self.metric, error) / count
+        weight = learns.float()
+        frame = torch.einsum("krld,de,krle->krl", error, self.metric, error)
+        frame = ((frame * weight).sum((1, 2)) / weight.sum((1, 2)).clamp_min(1.0)).sum()
         change = error[:, :, 1:] - error[:, :, :-1]
-        velocity = torch.einsum("krld,de,krle->", change, self.metric, change) / max(1, count - error.shape[1])
+        both = weight[:, :, 1:] * weight[:, :, :-1]
+        velocity = torch.einsum("krld,de,krle->krl", change, self.metric, change)
+        velocity = ((velocity * both).sum((1, 2)) / both.sum((1, 2)).clamp_min(1.0)).sum()
         return frame + self.config.velocity_weight * velocity
 
     def step(self) -> float:
         self.net.train()
-        rows = _runs(self.train_rows, self.config, self.rng)  # [R, L]
+        rows = _runs(len(self.z), self.config, self.rng)  # [R, L] anywhere; each member's block is masked
         predicted = self.net(windows(self._features(), self.data.centres[rows.reshape(-1)], self.past, self.ahead))
-        loss = self._loss(predicted.reshape(predicted.shape[0], *rows.shape, -1), self.z[rows])
+        loss = self._loss(predicted.reshape(predicted.shape[0], *rows.shape, -1), self.z[rows], self.learns[:, rows])
         self.optimiser.zero_grad(set_to_none=True)
         loss.backward()
         self.optimiser.step()
@@ -151,22 +171,30 @@ class _Trainer:
         return float(loss.detach())
 
     @torch.no_grad()
-    def gain(self, rows: slice, lip_metric: torch.Tensor) -> float:
-        """The scale of the standardised output that minimises the lips' vertex error on the frames `rows` (clean
-        sound): <predicted, target> / <predicted, predicted> in the lips' metric [D, D], within [1, 2]."""
+    def _predict(self, rows: slice, member: int) -> torch.Tensor:
+        """[n, D] one member's standardised faces of the frames `rows`, clean sound."""
         self.net.eval()
-        predicted = self.net.predict(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
-        along = torch.einsum("nd,de,ne->", predicted, lip_metric, self.z[rows])
+        return self.net.members[member](windows(self.clean, self.data.centres[rows], self.past, self.ahead))
+
+    @torch.no_grad()
+    def gain(self, lip_metric: torch.Tensor) -> float:
+        """The scale of the standardised output that minimises the lips' vertex error on the validation blocks, each
+        predicted by the member that did not learn it: <predicted, target> / <predicted, predicted> in the lips'
+        metric [D, D], within [1, 2]. (A single member shrinks less than the ensemble's mean: a cautious gain.)"""
+        predicted = torch.cat([self._predict(block, k) for k, block in enumerate(self.blocks)])
+        target = torch.cat([self.z[block] for block in self.blocks])
+        along = torch.einsum("nd,de,ne->", predicted, lip_metric, target)
         norm = torch.einsum("nd,de,ne->", predicted, lip_metric, predicted)
         return float(min(2.0, max(1.0, float(along / norm)))) if float(norm) > 0 else 1.0
 
     @torch.no_grad()
-    def validate(self, rows: slice) -> float:
-        """Mean squared vertex error (m^2) of the frames `rows` on the clean sound."""
-        self.net.eval()
-        predicted = self.net.predict(windows(self.clean, self.data.centres[rows], self.past, self.ahead))
-        error = predicted - self.z[rows]
-        return float(torch.einsum("nd,de,ne->", error, self.metric, error) / max(1, error.shape[0]))
+    def validate(self) -> list[float]:
+        """Per member, the mean squared vertex error (m^2) of its own validation block."""
+        scores = []
+        for member, block in enumerate(self.blocks):
+            error = self._predict(block, member) - self.z[block]
+            scores.append(float(torch.einsum("nd,de,ne->", error, self.metric, error) / max(1, error.shape[0])))
+        return scores
 
 
 def train_voice(run, config: VoiceConfig | None = None, data_root: Path | None = None,
@@ -195,31 +223,36 @@ def _fit(run, frames, sound: DatasetSound, config: VoiceConfig, started: float, 
     lips, upper = face_jacobians(probe, data.targets, expr_dims)
     metric = loss_metric(lips, upper, std.double(), config.upper_weight)
     count = len(data.targets)
-    train_rows = max(config.run_length, int(round(count * (1.0 - config.validation))))
+    blocks = validation_blocks(count, config)
     torch.manual_seed(config.seed)  # the network's initial weights: the same run every time
     net = VoiceModel.build_net(config, data.targets.shape[1])
-    trainer = _Trainer(data, config, net, metric, mean, std, train_rows)
-    held = slice(train_rows, count) if train_rows < count else slice(0, count)
-    best, best_state, history, losses = float("inf"), None, [], []
+    trainer = _Trainer(data, config, net, metric, mean, std, blocks)
+    best = [float("inf")] * config.members  # each member keeps its own best step
+    best_state: list[dict | None] = [None] * config.members
+    history, losses = [], []
     for step in range(1, config.steps + 1):
         losses.append(trainer.step())
         if step % config.validate_every and step != config.steps:
             continue
-        score = trainer.validate(held)
-        history.append((step, float(np.mean(losses)), score))
+        scores = trainer.validate()
+        history.append((step, float(np.mean(losses)), float(np.mean(scores))))
         losses = []
-        if score < best:
-            best, best_state = score, {k: v.clone() for k, v in net.state_dict().items()}
+        for member, score in enumerate(scores):
+            if score < best[member]:
+                best[member] = score
+                best_state[member] = {k: v.clone() for k, v in net.members[member].state_dict().items()}
         if (time.perf_counter() - started) / 60.0 > config.max_minutes:
             log(f"voice: stopped at step {step} of {config.steps}, the {config.max_minutes:g}-minute cap")
             break
-    net.load_state_dict(best_state)
-    gain = trainer.gain(held, loss_metric(lips, upper, std.double(), 0.0))  # measured on the lips alone
+    for member, state in enumerate(best_state):
+        net.members[member].load_state_dict(state)
+    gain = trainer.gain(loss_metric(lips, upper, std.double(), 0.0))  # measured on the lips alone
     projection = upper_face_projection(lips[:, :expr_dims], upper[:, :expr_dims]).float().numpy()
     idle_params = {**data.params, "expr": data.params["expr"][:, :expr_dims]}
-    info = {"frames": count, "validation_frames": count - train_rows, "fps": data.fps,
+    info = {"frames": count, "validation_frames": blocks[0].stop - blocks[0].start, "fps": data.fps,
             "speech_seconds": round(data.speech_seconds, 2), "sound_seconds": round(len(data.power) / FRAME_RATE, 2),
-            "steps": history[-1][0], "best_validation_m2": best, "gain": round(gain, 4), "history": history,
+            "steps": history[-1][0], "best_validation_m2": float(np.mean(best)), "gain": round(gain, 4),
+            "history": history,
             "seconds": round(time.perf_counter() - started, 1), "source": str(sound.source)}
     speech = speech_stats(log_mel_torch(data.power))
     return VoiceModel(config, net, mean.double().numpy(), std.double().numpy(), expr_dims, data.expr_width, speech,
