@@ -29,7 +29,6 @@ class VoiceConfig:
     # ensemble learns from every frame; on french.mp4 held-out r 0.68 -> 0.72 and LVE -8 % against one shared last
     # block (three seeds, docs/speech.md)
     validation: float = 0.1
-    ensemble_gain: bool = False
     validate_every: int = 50
     max_minutes: float = 3.0  # a wall-clock cap on the training (the steps normally end first)
     threads: int = 1  # small tensors: on a busy 2-core machine a second thread made every step several times slower

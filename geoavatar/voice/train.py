@@ -185,11 +185,6 @@ class _Trainer:
         target = torch.cat([self.z[block] for block in self.blocks])
         along = torch.einsum("nd,de,ne->", predicted, lip_metric, target)
         norm = torch.einsum("nd,de,ne->", predicted, lip_metric, predicted)
-        if self.config.ensemble_gain:
-            self.net.eval()
-            mean = torch.cat([self.net.predict(windows(self.clean, self.data.centres[block], self.past, self.ahead))
-                              for block in self.blocks])
-            norm = torch.einsum("nd,de,ne->", mean, lip_metric, mean)
         return float(min(2.0, max(1.0, float(along / norm)))) if float(norm) > 0 else 1.0
 
     @torch.no_grad()
