@@ -17,8 +17,8 @@ import numpy as np
 from geoavatar.sound.track import RATE, Sound
 
 MIN_SPEECH_SECONDS = 2.0  # below this a video "has no speech" worth learning a voice from
-# below this the voice learned follows the sound loosely: on french.mp4 the held-out lip-opening r was 0.09 / 0.41 /
-# 0.59 / 0.68 from 8 / 17 / 26 / 33 s of training speech, still rising (docs/speech.md, "How much talking")
+# below this the voice learned follows the sound loosely: on french.mp4 the held-out lip-opening r was 0.26 / 0.36 /
+# 0.59 / 0.72 from 8 / 17 / 26 / 33 s of training speech, still rising (docs/speech.md, "How much talking")
 ADVISED_SPEECH_SECONDS = 60.0
 
 
