@@ -13,7 +13,7 @@ settings do, so a setting is judged by its seeds together, never by one model.
 --targets   what the voice learns: the run's training rows (refined by train, the default) or the tracker's rows
 --smooth    also score each model with its output smoothed over time by these symmetric kernels ("1,2,1")
 --shares    learn from the first share of the training frames only (in time; their sound cut after them, the
-            validation frames the last tenth of that share): how the held-out scores grow with the speech heard
+            validation blocks taken within that share): how the held-out scores grow with the speech heard
 It also prints the tracker's held-out rows scored against the run's: how far the two references disagree.
 """
 
