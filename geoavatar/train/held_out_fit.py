@@ -41,6 +41,7 @@ class HeldOutFitConfig:
 
     steps: int = 10
     carry: bool = True
+    carry_keys: tuple[str, ...] | None = None
 
     def __post_init__(self):
         if self.steps < 1:
@@ -60,7 +61,7 @@ def _fit_block(task: tuple) -> dict:
         return run, open_run_dataset(run, "test")
 
     run, test = worker_cache(f"held-out:{run_dir}:{step}", opened)
-    fit = AvatarTrackingConfig(steps=config["steps"], carry=config["carry"])
+    fit = AvatarTrackingConfig(steps=config["steps"], carry=config["carry"], carry_keys=config["carry_keys"])
     result = track_frames(run.avatar, run.head, run.deformer, dataset_frames(test, indices, run.device), fit,
                           progress=report_progress)
     return {"timesteps": [int(test.timesteps[i]) for i in indices],
