@@ -52,7 +52,6 @@ class AvatarTrackingConfig:
     # start each frame from its tracked value plus the correction the previous frame of the sequence got, when that
     # start renders closer to the image than the tracked value: neighbouring frames share most of their tracker error
     carry: bool = False
-    carry_keys: tuple[str, ...] | None = None  # the keys whose correction carries (None: all of `keys`)
     rates: dict[str, float] = field(default_factory=lambda: {
         "rotation": 1e-3, "translation": 2e-4, "neck_pose": 1e-3, "jaw_pose": 1e-3, "eyes_pose": 1e-3, "expr": 1e-2})
 
@@ -149,8 +148,7 @@ def track_frames(avatar: GaussianAvatar, head: HeadModel, deformer: MouthDeforme
             if tracked_loss is not None:  # report against the tracked start, as without carry
                 loss_before = tracked_loss
             if not math.isnan(loss_after):
-                carried = config.keys if config.carry_keys is None else config.carry_keys
-                correction = {key: (getattr(params, key) - getattr(frame.params, key)).detach() for key in carried}
+                correction = {key: (getattr(params, key) - getattr(frame.params, key)).detach() for key in config.keys}
             fitted.append(params)
             before.append(loss_before)
             after.append(loss_after)

@@ -41,7 +41,6 @@ class HeldOutFitConfig:
 
     steps: int = 10
     carry: bool = True
-    carry_keys: tuple[str, ...] | None = None
 
     def __post_init__(self):
         if self.steps < 1:
@@ -61,7 +60,7 @@ def _fit_block(task: tuple) -> dict:
         return run, open_run_dataset(run, "test")
 
     run, test = worker_cache(f"held-out:{run_dir}:{step}", opened)
-    fit = AvatarTrackingConfig(steps=config["steps"], carry=config["carry"], carry_keys=config["carry_keys"])
+    fit = AvatarTrackingConfig(steps=config["steps"], carry=config["carry"])
     result = track_frames(run.avatar, run.head, run.deformer, dataset_frames(test, indices, run.device), fit,
                           progress=report_progress)
     return {"timesteps": [int(test.timesteps[i]) for i in indices],
