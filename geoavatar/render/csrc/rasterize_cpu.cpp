@@ -15,11 +15,11 @@
 // Two implementations of forward and backward, chosen per call (cpu_backend.simd_path()):
 //   scalar         - pixel by pixel with libm's exp, per-pixel state (T, colour sums, the running sums
 //                    of backward) in double; float64 inputs always take it (gradcheck).
-//   avx512 / avx2 / vector - float32 only: a Gaussian over W pixels of a row of its tile per step
-//                    (see "float32 lanes" below), one source with GCC/Clang vector types compiled for
-//                    AVX2 and the baseline ISA (NEON on aarch64, SSE2 on x86-64), and the same
-//                    arithmetic in AVX-512 intrinsics (a 4 x 4 pixel block per step, k-register masks:
-//                    "AVX-512 lanes");
+//   avx512 / avx2 / vector - float32 only, the same arithmetic per pixel: "vector" steps a Gaussian
+//                    over W pixels of a row of its tile (see "float32 lanes" below) in GCC/Clang vector
+//                    types for the baseline ISA (NEON on aarch64, SSE2 on x86-64); "avx512" and "avx2"
+//                    step it over a 4 x 4 pixel block, one kernel source in intrinsics ("block lanes":
+//                    one zmm, or two ymm, per block, masks as bits);
 //                    picked at run time; forward and backward state is float32.
 // Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels count.
 
@@ -418,14 +418,12 @@ enum class Simd { kScalar, kVector, kAvx2, kAvx512 };
 constexpr float kAlphaMinF = static_cast<float>(kAlphaMin);
 constexpr float kAlphaMaxF = static_cast<float>(kAlphaMax);
 constexpr float kTransmittanceMinF = static_cast<float>(kTransmittanceMin);
-// Lanes per step of each path (forward, backward): one native register of floats. Wider vectors
+// Lanes per step of the row kernel (forward, backward): one native register of floats. Wider vectors
 // than the ISA's registers are split by the compiler, and GCC then selects lane by lane (measured:
-// 16 lanes on AVX-512 in vector types ran slower than the scalar kernel; the AVX-512 path is written
-// with intrinsics for that reason, and takes 16 or 8).
+// 16 lanes on AVX-512 in vector types ran slower than the scalar kernel; the x86 paths are written
+// with intrinsics for that reason, "block lanes").
 constexpr int kMaxLanes = 16;
-#ifndef GEOAVATAR_LANES_AVX2_FWD
-#define GEOAVATAR_LANES_AVX2_FWD 8     // ymm
-#define GEOAVATAR_LANES_AVX2_BWD 8
+#ifndef GEOAVATAR_LANES_VECTOR_FWD
 #define GEOAVATAR_LANES_VECTOR_FWD 4   // 128-bit: NEON q, SSE2 xmm
 #define GEOAVATAR_LANES_VECTOR_BWD 4
 #endif
@@ -651,12 +649,12 @@ void composite_tile_vector(const LaneTile& tile) { composite_tile_vec<GEOAVATAR_
 #define GEOAVATAR_X86_DISPATCH 1
 #define GEOAVATAR_TARGET_AVX512 __attribute__((target("avx512f,avx512dq,avx512vl,avx512bw,prefer-vector-width=512")))
 #define GEOAVATAR_TARGET_AVX2 __attribute__((target("avx2,fma")))
-// ----------------------------------------------------------------------------- AVX-512 lanes
-// The AVX-512 path with intrinsics. GCC 12 lowers comparisons and selects on 64-byte vector types lane
-// by lane (a vcomiss and setae per lane), so the generic kernel above could only use 8 lanes (ymm)
-// here; with k-register masks a step covers 16 pixels: a 4 x 4 block of the tile, whose scratch
-// planes are stored block by block (PlaneLayout::blocks), one zmm per block. Against the generic
-// kernel's row spans:
+// ----------------------------------------------------------------------------- block lanes (AVX-512, AVX2)
+// The x86 paths with intrinsics: one step is a Gaussian over a 4 x 4 block of the tile (16 lanes), whose
+// scratch planes are stored block by block (PlaneLayout::blocks). GCC 12 lowers comparisons and selects on
+// 64-byte vector types lane by lane (a vcomiss and setae per lane), so the generic kernel above can only
+// use one register of lanes per step, over a row span; with masks kept as bits a step covers a block.
+// Against the generic kernel's row spans:
 //   - a box within a tile is ~6 x 6 pixels at 256^2 / 100k Gaussians: it meets ~4.2 blocks on average,
 //     where one step per row takes ~6 steps of 16 lanes and row spans of 8 lanes more (measured on
 //     frame 0: 849k blocks, 1.22M rows);
@@ -671,9 +669,12 @@ void composite_tile_vector(const LaneTile& tile) { composite_tile_vec<GEOAVATAR_
 // bit for bit); the backward's per-lane partial sums hold other pixels (gradients within the lane-path
 // tolerances).
 //
-// 16 float lanes (zmm); arithmetic is written with the vector operators (no contraction:
-// -ffp-contract=off), comparisons give masks.
-#define GEOAVATAR_LANE_OP GEOAVATAR_TARGET_AVX512 static GEOAVATAR_INLINE
+// One kernel source for both ISAs: the kernels are templates over a Lanes type (Avx512Lanes: one zmm and a
+// k-register mask per block; Avx2Lanes: two ymm, rows 0-1 and 2-3, and the same 16-bit masks), written
+// with the vector operators (no contraction: -ffp-contract=off). Only the lane operations carry a target
+// ISA; each entry point (composite_tile_avx512, ...) has its target and `flatten`, which inlines the
+// template and its lane operations into it, so each ISA's instructions stay in its own functions.
+#define GEOAVATAR_LANE_OP GEOAVATAR_TARGET_AVX512 static inline
 struct Avx512Lanes {
   using F = __m512;
   using I = __m512i;
@@ -707,13 +708,111 @@ struct Avx512Lanes {
     const __m128d s2 = _mm256_castpd256_pd128(s4) + _mm256_extractf128_pd(s4, 1);
     return s2[0] + s2[1];
   }
-};
 #undef GEOAVATAR_LANE_OP
+};
+
+// The same 16 lanes on AVX2: two ymm registers per value (lo: the block's rows 0-1, hi: rows 2-3), masks
+// as 16-bit integers (a comparison's movemask), widened back to lanes where a select needs them. Against
+// one ymm per half block, two steps a block (8-bit masks, 9 instead of 18 registers for the backward's
+// sums): 1.36x against 1.26-1.30x the row kernel (d3's frame 0, 70k Gaussians, 256 px), the halves'
+// loop and masks costing more than the spills.
+struct Avx2Lanes {
+  struct F {
+    __m256 lo, hi;
+  };
+  struct I {
+    __m256i lo, hi;
+  };
+  using M = __mmask16;
+#define GEOAVATAR_LANE_OP GEOAVATAR_TARGET_AVX2 static inline
+  GEOAVATAR_LANE_OP F splat(float v) { return {_mm256_set1_ps(v), _mm256_set1_ps(v)}; }
+  GEOAVATAR_LANE_OP I splat_i(int32_t v) { return {_mm256_set1_epi32(v), _mm256_set1_epi32(v)}; }
+  GEOAVATAR_LANE_OP F load(const float* p) { return {_mm256_loadu_ps(p), _mm256_loadu_ps(p + 8)}; }
+  GEOAVATAR_LANE_OP I load_i(const int32_t* p) {
+    return {_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)),
+            _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p + 8))};
+  }
+  GEOAVATAR_LANE_OP void store(float* p, F v) {
+    _mm256_storeu_ps(p, v.lo);
+    _mm256_storeu_ps(p + 8, v.hi);
+  }
+  // the lanes of a 16-bit mask as all-ones / all-zeros lanes: bit l of m in lane l
+  GEOAVATAR_LANE_OP __m256i lanes_lo(M m) {
+    const __m256i bit = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    return _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(m), bit), bit);
+  }
+  GEOAVATAR_LANE_OP __m256i lanes_hi(M m) { return lanes_lo(static_cast<M>(m >> 8)); }
+  GEOAVATAR_LANE_OP M bits(__m256 lo, __m256 hi) {
+    return static_cast<M>(_mm256_movemask_ps(lo) | _mm256_movemask_ps(hi) << 8);
+  }
+  // masked stores as load, blend, store: the planes are the calling thread's own scratch
+  GEOAVATAR_LANE_OP void store_i(int32_t* p, M m, I v) {
+    const I old = load_i(p);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p),
+                        _mm256_blendv_epi8(old.lo, v.lo, lanes_lo(m)));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p + 8),
+                        _mm256_blendv_epi8(old.hi, v.hi, lanes_hi(m)));
+  }
+  GEOAVATAR_LANE_OP M lt(M m, F a, F b) {
+    return m & bits(_mm256_cmp_ps(a.lo, b.lo, _CMP_LT_OQ), _mm256_cmp_ps(a.hi, b.hi, _CMP_LT_OQ));
+  }
+  GEOAVATAR_LANE_OP M le(M m, F a, F b) {
+    return m & bits(_mm256_cmp_ps(a.lo, b.lo, _CMP_LE_OQ), _mm256_cmp_ps(a.hi, b.hi, _CMP_LE_OQ));
+  }
+  GEOAVATAR_LANE_OP M ge(M m, F a, F b) {
+    return m & bits(_mm256_cmp_ps(a.lo, b.lo, _CMP_GE_OQ), _mm256_cmp_ps(a.hi, b.hi, _CMP_GE_OQ));
+  }
+  GEOAVATAR_LANE_OP M lt_i(M m, I a, I b) {
+    return m & bits(_mm256_castsi256_ps(_mm256_cmpgt_epi32(b.lo, a.lo)),
+                    _mm256_castsi256_ps(_mm256_cmpgt_epi32(b.hi, a.hi)));
+  }
+  GEOAVATAR_LANE_OP F min(F a, F b) { return {_mm256_min_ps(a.lo, b.lo), _mm256_min_ps(a.hi, b.hi)}; }
+  GEOAVATAR_LANE_OP F max(F a, F b) { return {_mm256_max_ps(a.lo, b.lo), _mm256_max_ps(a.hi, b.hi)}; }
+  GEOAVATAR_LANE_OP F select(M m, F if_set, F if_not) {
+    return {_mm256_blendv_ps(if_not.lo, if_set.lo, _mm256_castsi256_ps(lanes_lo(m))),
+            _mm256_blendv_ps(if_not.hi, if_set.hi, _mm256_castsi256_ps(lanes_hi(m)))};
+  }
+  GEOAVATAR_LANE_OP F add_where(M m, F sum, F term) {
+    return select(m, {sum.lo + term.lo, sum.hi + term.hi}, sum);
+  }
+  GEOAVATAR_LANE_OP F pow2(F n) {
+    const __m256i bias = _mm256_set1_epi32(127);
+    return {_mm256_castsi256_ps(_mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(n.lo), bias), 23)),
+            _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(n.hi), bias), 23))};
+  }
+  GEOAVATAR_LANE_OP F lane_x() {
+    const __m256 x = _mm256_setr_ps(0, 1, 2, 3, 0, 1, 2, 3);
+    return {x, x};
+  }
+  GEOAVATAR_LANE_OP F lane_y() { return {_mm256_setr_ps(0, 0, 0, 0, 1, 1, 1, 1), _mm256_setr_ps(2, 2, 2, 2, 3, 3, 3, 3)}; }
+  // Avx512Lanes::sum's order: lanes l and l + 8 (lo and hi), then l and l + 4, ...
+  GEOAVATAR_LANE_OP double sum(F v) {
+    const __m256d first = _mm256_cvtps_pd(_mm256_castps256_ps128(v.lo)) + _mm256_cvtps_pd(_mm256_castps256_ps128(v.hi));
+    const __m256d second =
+        _mm256_cvtps_pd(_mm256_extractf128_ps(v.lo, 1)) + _mm256_cvtps_pd(_mm256_extractf128_ps(v.hi, 1));
+    const __m256d s4 = first + second;
+    const __m128d s2 = _mm256_castpd256_pd128(s4) + _mm256_extractf128_pd(s4, 1);
+    return s2[0] + s2[1];
+  }
+#undef GEOAVATAR_LANE_OP
+};
+
+// Avx2Lanes' arithmetic, lane by lane on both halves.
+#define GEOAVATAR_AVX2_BINARY(OP)                                                                        \
+  GEOAVATAR_TARGET_AVX2 inline Avx2Lanes::F operator OP(Avx2Lanes::F a, Avx2Lanes::F b) {                 \
+    return {a.lo OP b.lo, a.hi OP b.hi};                                                                  \
+  }
+GEOAVATAR_AVX2_BINARY(+)
+GEOAVATAR_AVX2_BINARY(-)
+GEOAVATAR_AVX2_BINARY(*)
+GEOAVATAR_AVX2_BINARY(/)
+#undef GEOAVATAR_AVX2_BINARY
+GEOAVATAR_TARGET_AVX2 inline Avx2Lanes::F operator-(Avx2Lanes::F a) { return {-a.lo, -a.hi}; }
 
 // exp_lanes with max / min for its clamps (the same values, NaN included).
-GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE __m512 exp_avx512(__m512 x) {
-  using L = Avx512Lanes;
-  using F = L::F;
+template <typename L>
+inline typename L::F exp_block(typename L::F x) {
+  using F = typename L::F;
   x = L::max(L::splat(-80.0f), x);  // -80 > x ? -80 : x
   x = L::min(L::splat(88.0f), x);   // 88 < x ? 88 : x
   const F round = L::splat(12582912.0f);
@@ -752,30 +851,26 @@ struct BlockBox {
 // One Gaussian broadcast to the lanes, and what both kernels compute of it per block: the lanes' offsets
 // dy, dx from the pixel centres y + 0.5, x + 0.5 (sums of small integers and 0.5, exact: the scalar
 // kernel's), and o exp(-sigma) with the scalar kernel's expressions in its order (the same float sigma).
+template <typename L>
 struct BlockSplat {
-  using L = Avx512Lanes;
-  using F = L::F;
+  using F = typename L::F;
   F mx, my, a, b, c, opacity;
-  GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE explicit BlockSplat(const Splat<float>& s)
+  inline explicit BlockSplat(const Splat<float>& s)
       : mx(L::splat(s.mx)), my(L::splat(s.my)), a(L::splat(s.a)), b(L::splat(s.b)), c(L::splat(s.c)),
         opacity(L::splat(s.opacity)) {}
   // y, x: image row / column of the block's first pixel
-  GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE F dy(int64_t y) const {
-    return my - (L::lane_y() + L::splat(static_cast<float>(y) + 0.5f));
-  }
-  GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE F dx(int64_t x) const {
-    return mx - (L::lane_x() + L::splat(static_cast<float>(x) + 0.5f));
-  }
-  GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE F alpha_raw(F dx, F dy, F c_dy_dy) const {
+  inline F dy(int64_t y) const { return my - (L::lane_y() + L::splat(static_cast<float>(y) + 0.5f)); }
+  inline F dx(int64_t x) const { return mx - (L::lane_x() + L::splat(static_cast<float>(x) + 0.5f)); }
+  inline F alpha_raw(F dx, F dy, F c_dy_dy) const {
     const F sigma = L::splat(0.5f) * (a * dx * dx + c_dy_dy) + b * dx * dy;
-    return opacity * exp_avx512(-sigma);
+    return opacity * exp_block<L>(-sigma);
   }
 };
 
-GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_avx512_blocks(const LaneTile& tile) {
-  using L = Avx512Lanes;
-  using F = L::F;
-  using M = L::M;
+template <typename L>
+inline void composite_tile_blocks(const LaneTile& tile) {
+  using F = typename L::F;
+  using M = typename L::M;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ red = tile.red;
   float* __restrict__ green = tile.green;
@@ -792,7 +887,7 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_avx512_blocks(const
     const Splat<float>& s = tile.splats[tile.ids[k]];
     const BlockBox box(s, tx0, ty0, tw, th);
     const auto position = L::splat_i(static_cast<int32_t>(k - tile.begin + 1));
-    const BlockSplat gauss(s);
+    const BlockSplat<L> gauss(s);
     const F r = L::splat(s.r), g = L::splat(s.g), bl = L::splat(s.bl);
     for (int64_t by = box.y0 >> 2; by <= box.y1 >> 2; ++by) {
       const uint32_t rows = bits4(box.y0 - 4 * by, box.y1 - 4 * by);
@@ -825,11 +920,12 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void composite_tile_avx512_blocks(const
   }
 }
 
-GEOAVATAR_TARGET_AVX512 void composite_tile_avx512(const LaneTile& tile) {
-  composite_tile_avx512_blocks(tile);
+// flatten: the template and its lane operations are inlined here, under this function's ISA.
+GEOAVATAR_TARGET_AVX512 __attribute__((flatten)) void composite_tile_avx512(const LaneTile& tile) {
+  composite_tile_blocks<Avx512Lanes>(tile);
 }
-GEOAVATAR_TARGET_AVX2 void composite_tile_avx2(const LaneTile& tile) {
-  composite_tile_vec<GEOAVATAR_LANES_AVX2_FWD>(tile);
+GEOAVATAR_TARGET_AVX2 __attribute__((flatten)) void composite_tile_avx2(const LaneTile& tile) {
+  composite_tile_blocks<Avx2Lanes>(tile);
 }
 #endif
 
@@ -848,6 +944,9 @@ bool simd_supported(Simd simd) {
 #endif
   return true;
 }
+
+// The paths that step over 4 x 4 blocks (their planes block by block), not row spans.
+bool block_path(Simd simd) { return simd == Simd::kAvx512 || simd == Simd::kAvx2; }
 
 // Fastest first; "auto" takes the first this CPU runs.
 constexpr Simd kAllSimd[] = {Simd::kAvx512, Simd::kAvx2, Simd::kVector, Simd::kScalar};
@@ -894,7 +993,7 @@ void forward_tiles_lanes(const Splat<float>* splats, const std::vector<int64_t>&
 #endif
   TORCH_CHECK(composite != nullptr, "rasterize_cpu: no SIMD compositing on this CPU");
   const int64_t t = grid.tile;
-  const PlaneLayout layout = simd == Simd::kAvx512 ? PlaneLayout::blocks(t) : PlaneLayout::rows(t);
+  const PlaneLayout layout = block_path(simd) ? PlaneLayout::blocks(t) : PlaneLayout::rows(t);
   const int64_t plane = layout.size(t);
   const std::vector<int32_t> order = tiles_by_work(offsets.data(), grid.n_tiles());
 #pragma omp parallel num_threads(threads_for_torch())
@@ -1043,12 +1142,12 @@ void backward_tile_vector(const LaneBackTile& tile) { backward_tile_vec<GEOAVATA
 #endif
 
 #ifdef GEOAVATAR_X86_DISPATCH
-// The lane backward on AVX-512: backward_tile_vec's arithmetic over the blocks of
-// composite_tile_avx512_blocks.
-GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_avx512_blocks(const LaneBackTile& tile) {
-  using L = Avx512Lanes;
-  using F = L::F;
-  using M = L::M;
+// The lane backward on the block paths: backward_tile_vec's arithmetic over the blocks of
+// composite_tile_blocks.
+template <typename L>
+inline void backward_tile_blocks(const LaneBackTile& tile) {
+  using F = typename L::F;
+  using M = typename L::M;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ behind = tile.behind;
   const float* __restrict__ grad_r = tile.grad_r;
@@ -1063,7 +1162,7 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_avx512_blocks(const 
     const Splat<float>& s = tile.splats[tile.ids[k]];
     const BlockBox box(s, tx0, ty0, tw, th);
     const auto position = L::splat_i(static_cast<int32_t>(k - tile.begin));
-    const BlockSplat gauss(s);
+    const BlockSplat<L> gauss(s);
     const F a = gauss.a, b = gauss.b, c = gauss.c, inv_opacity = L::splat(1.0f / s.opacity);
     const F red = L::splat(s.r), green = L::splat(s.g), blue = L::splat(s.bl);
     F sums[kEntryGrads];
@@ -1110,11 +1209,11 @@ GEOAVATAR_TARGET_AVX512 GEOAVATAR_INLINE void backward_tile_avx512_blocks(const 
   }
 }
 
-GEOAVATAR_TARGET_AVX512 void backward_tile_avx512(const LaneBackTile& tile) {
-  backward_tile_avx512_blocks(tile);
+GEOAVATAR_TARGET_AVX512 __attribute__((flatten)) void backward_tile_avx512(const LaneBackTile& tile) {
+  backward_tile_blocks<Avx512Lanes>(tile);
 }
-GEOAVATAR_TARGET_AVX2 void backward_tile_avx2(const LaneBackTile& tile) {
-  backward_tile_vec<GEOAVATAR_LANES_AVX2_BWD>(tile);
+GEOAVATAR_TARGET_AVX2 __attribute__((flatten)) void backward_tile_avx2(const LaneBackTile& tile) {
+  backward_tile_blocks<Avx2Lanes>(tile);
 }
 #endif
 
@@ -1132,7 +1231,7 @@ void backward_tiles_lanes(const Splat<float>* splats, const int64_t* offsets, co
 #endif
   TORCH_CHECK(backward_tile != nullptr, "rasterize_cpu: no SIMD backward on this CPU");
   const int64_t t = grid.tile;
-  const PlaneLayout layout = simd == Simd::kAvx512 ? PlaneLayout::blocks(t) : PlaneLayout::rows(t);
+  const PlaneLayout layout = block_path(simd) ? PlaneLayout::blocks(t) : PlaneLayout::rows(t);
   const int64_t plane = layout.size(t);
   const std::vector<int32_t> order = tiles_by_work(offsets, grid.n_tiles());
 #pragma omp parallel num_threads(threads_for_torch())
