@@ -35,8 +35,11 @@ COMMON_HEADER = Path(__file__).with_name("csrc") / "cpu_common.h"
 # compositing picks AVX-512 / AVX2 code at run time instead). No FMA contraction: every SIMD path and the scalar
 # backward then compute the same alpha bit for bit. -fno-trapping-math changes no result (only the
 # floating-point exception flags): without it GCC keeps branches in the lane loop and cannot vectorise it.
-CFLAGS = ["-O3", "-fopenmp", "-std=c++17", "-ffp-contract=off", "-fno-trapping-math"]
-LDFLAGS = ["-fopenmp"]
+# Tuples, handed to torch as fresh lists: cpp_extension.load appends torch's libraries to the list it gets, and a
+# module-level list changed by the first build changed the next extension's key (a second build of it, ~40 s,
+# in every process that loaded the two in the other order: `train` after `prepare`).
+CFLAGS = ("-O3", "-fopenmp", "-std=c++17", "-ffp-contract=off", "-fno-trapping-math")
+LDFLAGS = ("-fopenmp",)
 
 _build_lock = threading.Lock()  # one build at a time, and a state filled once, whatever the thread
 
@@ -168,8 +171,9 @@ def _build(spec: ExtensionSpec, verbose: bool) -> ModuleType:
         if not (build_dir / f"{name}.so").exists():
             print(f"geoavatar: building {spec.what} (first use only, under a minute) in {build_dir} ...",
                   file=sys.stderr, flush=True)
-        return cpp_extension.load(name=name, sources=[str(_source_copies(spec, build_dir))], extra_cflags=CFLAGS,
-                                  extra_ldflags=LDFLAGS, build_directory=str(build_dir), verbose=verbose)
+        return cpp_extension.load(name=name, sources=[str(_source_copies(spec, build_dir))],
+                                  extra_cflags=list(CFLAGS), extra_ldflags=list(LDFLAGS),
+                                  build_directory=str(build_dir), verbose=verbose)
     finally:
         os.environ["PATH"] = path_before
 
