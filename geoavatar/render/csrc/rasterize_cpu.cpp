@@ -784,10 +784,13 @@ struct Avx2Lanes {
     const __m256 x = _mm256_setr_ps(0, 1, 2, 3, 0, 1, 2, 3);
     return {x, x};
   }
-  GEOAVATAR_LANE_OP F lane_y() { return {_mm256_setr_ps(0, 0, 0, 0, 1, 1, 1, 1), _mm256_setr_ps(2, 2, 2, 2, 3, 3, 3, 3)}; }
+  GEOAVATAR_LANE_OP F lane_y() {
+    return {_mm256_setr_ps(0, 0, 0, 0, 1, 1, 1, 1), _mm256_setr_ps(2, 2, 2, 2, 3, 3, 3, 3)};
+  }
   // Avx512Lanes::sum's order: lanes l and l + 8 (lo and hi), then l and l + 4, ...
   GEOAVATAR_LANE_OP double sum(F v) {
-    const __m256d first = _mm256_cvtps_pd(_mm256_castps256_ps128(v.lo)) + _mm256_cvtps_pd(_mm256_castps256_ps128(v.hi));
+    const __m256d first =
+        _mm256_cvtps_pd(_mm256_castps256_ps128(v.lo)) + _mm256_cvtps_pd(_mm256_castps256_ps128(v.hi));
     const __m256d second =
         _mm256_cvtps_pd(_mm256_extractf128_ps(v.lo, 1)) + _mm256_cvtps_pd(_mm256_extractf128_ps(v.hi, 1));
     const __m256d s4 = first + second;
