@@ -670,97 +670,147 @@ void composite_tile_vector(const LaneTile& tile) { composite_tile_vec<GEOAVATAR_
 // tolerances).
 //
 // One kernel source for both ISAs: the kernels are templates over a Lanes type (Avx512Lanes: one zmm and a
-// k-register mask per block; Avx2Lanes: one ymm per half block, rows 0-1 then 2-3, "parts"), written
+// k-register mask per block; Avx2Lanes: two ymm, rows 0-1 and 2-3, and the same 16-bit masks), written
 // with the vector operators (no contraction: -ffp-contract=off). Only the lane operations carry a target
 // ISA; each entry point (composite_tile_avx512, ...) has its target and `flatten`, which inlines the
 // template and its lane operations into it, so each ISA's instructions stay in its own functions.
-#define GEOAVATAR_LANE_OP(TARGET) TARGET static inline
+#define GEOAVATAR_LANE_OP GEOAVATAR_TARGET_AVX512 static inline
 struct Avx512Lanes {
   using F = __m512;
   using I = __m512i;
   using M = __mmask16;
   using D = __m512d;
-  static constexpr int kLanes = 16;
-#define GEOAVATAR_OP GEOAVATAR_LANE_OP(GEOAVATAR_TARGET_AVX512)
-  GEOAVATAR_OP F splat(float v) { return _mm512_set1_ps(v); }
-  GEOAVATAR_OP I splat_i(int32_t v) { return _mm512_set1_epi32(v); }
-  GEOAVATAR_OP F load(const float* p) { return _mm512_loadu_ps(p); }
-  GEOAVATAR_OP I load_i(const int32_t* p) { return _mm512_loadu_si512(p); }
-  GEOAVATAR_OP void store(float* p, F v) { _mm512_storeu_ps(p, v); }
-  GEOAVATAR_OP void store_i(int32_t* p, M m, I v) { _mm512_mask_storeu_epi32(p, m, v); }
-  GEOAVATAR_OP M lt(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_LT_OQ); }
-  GEOAVATAR_OP M le(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_LE_OQ); }
-  GEOAVATAR_OP M ge(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_GE_OQ); }
-  GEOAVATAR_OP M lt_i(M m, I a, I b) { return _mm512_mask_cmplt_epi32_mask(m, a, b); }
+  GEOAVATAR_LANE_OP F splat(float v) { return _mm512_set1_ps(v); }
+  GEOAVATAR_LANE_OP I splat_i(int32_t v) { return _mm512_set1_epi32(v); }
+  GEOAVATAR_LANE_OP F load(const float* p) { return _mm512_loadu_ps(p); }
+  GEOAVATAR_LANE_OP I load_i(const int32_t* p) { return _mm512_loadu_si512(p); }
+  GEOAVATAR_LANE_OP void store(float* p, F v) { _mm512_storeu_ps(p, v); }
+  GEOAVATAR_LANE_OP void store_i(int32_t* p, M m, I v) { _mm512_mask_storeu_epi32(p, m, v); }
+  GEOAVATAR_LANE_OP M lt(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_LT_OQ); }
+  GEOAVATAR_LANE_OP M le(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_LE_OQ); }
+  GEOAVATAR_LANE_OP M ge(M m, F a, F b) { return _mm512_mask_cmp_ps_mask(m, a, b, _CMP_GE_OQ); }
+  GEOAVATAR_LANE_OP M lt_i(M m, I a, I b) { return _mm512_mask_cmplt_epi32_mask(m, a, b); }
   // a < b ? a : b and a > b ? a : b (NaN: b), as the generic kernel's selects
-  GEOAVATAR_OP F min(F a, F b) { return _mm512_min_ps(a, b); }
-  GEOAVATAR_OP F max(F a, F b) { return _mm512_max_ps(a, b); }
-  GEOAVATAR_OP F select(M m, F if_set, F if_not) { return _mm512_mask_mov_ps(if_not, m, if_set); }
-  GEOAVATAR_OP F add_where(M m, F sum, F term) { return _mm512_mask_add_ps(sum, m, sum, term); }
-  GEOAVATAR_OP F pow2(F n) {  // 2^n for integral n in [-127, 127]: the exponent bits
+  GEOAVATAR_LANE_OP F min(F a, F b) { return _mm512_min_ps(a, b); }
+  GEOAVATAR_LANE_OP F max(F a, F b) { return _mm512_max_ps(a, b); }
+  GEOAVATAR_LANE_OP F select(M m, F if_set, F if_not) { return _mm512_mask_mov_ps(if_not, m, if_set); }
+  GEOAVATAR_LANE_OP F add_where(M m, F sum, F term) { return _mm512_mask_add_ps(sum, m, sum, term); }
+  GEOAVATAR_LANE_OP F pow2(F n) {  // 2^n for integral n in [-127, 127]: the exponent bits
     return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_add_epi32(_mm512_cvttps_epi32(n), _mm512_set1_epi32(127)), 23));
   }
   // column and row of each lane within its 4 x 4 block
-  GEOAVATAR_OP F lane_x() { return _mm512_setr_ps(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3); }
-  GEOAVATAR_OP F lane_y() { return _mm512_setr_ps(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3); }
+  GEOAVATAR_LANE_OP F lane_x() { return _mm512_setr_ps(0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3); }
+  GEOAVATAR_LANE_OP F lane_y() { return _mm512_setr_ps(0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3); }
   // lanes l and l + 8 first, then by halves: the generic kernel's order for 16 lanes
-  GEOAVATAR_OP double sum(F v) {
+  GEOAVATAR_LANE_OP double sum(F v) {
     const D s8 = _mm512_cvtps_pd(_mm512_castps512_ps256(v)) + _mm512_cvtps_pd(_mm512_extractf32x8_ps(v, 1));
     const __m256d s4 = _mm512_castpd512_pd256(s8) + _mm512_extractf64x4_pd(s8, 1);
     const __m128d s2 = _mm256_castpd256_pd128(s4) + _mm256_extractf128_pd(s4, 1);
     return s2[0] + s2[1];
   }
-#undef GEOAVATAR_OP
+#undef GEOAVATAR_LANE_OP
 };
 
-// AVX2: 8 lanes, one ymm, so a block takes two steps (parts: its rows 0-1, then 2-3); masks are 8-bit
-// integers (a comparison's movemask), widened back to lanes where a select needs them. (16 lanes as two
-// ymm per value needed 18 registers for the backward's sums alone, 16 exist: it spilled.)
+// The same 16 lanes on AVX2: two ymm registers per value (lo: the block's rows 0-1, hi: rows 2-3), masks
+// as 16-bit integers (a comparison's movemask), widened back to lanes where a select needs them. Against
+// one ymm per half block, two steps a block (8-bit masks, 9 instead of 18 registers for the backward's
+// sums): 1.36x against 1.26-1.30x the row kernel (d3's frame 0, 70k Gaussians, 256 px), the halves'
+// loop and masks costing more than the spills.
 struct Avx2Lanes {
-  using F = __m256;
-  using I = __m256i;
-  using M = uint32_t;  // bits 0-7
-  static constexpr int kLanes = 8;
-#define GEOAVATAR_OP GEOAVATAR_LANE_OP(GEOAVATAR_TARGET_AVX2)
-  GEOAVATAR_OP F splat(float v) { return _mm256_set1_ps(v); }
-  GEOAVATAR_OP I splat_i(int32_t v) { return _mm256_set1_epi32(v); }
-  GEOAVATAR_OP F load(const float* p) { return _mm256_loadu_ps(p); }
-  GEOAVATAR_OP I load_i(const int32_t* p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)); }
-  GEOAVATAR_OP void store(float* p, F v) { _mm256_storeu_ps(p, v); }
-  // bit l of m as lane l, all ones or all zeros
-  GEOAVATAR_OP I lanes(M m) {
+  struct F {
+    __m256 lo, hi;
+  };
+  struct I {
+    __m256i lo, hi;
+  };
+  using M = __mmask16;
+#define GEOAVATAR_LANE_OP GEOAVATAR_TARGET_AVX2 static inline
+  GEOAVATAR_LANE_OP F splat(float v) { return {_mm256_set1_ps(v), _mm256_set1_ps(v)}; }
+  GEOAVATAR_LANE_OP I splat_i(int32_t v) { return {_mm256_set1_epi32(v), _mm256_set1_epi32(v)}; }
+  GEOAVATAR_LANE_OP F load(const float* p) { return {_mm256_loadu_ps(p), _mm256_loadu_ps(p + 8)}; }
+  GEOAVATAR_LANE_OP I load_i(const int32_t* p) {
+    return {_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)),
+            _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p + 8))};
+  }
+  GEOAVATAR_LANE_OP void store(float* p, F v) {
+    _mm256_storeu_ps(p, v.lo);
+    _mm256_storeu_ps(p + 8, v.hi);
+  }
+  // the lanes of a 16-bit mask as all-ones / all-zeros lanes: bit l of m in lane l
+  GEOAVATAR_LANE_OP __m256i lanes_lo(M m) {
     const __m256i bit = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
-    return _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(static_cast<int32_t>(m)), bit), bit);
+    return _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(m), bit), bit);
   }
-  GEOAVATAR_OP M bits(F lanes) { return static_cast<M>(_mm256_movemask_ps(lanes)); }
-  // a masked store as load, blend, store: the planes are the calling thread's own scratch
-  GEOAVATAR_OP void store_i(int32_t* p, M m, I v) {
-    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), _mm256_blendv_epi8(load_i(p), v, lanes(m)));
+  GEOAVATAR_LANE_OP __m256i lanes_hi(M m) { return lanes_lo(static_cast<M>(m >> 8)); }
+  GEOAVATAR_LANE_OP M bits(__m256 lo, __m256 hi) {
+    return static_cast<M>(_mm256_movemask_ps(lo) | _mm256_movemask_ps(hi) << 8);
   }
-  GEOAVATAR_OP M lt(M m, F a, F b) { return m & bits(_mm256_cmp_ps(a, b, _CMP_LT_OQ)); }
-  GEOAVATAR_OP M le(M m, F a, F b) { return m & bits(_mm256_cmp_ps(a, b, _CMP_LE_OQ)); }
-  GEOAVATAR_OP M ge(M m, F a, F b) { return m & bits(_mm256_cmp_ps(a, b, _CMP_GE_OQ)); }
-  GEOAVATAR_OP M lt_i(M m, I a, I b) { return m & bits(_mm256_castsi256_ps(_mm256_cmpgt_epi32(b, a))); }
-  GEOAVATAR_OP F min(F a, F b) { return _mm256_min_ps(a, b); }
-  GEOAVATAR_OP F max(F a, F b) { return _mm256_max_ps(a, b); }
-  GEOAVATAR_OP F select(M m, F if_set, F if_not) {
-    return _mm256_blendv_ps(if_not, if_set, _mm256_castsi256_ps(lanes(m)));
+  // masked stores as load, blend, store: the planes are the calling thread's own scratch
+  GEOAVATAR_LANE_OP void store_i(int32_t* p, M m, I v) {
+    const I old = load_i(p);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p),
+                        _mm256_blendv_epi8(old.lo, v.lo, lanes_lo(m)));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p + 8),
+                        _mm256_blendv_epi8(old.hi, v.hi, lanes_hi(m)));
   }
-  GEOAVATAR_OP F add_where(M m, F sum, F term) { return select(m, sum + term, sum); }
-  GEOAVATAR_OP F pow2(F n) {
-    return _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(n), _mm256_set1_epi32(127)), 23));
+  GEOAVATAR_LANE_OP M lt(M m, F a, F b) {
+    return m & bits(_mm256_cmp_ps(a.lo, b.lo, _CMP_LT_OQ), _mm256_cmp_ps(a.hi, b.hi, _CMP_LT_OQ));
   }
-  GEOAVATAR_OP F lane_x() { return _mm256_setr_ps(0, 1, 2, 3, 0, 1, 2, 3); }
-  GEOAVATAR_OP F lane_y() { return _mm256_setr_ps(0, 0, 0, 0, 1, 1, 1, 1); }
-  // lanes l and l + 4 first, then by halves: the generic kernel's order for 8 lanes
-  GEOAVATAR_OP double sum(F v) {
-    const __m256d s4 = _mm256_cvtps_pd(_mm256_castps256_ps128(v)) + _mm256_cvtps_pd(_mm256_extractf128_ps(v, 1));
+  GEOAVATAR_LANE_OP M le(M m, F a, F b) {
+    return m & bits(_mm256_cmp_ps(a.lo, b.lo, _CMP_LE_OQ), _mm256_cmp_ps(a.hi, b.hi, _CMP_LE_OQ));
+  }
+  GEOAVATAR_LANE_OP M ge(M m, F a, F b) {
+    return m & bits(_mm256_cmp_ps(a.lo, b.lo, _CMP_GE_OQ), _mm256_cmp_ps(a.hi, b.hi, _CMP_GE_OQ));
+  }
+  GEOAVATAR_LANE_OP M lt_i(M m, I a, I b) {
+    return m & bits(_mm256_castsi256_ps(_mm256_cmpgt_epi32(b.lo, a.lo)),
+                    _mm256_castsi256_ps(_mm256_cmpgt_epi32(b.hi, a.hi)));
+  }
+  GEOAVATAR_LANE_OP F min(F a, F b) { return {_mm256_min_ps(a.lo, b.lo), _mm256_min_ps(a.hi, b.hi)}; }
+  GEOAVATAR_LANE_OP F max(F a, F b) { return {_mm256_max_ps(a.lo, b.lo), _mm256_max_ps(a.hi, b.hi)}; }
+  GEOAVATAR_LANE_OP F select(M m, F if_set, F if_not) {
+    return {_mm256_blendv_ps(if_not.lo, if_set.lo, _mm256_castsi256_ps(lanes_lo(m))),
+            _mm256_blendv_ps(if_not.hi, if_set.hi, _mm256_castsi256_ps(lanes_hi(m)))};
+  }
+  GEOAVATAR_LANE_OP F add_where(M m, F sum, F term) {
+    return select(m, {sum.lo + term.lo, sum.hi + term.hi}, sum);
+  }
+  GEOAVATAR_LANE_OP F pow2(F n) {
+    const __m256i bias = _mm256_set1_epi32(127);
+    return {_mm256_castsi256_ps(_mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(n.lo), bias), 23)),
+            _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_add_epi32(_mm256_cvttps_epi32(n.hi), bias), 23))};
+  }
+  GEOAVATAR_LANE_OP F lane_x() {
+    const __m256 x = _mm256_setr_ps(0, 1, 2, 3, 0, 1, 2, 3);
+    return {x, x};
+  }
+  GEOAVATAR_LANE_OP F lane_y() {
+    return {_mm256_setr_ps(0, 0, 0, 0, 1, 1, 1, 1), _mm256_setr_ps(2, 2, 2, 2, 3, 3, 3, 3)};
+  }
+  // Avx512Lanes::sum's order: lanes l and l + 8 (lo and hi), then l and l + 4, ...
+  GEOAVATAR_LANE_OP double sum(F v) {
+    const __m256d first =
+        _mm256_cvtps_pd(_mm256_castps256_ps128(v.lo)) + _mm256_cvtps_pd(_mm256_castps256_ps128(v.hi));
+    const __m256d second =
+        _mm256_cvtps_pd(_mm256_extractf128_ps(v.lo, 1)) + _mm256_cvtps_pd(_mm256_extractf128_ps(v.hi, 1));
+    const __m256d s4 = first + second;
     const __m128d s2 = _mm256_castpd256_pd128(s4) + _mm256_extractf128_pd(s4, 1);
     return s2[0] + s2[1];
   }
-#undef GEOAVATAR_OP
-};
 #undef GEOAVATAR_LANE_OP
+};
+
+// Avx2Lanes' arithmetic, lane by lane on both halves.
+#define GEOAVATAR_AVX2_BINARY(OP)                                                                        \
+  GEOAVATAR_TARGET_AVX2 inline Avx2Lanes::F operator OP(Avx2Lanes::F a, Avx2Lanes::F b) {                 \
+    return {a.lo OP b.lo, a.hi OP b.hi};                                                                  \
+  }
+GEOAVATAR_AVX2_BINARY(+)
+GEOAVATAR_AVX2_BINARY(-)
+GEOAVATAR_AVX2_BINARY(*)
+GEOAVATAR_AVX2_BINARY(/)
+#undef GEOAVATAR_AVX2_BINARY
+GEOAVATAR_TARGET_AVX2 inline Avx2Lanes::F operator-(Avx2Lanes::F a) { return {-a.lo, -a.hi}; }
 
 // exp_lanes with max / min for its clamps (the same values, NaN included).
 template <typename L>
@@ -820,19 +870,10 @@ struct BlockSplat {
   }
 };
 
-// Steps per 4 x 4 block (kParts) of L::kLanes lanes: kPartRows rows each, lanes kPartLanes of a mask.
-template <typename L>
-struct BlockParts {
-  static constexpr int kParts = 16 / L::kLanes, kPartRows = 4 / kParts;
-  static constexpr uint32_t kPartLanes = (1u << L::kLanes) - 1u;
-};
-
 template <typename L>
 inline void composite_tile_blocks(const LaneTile& tile) {
   using F = typename L::F;
   using M = typename L::M;
-  constexpr int kParts = BlockParts<L>::kParts, kPartRows = BlockParts<L>::kPartRows;
-  constexpr uint32_t kPartLanes = BlockParts<L>::kPartLanes;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ red = tile.red;
   float* __restrict__ green = tile.green;
@@ -853,38 +894,29 @@ inline void composite_tile_blocks(const LaneTile& tile) {
     const F r = L::splat(s.r), g = L::splat(s.g), bl = L::splat(s.bl);
     for (int64_t by = box.y0 >> 2; by <= box.y1 >> 2; ++by) {
       const uint32_t rows = bits4(box.y0 - 4 * by, box.y1 - 4 * by);
-      F dy[kParts], c_dy_dy[kParts];
-      for (int part = 0; part < kParts; ++part) {
-        dy[part] = gauss.dy(ty0 + 4 * by + kPartRows * part);
-        c_dy_dy[part] = gauss.c * dy[part] * dy[part];
-      }
+      const F dy = gauss.dy(ty0 + 4 * by);
+      const F c_dy_dy = gauss.c * dy * dy;
       for (int64_t bx = box.x0 >> 2; bx <= box.x1 >> 2; ++bx) {
-        const int64_t block = by * blocks_x + bx;
-        const uint32_t block_open = block_lanes(rows, bits4(box.x0 - 4 * bx, box.x1 - 4 * bx)) & ~done[block];
-        if (!block_open) continue;
-        const F dx = gauss.dx(tx0 + 4 * bx);
-        for (int part = 0; part < kParts; ++part) {
-          const int64_t base = 16 * block + L::kLanes * part;
-          const M open = static_cast<M>((block_open >> (L::kLanes * part)) & kPartLanes);
-          if (!open) continue;
-          const F alpha_raw = gauss.alpha_raw(dx, dy[part], c_dy_dy[part]);
-          const M accept = L::ge(open, alpha_raw, alpha_min);
-          if (!accept) continue;
-          const F alpha = L::min(alpha_raw, alpha_max);
-          const F t_here = L::load(trans + base);
-          const F next_t = t_here * (one - alpha);
-          const M stop = L::le(accept, next_t, t_min);
-          const M add = accept & ~stop;
-          const F w = alpha * t_here;
-          L::store(red + base, L::add_where(add, L::load(red + base), w * r));
-          L::store(green + base, L::add_where(add, L::load(green + base), w * g));
-          L::store(blue + base, L::add_where(add, L::load(blue + base), w * bl));
-          L::store(trans + base, L::select(add, next_t, t_here));
-          L::store_i(last + base, add, position);
-          if (stop) {
-            done[block] |= static_cast<uint32_t>(stop) << (L::kLanes * part);
-            n_done += __builtin_popcount(stop);
-          }
+        const int64_t block = by * blocks_x + bx, base = 16 * block;
+        const M open = static_cast<M>(block_lanes(rows, bits4(box.x0 - 4 * bx, box.x1 - 4 * bx)) & ~done[block]);
+        if (!open) continue;
+        const F alpha_raw = gauss.alpha_raw(gauss.dx(tx0 + 4 * bx), dy, c_dy_dy);
+        const M accept = L::ge(open, alpha_raw, alpha_min);
+        if (!accept) continue;
+        const F alpha = L::min(alpha_raw, alpha_max);
+        const F t_here = L::load(trans + base);
+        const F next_t = t_here * (one - alpha);
+        const M stop = L::le(accept, next_t, t_min);
+        const M add = accept & ~stop;
+        const F w = alpha * t_here;
+        L::store(red + base, L::add_where(add, L::load(red + base), w * r));
+        L::store(green + base, L::add_where(add, L::load(green + base), w * g));
+        L::store(blue + base, L::add_where(add, L::load(blue + base), w * bl));
+        L::store(trans + base, L::select(add, next_t, t_here));
+        L::store_i(last + base, add, position);
+        if (stop) {
+          done[block] |= stop;
+          n_done += __builtin_popcount(stop);
         }
       }
     }
@@ -1119,8 +1151,6 @@ template <typename L>
 inline void backward_tile_blocks(const LaneBackTile& tile) {
   using F = typename L::F;
   using M = typename L::M;
-  constexpr int kParts = BlockParts<L>::kParts, kPartRows = BlockParts<L>::kPartRows;
-  constexpr uint32_t kPartLanes = BlockParts<L>::kPartLanes;
   float* __restrict__ trans = tile.trans;
   float* __restrict__ behind = tile.behind;
   const float* __restrict__ grad_r = tile.grad_r;
@@ -1142,46 +1172,39 @@ inline void backward_tile_blocks(const LaneBackTile& tile) {
     for (F& sum : sums) sum = zero;
     for (int64_t by = box.y0 >> 2; by <= box.y1 >> 2; ++by) {
       const uint32_t rows = bits4(box.y0 - 4 * by, box.y1 - 4 * by);
-      F dys[kParts], c_dy_dys[kParts];
-      for (int part = 0; part < kParts; ++part) {
-        dys[part] = gauss.dy(ty0 + 4 * by + kPartRows * part);
-        c_dy_dys[part] = c * dys[part] * dys[part];
-      }
+      const F dy = gauss.dy(ty0 + 4 * by);
+      const F c_dy_dy = c * dy * dy;
       for (int64_t bx = box.x0 >> 2; bx <= box.x1 >> 2; ++bx) {
-        const uint32_t box_lanes = block_lanes(rows, bits4(box.x0 - 4 * bx, box.x1 - 4 * bx));
+        const int64_t base = 16 * (by * blocks_x + bx);
+        // lanes of the box in front of the pixel's last composited entry
+        const M open = L::lt_i(static_cast<M>(block_lanes(rows, bits4(box.x0 - 4 * bx, box.x1 - 4 * bx))),
+                               position, L::load_i(last + base));
+        if (!open) continue;
         const F dx = gauss.dx(tx0 + 4 * bx);
-        for (int part = 0; part < kParts; ++part) {
-          const int64_t base = 16 * (by * blocks_x + bx) + L::kLanes * part;
-          const F dy = dys[part];
-          // lanes of the box in front of the pixel's last composited entry
-          const M open = L::lt_i(static_cast<M>((box_lanes >> (L::kLanes * part)) & kPartLanes), position,
-                                 L::load_i(last + base));
-          if (!open) continue;
-          const F alpha_raw = gauss.alpha_raw(dx, dy, c_dy_dys[part]);  // exactly the forward's
-          const M in = L::ge(open, alpha_raw, alpha_min);
-          if (!in) continue;
-          const M uncapped = L::lt(in, alpha_raw, alpha_max);  // a capped alpha depends on neither sigma nor opacity
-          const F alpha = L::min(alpha_raw, alpha_max);
-          const F keep = one - alpha;
-          const F t_after = L::load(trans + base), behind_here = L::load(behind + base);
-          const F t_before = t_after / keep;
-          const F gr = L::load(grad_r + base), gg = L::load(grad_g + base), gb = L::load(grad_b + base);
-          const F color_dot = gr * red + gg * green + gb * blue;
-          const F grad_alpha_pair = t_before * color_dot - behind_here / keep;
-          const F w = alpha * t_before;
-          L::store(trans + base, L::select(in, t_before, t_after));
-          L::store(behind + base, L::add_where(in, behind_here, color_dot * w));
-          const F g_sigma = -alpha * grad_alpha_pair;
-          sums[0] = L::add_where(uncapped, sums[0], g_sigma * (a * dx + b * dy));
-          sums[1] = L::add_where(uncapped, sums[1], g_sigma * (b * dx + c * dy));
-          sums[2] = L::add_where(uncapped, sums[2], half * g_sigma * dx * dx);
-          sums[3] = L::add_where(uncapped, sums[3], g_sigma * dx * dy);
-          sums[4] = L::add_where(uncapped, sums[4], half * g_sigma * dy * dy);
-          sums[5] = L::add_where(uncapped, sums[5], alpha * inv_opacity * grad_alpha_pair);
-          sums[6] = L::add_where(in, sums[6], w * gr);
-          sums[7] = L::add_where(in, sums[7], w * gg);
-          sums[8] = L::add_where(in, sums[8], w * gb);
-        }
+        const F alpha_raw = gauss.alpha_raw(dx, dy, c_dy_dy);  // exactly the forward's
+        const M in = L::ge(open, alpha_raw, alpha_min);
+        if (!in) continue;
+        const M uncapped = L::lt(in, alpha_raw, alpha_max);  // a capped alpha depends on neither sigma nor opacity
+        const F alpha = L::min(alpha_raw, alpha_max);
+        const F keep = one - alpha;
+        const F t_after = L::load(trans + base), behind_here = L::load(behind + base);
+        const F t_before = t_after / keep;
+        const F gr = L::load(grad_r + base), gg = L::load(grad_g + base), gb = L::load(grad_b + base);
+        const F color_dot = gr * red + gg * green + gb * blue;
+        const F grad_alpha_pair = t_before * color_dot - behind_here / keep;
+        const F w = alpha * t_before;
+        L::store(trans + base, L::select(in, t_before, t_after));
+        L::store(behind + base, L::add_where(in, behind_here, color_dot * w));
+        const F g_sigma = -alpha * grad_alpha_pair;
+        sums[0] = L::add_where(uncapped, sums[0], g_sigma * (a * dx + b * dy));
+        sums[1] = L::add_where(uncapped, sums[1], g_sigma * (b * dx + c * dy));
+        sums[2] = L::add_where(uncapped, sums[2], half * g_sigma * dx * dx);
+        sums[3] = L::add_where(uncapped, sums[3], g_sigma * dx * dy);
+        sums[4] = L::add_where(uncapped, sums[4], half * g_sigma * dy * dy);
+        sums[5] = L::add_where(uncapped, sums[5], alpha * inv_opacity * grad_alpha_pair);
+        sums[6] = L::add_where(in, sums[6], w * gr);
+        sums[7] = L::add_where(in, sums[7], w * gg);
+        sums[8] = L::add_where(in, sums[8], w * gb);
       }
     }
     double* out = tile.entry_grads + kEntryGrads * static_cast<int64_t>(tile.slots[k]);
