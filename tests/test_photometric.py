@@ -176,6 +176,60 @@ def test_coarse_render_without_supersampling_prefers_a_farther_head(head):
     assert _depth_minimum_mm(head, PATTERN_SIZE // 2, supersample=False) >= 10
 
 
+@pytest.mark.parametrize("dtype, tolerance", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_native_surface_splats_match_the_appearance_models_torch_ops(head, dtype, tolerance):
+    """The native loop that SurfaceAppearance.render uses (avatar.fused.surface_splats) against the model's own
+    PyTorch ops (geometry, colours): centres, std, colours and the gradients of vertices, albedo and lighting."""
+    from geoavatar.avatar.fused import native_loops_available, surface_splats
+
+    if not native_loops_available():
+        pytest.skip("the avatar's native CPU loops did not build here")
+    config = PhotometricConfig()
+    appearance = SurfaceAppearance(head, grow_faces(head, weighted_faces(head), config.render_rings), config).to(dtype)
+    appearance.bary.fill_(1.0 / 3.0)  # in the dtype itself: the buffer was made from float32 thirds
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        appearance.albedo.uniform_(0.2, 0.9, generator=g)
+        appearance.light.add_(0.2 * torch.randn(9, 3, generator=g, dtype=dtype))
+    params = HeadParams.from_npz(head.zero_params()).replace(expr=0.5 * torch.randn(1, head.num_expr, generator=g))
+    start = head.forward_params(params, vertex_ids=appearance.vertex_ids).vertices[0].to(dtype).detach()
+    count = appearance.faces.shape[0]
+    weights = [torch.randn(count, *shape, generator=g, dtype=dtype) for shape in ((3,), (), (3,))]
+
+    def loss_and_grads(outputs, vertices):
+        loss = sum((w * o).sum() for w, o in zip(weights, outputs))
+        return torch.autograd.grad(loss, [vertices, appearance.albedo, appearance.light])
+
+    vertices = start.clone().requires_grad_(True)
+    centre, normal, std = (x[0] for x in appearance.geometry(vertices[None]))
+    reference = (centre, std, appearance.colours(normal))
+    reference_grads = loss_and_grads(reference, vertices)
+    vertices = start.clone().requires_grad_(True)
+    native = surface_splats(vertices, appearance.albedo, appearance.light, appearance.faces, appearance.size)
+    assert native is not None
+    for ours, theirs in zip((*native, *loss_and_grads(native, vertices)), (*reference, *reference_grads)):
+        assert ours.dtype == dtype and ours.shape == theirs.shape
+        assert float((ours - theirs).abs().max()) <= tolerance * float(theirs.abs().max())
+
+
+def test_render_is_the_same_with_and_without_the_native_loop(head, monkeypatch):
+    """SurfaceAppearance.render through the native loop and through its PyTorch ops: the same image."""
+    import geoavatar.prep.photometric as photometric
+
+    config = PhotometricConfig()
+    appearance = SurfaceAppearance(head, grow_faces(head, weighted_faces(head), config.render_rings), config)
+    with torch.no_grad():
+        appearance.albedo.uniform_(0.2, 0.9, generator=torch.Generator().manual_seed(0))
+    vertices = head.forward_params(HeadParams.from_npz(head.zero_params()), vertex_ids=appearance.vertex_ids).vertices[0]
+    viewmat = torch.as_tensor(camera_viewmat(0.6), dtype=torch.float32)
+    K = torch.tensor([[250.0, 0, 64], [0, 250, 64], [0, 0, 1]])
+    native = appearance.render(vertices, viewmat, K, 128, 128).rgb
+    monkeypatch.setattr(photometric, "surface_splats", lambda *args: None)
+    plain = appearance.render(vertices, viewmat, K, 128, 128).rgb
+    assert float(plain.amax()) > 0.1  # the face is in the picture
+    assert torch.allclose(native, plain, atol=1e-5)
+
+
 def test_crops_and_appearance_sets(head):
     weighted = weighted_faces(head)
     grown = grow_faces(head, weighted, 2)

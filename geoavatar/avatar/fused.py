@@ -258,3 +258,46 @@ def polar_coordinates(local_means: Tensor, two_sided: bool = False,
     if native:
         return _PolarCoordinatesCPU.apply(local_means, two_sided)
     return _PolarCoordinates.apply(local_means, two_sided)
+
+
+class _SurfaceSplatsCPU(torch.autograd.Function):
+    """A mesh's faces as one Gaussian each (centroid, std from the area, SH-shaded albedo) in the native CPU extension
+    (surface_forward / surface_backward in csrc/binding_cpu.cpp): what prep's photometric appearance model computes
+    with ~25 PyTorch ops forward and ~40 backward per frame (prep/photometric.SurfaceAppearance, one Gaussian per
+    face)."""
+
+    @staticmethod
+    def forward(ctx, vertices: Tensor, albedo: Tensor, light: Tensor, faces: Tensor, size: float):
+        args = [t.detach().contiguous() for t in (vertices, faces, albedo, light)]
+        centres, std, colours, frames = load_extension().surface_forward(*args, size)
+        ctx.save_for_backward(*args, frames)
+        ctx.size = size
+        if not ctx.needs_input_grad[0]:  # fixed vertices (an appearance-only step): no gradient through the geometry
+            ctx.mark_non_differentiable(centres, std)
+        return centres, std, colours
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_centres: Tensor, g_std: Tensor, g_colours: Tensor):
+        vertices, faces, albedo, light, frames = ctx.saved_tensors
+        count = faces.shape[0]
+
+        def rows(grad: Tensor | None, *shape: int) -> Tensor:  # an output without a gradient counts as zeros
+            return vertices.new_zeros(count, *shape) if grad is None else grad.to(vertices.dtype).contiguous()
+
+        g_vertices, g_albedo, g_light = load_extension().surface_backward(
+            vertices, faces, albedo, light, frames, rows(g_centres, 3), rows(g_std), rows(g_colours, 3), ctx.size)
+        needs = ctx.needs_input_grad
+        return (g_vertices if needs[0] else None, g_albedo if needs[1] else None, g_light if needs[2] else None,
+                None, None)
+
+
+def surface_splats(vertices: Tensor, albedo: Tensor, light: Tensor, faces: Tensor,
+                   size: float) -> tuple[Tensor, Tensor, Tensor] | None:
+    """centres [F, 3], std [F], colours [F, 3] of one Gaussian per face of `faces` [F, 3] (rows of vertices [K, 3]):
+    at the centroid, std = size * sqrt(area), colour = albedo [F, 3] * (SH basis of the face normal @ light [9, 3]);
+    None where the native loops do not run (not CPU float tensors of one dtype, or no compiler): the caller's
+    PyTorch ops then do it."""
+    if not _native_placement(vertices, albedo, light):
+        return None
+    return _SurfaceSplatsCPU.apply(vertices, albedo, light, faces, size)
