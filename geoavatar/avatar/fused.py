@@ -30,7 +30,7 @@ _CONJ = (1.0, -1.0, -1.0, -1.0)
 
 _EXTENSION = ExtensionSpec(
     name="binding_cpu", source=Path(__file__).with_name("csrc") / "binding_cpu.cpp",
-    what="the avatar's native CPU loops (face placement, polar coordinates)",
+    what="the avatar's native CPU loops (face placement, polar coordinates, surface splats)",
     instead="the avatar places its Gaussians on CPU with PyTorch ops (slower)")
 _state = new_state()
 
