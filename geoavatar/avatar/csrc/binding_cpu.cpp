@@ -276,7 +276,8 @@ void check_surface(const torch::Tensor& vertices, const torch::Tensor& faces, co
   check_input(faces, "faces", 2, torch::kLong);
   check_input(albedo, "albedo", 2, dtype);
   check_input(light, "light", 2, dtype);
-  TORCH_CHECK(vertices.size(1) == 3 && faces.size(1) == 3, "surface_splats: vertices and faces must be [K, 3], [F, 3]");
+  TORCH_CHECK(vertices.size(1) == 3 && faces.size(1) == 3,
+              "surface_splats: vertices and faces must be [K, 3], [F, 3]");
   TORCH_CHECK(albedo.size(0) == faces.size(0) && albedo.size(1) == 3, "surface_splats: albedo must be [F, 3]");
   TORCH_CHECK(light.size(0) == 9 && light.size(1) == 3, "surface_splats: light must be [9, 3]");
   if (face_range && faces.numel() > 0) {
@@ -298,7 +299,8 @@ std::vector<torch::Tensor> surface_forward(const torch::Tensor& vertices, const 
     using T = scalar_t;
     const T *v = vertices.data_ptr<T>(), *alb = albedo.data_ptr<T>(), *L = light.data_ptr<T>();
     const int64_t* f = faces.data_ptr<int64_t>();
-    T *co = centres.data_ptr<T>(), *so = std_out.data_ptr<T>(), *cl = colours.data_ptr<T>(), *fr = frames.data_ptr<T>();
+    T *co = centres.data_ptr<T>(), *so = std_out.data_ptr<T>(), *cl = colours.data_ptr<T>();
+    T* fr = frames.data_ptr<T>();
     const T third = T(1) / T(3);  // the barycentric weight of SurfaceAppearance.bary, rounded as it is
     parallel_over(count, [&](int64_t i) {
       const T *a = v + 3 * f[3 * i], *b = v + 3 * f[3 * i + 1], *c = v + 3 * f[3 * i + 2];
@@ -308,7 +310,8 @@ std::vector<torch::Tensor> surface_forward(const torch::Tensor& vertices, const 
         e1[k] = b[k] - a[k];
         e2[k] = c[k] - a[k];
       }
-      const T x = e1[1] * e2[2] - e1[2] * e2[1], y = e1[2] * e2[0] - e1[0] * e2[2], z = e1[0] * e2[1] - e1[1] * e2[0];
+      const T x = e1[1] * e2[2] - e1[2] * e2[1], y = e1[2] * e2[0] - e1[0] * e2[2];
+      const T z = e1[0] * e2[1] - e1[1] * e2[0];
       const T d = std::sqrt(std::max(x * x + y * y + z * z, T(1e-16)));
       const T n[3] = {x / d, y / d, z / d};
       so[i] = T(size) * std::sqrt(T(0.5) * d);
@@ -371,7 +374,8 @@ std::vector<torch::Tensor> surface_backward(const torch::Tensor& vertices, const
           -c1 * g_basis[1] + c2a * n[0] * g_basis[4] - c2a * n[2] * g_basis[5] - T(2) * c2c * n[1] * g_basis[8],
           c1 * g_basis[2] - c2a * n[1] * g_basis[5] + T(6) * c2b * n[2] * g_basis[6] - c2a * n[0] * g_basis[7]};
       // std = size sqrt(d / 2): d std / d d = std / (2 d); n = x / d, d = |x| (0 below the floor)
-      const T g_d = gs[i] * T(size) * std::sqrt(T(0.5) * d) / (T(2) * d) - (g_n[0] * n[0] + g_n[1] * n[1] + g_n[2] * n[2]) / d;
+      const T along = g_n[0] * n[0] + g_n[1] * n[1] + g_n[2] * n[2];
+      const T g_d = gs[i] * T(size) * std::sqrt(T(0.5) * d) / (T(2) * d) - along / d;
       const int64_t ia = f[3 * i], ib = f[3 * i + 1], ic = f[3 * i + 2];
       const T *a = v + 3 * ia, *b = v + 3 * ib, *c = v + 3 * ic;
       const T e1[3] = {b[0] - a[0], b[1] - a[1], b[2] - a[2]}, e2[3] = {c[0] - a[0], c[1] - a[1], c[2] - a[2]};
@@ -380,8 +384,10 @@ std::vector<torch::Tensor> surface_backward(const torch::Tensor& vertices, const
       T g_x[3];
       for (int k = 0; k < 3; ++k) g_x[k] = g_n[k] / d + (floored ? T(0) : g_d * x[k] / d);
       // x = e1 x e2: d e1 = e2 x g_x, d e2 = g_x x e1
-      const T g_e1[3] = {e2[1] * g_x[2] - e2[2] * g_x[1], e2[2] * g_x[0] - e2[0] * g_x[2], e2[0] * g_x[1] - e2[1] * g_x[0]};
-      const T g_e2[3] = {g_x[1] * e1[2] - g_x[2] * e1[1], g_x[2] * e1[0] - g_x[0] * e1[2], g_x[0] * e1[1] - g_x[1] * e1[0]};
+      const T g_e1[3] = {e2[1] * g_x[2] - e2[2] * g_x[1], e2[2] * g_x[0] - e2[0] * g_x[2],
+                         e2[0] * g_x[1] - e2[1] * g_x[0]};
+      const T g_e2[3] = {g_x[1] * e1[2] - g_x[2] * e1[1], g_x[2] * e1[0] - g_x[0] * e1[2],
+                         g_x[0] * e1[1] - g_x[1] * e1[0]};
       for (int k = 0; k < 3; ++k) {
         const T third = T(1) / T(3) * gc[3 * i + k];
         gv[3 * ia + k] += third - g_e1[k] - g_e2[k];
