@@ -155,7 +155,7 @@ class _PlaceGaussiansCPU(torch.autograd.Function):
 
 def _native_placement(*tensors: Tensor) -> bool:
     """CPU float tensors of one dtype and the native extension loaded (or loadable: as rasterize's "auto" builds
-    the rasterizer): the native placement and polar coordinates run."""
+    the rasterizer): the native loops (placement, polar coordinates, surface splats) run."""
     dtype = tensors[0].dtype
     if dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu" or t.dtype != dtype for t in tensors):
         return False
