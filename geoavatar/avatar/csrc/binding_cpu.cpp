@@ -242,7 +242,6 @@ torch::Tensor polar_backward(const torch::Tensor& means, const torch::Tensor& g_
   return grad;
 }
 
-
 // ----------------------------------------------------------------------------- surface splats
 // fused._SurfaceSplatsCPU: one Gaussian at each face's centroid, its std from the face's area and its colour an
 // albedo shaded by SH lighting of the face normal (prep/photometric.SurfaceAppearance, the tracker's appearance
@@ -389,15 +388,16 @@ std::vector<torch::Tensor> surface_backward(const torch::Tensor& vertices, const
       const T g_e2[3] = {g_x[1] * e1[2] - g_x[2] * e1[1], g_x[2] * e1[0] - g_x[0] * e1[2],
                          g_x[0] * e1[1] - g_x[1] * e1[0]};
       for (int k = 0; k < 3; ++k) {
-        const T third = T(1) / T(3) * gc[3 * i + k];
-        gv[3 * ia + k] += third - g_e1[k] - g_e2[k];
-        gv[3 * ib + k] += third + g_e1[k];
-        gv[3 * ic + k] += third + g_e2[k];
+        const T share = T(1) / T(3) * gc[3 * i + k];  // each corner's part of the centroid's gradient
+        gv[3 * ia + k] += share - g_e1[k] - g_e2[k];
+        gv[3 * ib + k] += share + g_e1[k];
+        gv[3 * ic + k] += share + g_e2[k];
       }
     }
   });
   return {g_vertices, g_albedo, g_light};
 }
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
