@@ -53,7 +53,6 @@ from geoavatar.head.params import FRAME_KEYS, HeadParams
 from geoavatar.prep.tracking import TrackingConfig, _data_term, _frame_priors, _motion_smoothness, _pose_smoothness
 from geoavatar.render.camera import scale_intrinsics
 from geoavatar.render.rasterize import rasterize
-from geoavatar.render.torch_backend import EPS2D
 
 # Vertex groups whose faces the appearance model renders (and the photometric term sees).
 WEIGHTED_REGIONS = ("face", "lips", "nose", "eye_region", "left_eye_region", "right_eye_region", "left_eyeball",
@@ -332,8 +331,7 @@ class SurfaceAppearance(torch.nn.Module):
         """normals [..., F, 3] -> colours [..., F, 3]."""
         return self.albedo * (sh_basis(normals) @ self.light)
 
-    def render(self, vertices: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, coverage: bool = False,
-               mass_of: int = 1):
+    def render(self, vertices: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, coverage: bool = False):
         """One frame: vertices [K, 3] -> RasterizeResult (rgb over black, alpha); `coverage`: colour 1 on the
         weighted faces, 0 elsewhere (the face-region map) instead of the appearance."""
         fused = None if coverage or self.bary.shape[0] != 1 else surface_splats(
@@ -346,26 +344,14 @@ class SurfaceAppearance(torch.nn.Module):
         count = centre.shape[0]
         quats = centre.new_zeros(count, 4)
         quats[:, 0] = 1.0
-        opacity = centre.new_full((count,), self.opacity)
-        if mass_of > 1:  # EXPERIMENT: a coarse level at its own size, each Gaussian with the supersampled render's mass
-            k2 = mass_of ** 2
-            depth = centre @ viewmat[2, :3] + viewmat[2, 3]  # [F]
-            px = (K[0, 0] * K[1, 1]).sqrt() / depth.clamp_min(1e-3)  # [F] pixels per metre
-            s2 = (px * std).square()  # [F] the Gaussian's variance in pixels
-            want = s2 + EPS2D / k2 + (k2 - 1) / (12 * k2)  # the supersampled, box-filtered render's variance
-            std = (want - EPS2D).clamp_min(1e-10).sqrt() / px  # the rasterizer adds EPS2D back
-            opacity = opacity * (s2 + EPS2D / k2) / ((want - EPS2D).clamp_min(0) + EPS2D)
-        return rasterize(centre, quats, std[:, None].expand(count, 3), opacity,
+        return rasterize(centre, quats, std[:, None].expand(count, 3), centre.new_full((count,), self.opacity),
                          colours, viewmat, K, width, height, background=centre.new_zeros(3),
                          check_values=False)
 
 
 def render_at(appearance: SurfaceAppearance, vertices: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
-              factor: int = 1, coverage: bool = False, mass_of: int = 1) -> tuple[Tensor, Tensor]:
+              factor: int = 1, coverage: bool = False) -> tuple[Tensor, Tensor]:
     """SurfaceAppearance.render at `factor` times the size, area-downsampled: rgb [H, W, 3], alpha [H, W, 1]."""
-    if mass_of > 1:
-        result = appearance.render(vertices, viewmat, K, width, height, coverage=coverage, mass_of=mass_of)
-        return result.rgb, result.alpha
     if factor <= 1:
         result = appearance.render(vertices, viewmat, K, width, height, coverage=coverage)
         return result.rgb, result.alpha
