@@ -9,7 +9,13 @@ import pytest
 from geoavatar.runtime import setup_process
 
 # Generated caches (OpenHead) go to one folder per test session, never the user's ~/.cache. Set at
-# import time so module- and session-scoped fixtures see it too.
+# import time so module- and session-scoped fixtures see it too. The native extensions are the exception: their
+# builds are keyed by everything that goes into them (geoavatar.native.build_key), so the suite uses the user's
+# build cache, which `make install` fills, instead of compiling them again (a minute) in every session.
+if not os.environ.get("GEOAVATAR_EXT_CACHE"):
+    from geoavatar.native import cache_root
+
+    os.environ["GEOAVATAR_EXT_CACHE"] = str(cache_root())  # read before GEOAVATAR_CACHE moves below
 if os.environ.get("GEOAVATAR_TEST_CACHE"):
     os.environ["GEOAVATAR_CACHE"] = os.environ["GEOAVATAR_TEST_CACHE"]
 else:

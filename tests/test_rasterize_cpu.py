@@ -3,8 +3,8 @@
 The kernel is compared with the dense float64 reference of test_rasterize.py (forward within 1e-6 in
 float64, gradients within 1e-4 of the largest) and with the PyTorch backend (forward within 1e-5,
 gradients within 1e-4, float32 and float64), on the same scenes and hard cases; gradcheck runs in
-float64 on a tiny scene. The extension is built once per test session (GEOAVATAR_CACHE is a temporary
-folder, see conftest.py: about 40 s); without a compiler these tests skip with the reason, except the
+float64 on a tiny scene. The extension comes from the user's build cache (`make install` builds it; see
+conftest.py), else it is built once (about 40 s); without a compiler these tests skip with the reason, except the
 fallback test, which simulates a missing compiler.
 """
 
