@@ -8,14 +8,28 @@ import pytest
 
 from geoavatar.runtime import setup_process
 
+
+def _user_build_cache() -> str | None:
+    """The user's native build cache (geoavatar.native.cache_root) when it can be written, else None."""
+    from geoavatar.native import cache_root
+
+    root = cache_root()
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    return str(root) if os.access(root, os.W_OK) else None
+
+
 # Generated caches (OpenHead) go to one folder per test session, never the user's ~/.cache. Set at
 # import time so module- and session-scoped fixtures see it too. The native extensions are the exception: their
 # builds are keyed by everything that goes into them (geoavatar.native.build_key), so the suite uses the user's
-# build cache, which `make install` fills, instead of compiling them again (a minute) in every session.
+# build cache, which `make install` fills, instead of compiling them again (a minute) in every session; a home
+# that cannot be written leaves them in the session's folder. Read before GEOAVATAR_CACHE moves below.
 if not os.environ.get("GEOAVATAR_EXT_CACHE"):
-    from geoavatar.native import cache_root
-
-    os.environ["GEOAVATAR_EXT_CACHE"] = str(cache_root())  # read before GEOAVATAR_CACHE moves below
+    user_builds = _user_build_cache()
+    if user_builds:
+        os.environ["GEOAVATAR_EXT_CACHE"] = user_builds
 if os.environ.get("GEOAVATAR_TEST_CACHE"):
     os.environ["GEOAVATAR_CACHE"] = os.environ["GEOAVATAR_TEST_CACHE"]
 else:
