@@ -1,10 +1,10 @@
-"""GeoAvatar's native CPU extensions: C++/OpenMP kernels built on first use and cached.
+"""GeoAvatar's native CPU extensions: C++/OpenMP kernels built by `make install` (else on first use) and cached.
 
 Two extensions, each owned by its layer: the renderer's rasterizer (render/csrc/rasterize_cpu.cpp, loaded by
 render/cpu_backend.py) and the avatar's face placement, polar coordinates and surface splats
 (avatar/csrc/binding_cpu.cpp, loaded by avatar/fused.py). Both include csrc/cpu_common.h from this package (torch
-headers, the thread count, a parallel loop, input checks). Each is an `ExtensionSpec`; its loader keeps a `new_state()` dict and calls
-`load_extension(spec, state)`.
+headers, the thread count, a parallel loop, input checks). Each is an `ExtensionSpec`; its loader keeps a
+`new_state()` dict and calls `load_extension(spec, state)`.
 
 An extension is built with torch.utils.cpp_extension (g++ and ninja) into $GEOAVATAR_EXT_CACHE/<name>-<key>,
 else $GEOAVATAR_CACHE/ext/..., else ~/.cache/geoavatar/ext/...; the key hashes the sources (the header
