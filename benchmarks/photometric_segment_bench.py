@@ -21,23 +21,16 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import torch
 
 
 def segment_job(work: Path, video: Path, frames: int, epochs: tuple[int, int], supersample: bool):
     """The first segment's job of the work folder, cut to its first `frames` rows, with this schedule."""
-    from geoavatar.head.params import HeadParams
     from geoavatar.prep import pipeline
 
     config = pipeline.PrepareConfig(video=video, out=work.parent)
-    marks, fit = dict(np.load(work / "landmarks.npz")), dict(np.load(work / "tracking.npz"))
-    head = pipeline._photometric_head(config)
-    params = {k[len("param_"):]: torch.as_tensor(v, dtype=torch.float32) for k, v in fit.items()
-              if k.startswith("param_")}
-    if "static_offset" in params:
-        params["static_offset"] = params["static_offset"].reshape(1, -1, 3)
-    jobs, _ = pipeline._segment_jobs(config, work, head, HeadParams.from_npz(params), fit, marks)
+    marks, fit, head, init = pipeline.photometric_inputs(config, work)
+    jobs, _ = pipeline._segment_jobs(config, work, head, init, fit, marks)
     job = jobs[0]
     n = min(frames, len(job.rows))
     per_frame = lambda value: value[:n] if value.ndim and value.shape[0] == len(job.rows) else value  # noqa: E731

@@ -544,6 +544,21 @@ def _segment_jobs(config: PrepareConfig, work: Path, head, init, fit, marks) -> 
     return jobs, sample
 
 
+def photometric_inputs(config: PrepareConfig, work: Path) -> tuple[dict, dict, Any, Any]:
+    """What the photometric stage starts from: the landmark stage's arrays, the tracking stage's fit, the head model
+    it renders and the fit's parameters as HeadParams (marks, fit, head, init)."""
+    import torch
+
+    from geoavatar.head.params import HeadParams
+
+    marks = dict(np.load(work / "landmarks.npz"))
+    fit = dict(np.load(work / "tracking.npz"))
+    params = {k[len("param_"):]: torch.as_tensor(fit[k], dtype=torch.float32) for k in fit if k.startswith("param_")}
+    if "static_offset" in params:
+        params["static_offset"] = params["static_offset"].reshape(1, -1, 3)
+    return marks, fit, _photometric_head(config), HeadParams.from_npz(params)
+
+
 def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     """Refine every frame's parameters against the crops (masked photometric L1 + the landmark term), segment by
     segment over the workers (geoavatar.prep.segments)."""
@@ -557,13 +572,7 @@ def stage_photometric(config: PrepareConfig, work: Path, pool: WorkerPool) -> di
     (work / "photometric.npz").unlink(missing_ok=True)
     if not config.photometric:
         return {"skipped": True}
-    marks = dict(np.load(work / "landmarks.npz"))
-    fit = dict(np.load(work / "tracking.npz"))
-    head = _photometric_head(config)
-    params = {k[len("param_"):]: torch.as_tensor(fit[k], dtype=torch.float32) for k in fit if k.startswith("param_")}
-    if "static_offset" in params:
-        params["static_offset"] = params["static_offset"].reshape(1, -1, 3)
-    init = HeadParams.from_npz(params)
+    marks, fit, head, init = photometric_inputs(config, work)
     jobs, sample = _segment_jobs(config, work, head, init, fit, marks)
     shared = len(jobs) > 1  # several segments start from one appearance, fitted on the sample first
     steps = sum(total_steps(job.settings, len(job.rows), appearance_start=shared) for job in jobs)
@@ -846,4 +855,4 @@ def run_prepare(config: PrepareConfig) -> Path:
     return out / "dataset"
 
 
-__all__ = ["PrepareConfig", "STAGES", "run_prepare", "load_tracking_head", "overlay_frames", "write_overlay"]
+__all__ = ["PrepareConfig", "STAGES", "run_prepare", "load_tracking_head", "photometric_inputs", "overlay_frames", "write_overlay"]
