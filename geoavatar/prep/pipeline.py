@@ -855,4 +855,5 @@ def run_prepare(config: PrepareConfig) -> Path:
     return out / "dataset"
 
 
-__all__ = ["PrepareConfig", "STAGES", "run_prepare", "load_tracking_head", "photometric_inputs", "overlay_frames", "write_overlay"]
+__all__ = ["PrepareConfig", "STAGES", "run_prepare", "load_tracking_head", "photometric_inputs", "overlay_frames",
+           "write_overlay"]
