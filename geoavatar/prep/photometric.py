@@ -105,9 +105,6 @@ class PhotometricConfig:
     # Gaussians at the coarse size is not the downsampled frame, and its image term prefers a head 1-2 cm
     # farther away (BENCHMARKS.md, photometric tracking). The renderer's cost barely depends on the size.
     supersample: bool = True
-    # fit every k-th frame; the frames between get their initial parameters plus their fitted neighbours'
-    # corrections, interpolated (EXPERIMENT)
-    image_stride: int = 1
     tracking: TrackingConfig = field(default_factory=TrackingConfig)  # prior / smoothness weights, huber
 
     def __post_init__(self):
@@ -630,54 +627,11 @@ def fit_photometric(head: HeadModel, init: HeadParams, targets: PhotometricTarge
     appearance fitted on a sample of all its frames): no albedo initialisation and no appearance-only epochs."""
     if init.batch != targets.frames:
         raise ValueError(f"photometric: {init.batch} frames of parameters but {targets.frames} images")
-    if config.image_stride > 1 and init.batch > 2:
-        return _fit_strided(head, init, targets, config, landmarks, progress, appearance_start)
     fit = _PhotometricFit(head, init.detach().map(lambda x: x.float()), targets, config, landmarks, appearance_start)
     for size, epochs, appearance_only in _schedule(config, appearance_start is not None):
         if epochs > 0:
             fit.run_stage(size, epochs, appearance_only, progress)
     return fit.result()
-
-
-def _fit_strided(head, init, targets, config, landmarks, progress, appearance_start) -> PhotometricResult:
-    from dataclasses import replace
-    T, k = init.batch, config.image_stride
-    rows = torch.arange(0, T, k)
-    if rows[-1] != T - 1:
-        rows = torch.cat([rows, torch.tensor([T - 1])])
-    sub_targets = PhotometricTargets(targets.images[rows], targets.masks[rows], targets.viewmat[rows], targets.K[rows],
-                                     targets.K_source[rows])
-    sub_marks = None if landmarks is None else LandmarkTargets(landmarks.points[rows], landmarks.size[rows],
-                                                               landmarks.weights, landmarks.confidence[rows])
-    two_pass = __import__("os").environ.get("TWO_PASS") == "1"
-    sub_config = replace(config, image_stride=1, epochs=tuple(config.epochs[:-1]) + (0,)) if two_pass else \
-        replace(config, image_stride=1)
-    sub = fit_photometric(head, init.rows(rows), sub_targets, sub_config, sub_marks, progress, appearance_start)
-    init = init.detach().map(lambda x: x.float())
-    where = torch.arange(T, dtype=torch.float32)
-    known = rows.float()
-    upper = torch.searchsorted(known, where).clamp(1, len(known) - 1)
-    lower = upper - 1
-    w = ((where - known[lower]) / (known[upper] - known[lower])).clamp(0, 1)
-    values = {}
-    for key in FRAME_KEYS:
-        correction = getattr(sub.params, key) - getattr(init, key)[rows]  # [S, ...]
-        if __import__("os").environ.get("INTERP_VALUES") == "1":
-            correction = getattr(sub.params, key)
-            shape = (-1,) + (1,) * (correction.ndim - 1)
-            values[key] = correction[lower] * (1 - w).reshape(shape) + correction[upper] * w.reshape(shape)
-            continue
-        shape = (-1,) + (1,) * (correction.ndim - 1)
-        values[key] = getattr(init, key) + correction[lower] * (1 - w).reshape(shape) + correction[upper] * w.reshape(shape)
-    params = HeadParams(shape=sub.params.shape, static_offset=init.static_offset, **values)
-    if two_pass:
-        final = replace(config, image_stride=1, epochs=(0,) * (len(config.epochs) - 1) + tuple(config.epochs[-1:]))
-        return fit_photometric(head, params, targets, final, landmarks, progress, (sub.albedo, sub.light))
-    residual = np.full(T, np.nan)
-    before = np.full(T, np.nan)
-    residual[rows.numpy()] = sub.residual
-    before[rows.numpy()] = sub.residual_before
-    return replace(sub, params=params, residual=residual, residual_before=before)
 
 
 def _nanmean(values: np.ndarray) -> float:
