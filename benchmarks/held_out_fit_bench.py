@@ -3,7 +3,8 @@
     .venv/bin/python benchmarks/held_out_fit_bench.py RUN --variants 30 10 10:carry 10:carry@128 [--threads 1]
 
 For each variant (Adam steps per frame, `:carry` = start each frame from the previous frame's correction,
-train/avatar_tracking.py, `@SIZE` = fitted on images of that longer side instead of the run's) the run's test frames are fitted against its avatar (as `geoavatar track --avatar`
+train/avatar_tracking.py, `*R` = every rate of AvatarTrackingConfig times R, `@SIZE` = fitted on images of that
+longer side instead of the run's) the run's test frames are fitted against its avatar (as `geoavatar track --avatar`
 does) and rendered; PSNR as `geoavatar eval` measures it (the render on the dataset's background against the
 image composited on it, mean over frames). The row `tracked` renders the dataset's own parameters (no fit).
 Prints a Markdown table; writes RUN/held_out_fit_bench.json.
@@ -23,7 +24,7 @@ import torch
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("run", type=Path)
-    parser.add_argument("--variants", nargs="+", default=["30", "10:carry"])
+    parser.add_argument("--variants", nargs="+", default=["30", "10:carry"], help="STEPS[:carry][*RATE][@SIZE]")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--max-frames", type=int, default=None)
     args = parser.parse_args()
@@ -58,8 +59,10 @@ def main() -> None:
     rows = [{"variant": "tracked", "s_per_frame": 0.0, "psnr": held_out_psnr(None)}]
     for variant in args.variants:
         name, _, size = variant.partition("@")
+        name, _, factor = name.partition("*")
         steps, _, carry = name.partition(":")
         config = AvatarTrackingConfig(steps=int(steps), carry=carry == "carry")
+        config.rates = {key: rate * float(factor or 1) for key, rate in config.rates.items()}
         fit_on = test if not size else HeadAvatarDataset(test.subject, "test", DataConfig(resolution=int(size),
                                                                                           cache="none"))
         started = time.perf_counter()
