@@ -282,6 +282,19 @@ def test_zero_gaussians():
     assert scene["means"].grad is None or scene["means"].grad.numel() == 0
 
 
+def test_a_gaussian_that_misses_every_pixel_centre_of_its_tiles():
+    """A faint sub-pixel Gaussian on a pixel corner: its box touches a tile, but its alpha is under 1/255 at every pixel
+    centre, so the tile's chunk has no row left after the cull (this crashed the torch backend's scan)."""
+    means = torch.tensor([[0.0, 0.0, 1.0]], dtype=F64, requires_grad=True)
+    K = torch.tensor([[50.0, 0.0, 16.0], [0.0, 50.0, 16.0], [0.0, 0.0, 1.0]], dtype=F64)
+    out = rasterize(means, torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=F64), torch.full((1, 3), 1e-4, dtype=F64),
+                    torch.tensor([0.006], dtype=F64), torch.ones(1, 3, dtype=F64), torch.eye(4, dtype=F64), K, 32, 32,
+                    backend="torch")
+    assert int(out.radii.min()) > 0 and out.alpha.abs().max() == 0  # in the plan, yet on no pixel
+    out.rgb.sum().backward()
+    assert means.grad is not None and means.grad.abs().max() == 0
+
+
 def test_float32_close_to_float64_reference():
     scene64 = make_scene(6)
     scene32 = {k: (v.float() if torch.is_tensor(v) else v) for k, v in scene64.items()}

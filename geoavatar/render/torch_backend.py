@@ -220,6 +220,8 @@ def _tile_basis(tile_size: int, dtype, device) -> Tensor:
 def _segment_exclusive_cumsum(values: Tensor, seg: Tensor, seg_first_row: Tensor) -> Tensor:
     """Column-wise sum over the earlier rows of the same tile ([m, P]; use float64 for precision)."""
     exclusive = torch.cumsum(values, 0) - values
+    if values.shape[0] == 0:  # a chunk whose Gaussians all miss its pixel centres: no row to index
+        return exclusive
     return exclusive - exclusive.index_select(0, seg_first_row).index_select(0, seg)
 
 
