@@ -40,7 +40,8 @@ class HeldOutFitConfig:
     """Adam steps per frame and the carry between neighbouring frames (BENCHMARKS.md, Time to a good avatar)."""
 
     # 10 / 20 / 30 steps with carry: held-out PSNR duda 34.48 / 34.91 / 35.08 dB, d3 25.42 / 25.60 / 25.66, at
-    # 1 / 1.75 / 2.6 times the fit's time: 20 brings duda within #40's 0.3 dB of prepare's old gaussian stage (34.84)
+    # 1 / 1.75 / 2.4-2.6 times the fit's time: 20 brings duda within #40's 0.3 dB of prepare's old gaussian stage
+    # (34.84)
     steps: int = 20
     carry: bool = True
 
