@@ -10,7 +10,8 @@ With `--avatar RUN` the appearance model is a trained avatar instead (train/avat
 frame's parameters are fitted so that the avatar explains its image. On the run's own dataset the frames
 it trained on keep the run's refined parameters (training already fitted them against the avatar) unless
 `--refit-trained`; the others, the held-out frames, are fitted. On any other dataset of the same person
-(a new clip, prepared with `prepare`) every frame is fitted.
+(a new clip, prepared with `prepare`) every frame is fitted. The fit is train's held-out fit (train/held_out_fit.py):
+its steps, each frame from the previous frame's correction when that renders closer, on one thread.
 """
 
 from __future__ import annotations
@@ -30,9 +31,10 @@ from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.head.params import FRAME_KEYS, HeadParams
 from geoavatar.prep.photometric import PhotometricConfig
 from geoavatar.train.avatar_tracking import AvatarTrackingConfig
+from geoavatar.train.held_out_fit import HeldOutFitConfig
 
 _DEFAULTS = PhotometricConfig()  # the command's defaults are the fit's own (and prepare's photometric stage's)
-_AVATAR_DEFAULTS = AvatarTrackingConfig()
+_AVATAR_DEFAULTS = HeldOutFitConfig()  # train's last stage: its steps, each frame from its neighbour's correction
 
 DatasetPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATASET")]
 REPORT_FILE = "track.json"
@@ -119,7 +121,7 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
     if len({frame.camera for frame in subject.frames}) > 1:
         raise TrackError(f"{subject.root}: several cameras; geoavatar track fits monocular datasets only")
     try:
-        config = AvatarTrackingConfig(steps=steps)
+        config = AvatarTrackingConfig(steps=steps, carry=_AVATAR_DEFAULTS.carry)
     except ValueError as err:
         raise OptionError(f"--steps: {err}") from None
     trained = _trained_timesteps(subject, run, refit_trained)
@@ -214,8 +216,8 @@ def track(
             sub-triangles' centroids; 1.8-2.5x the cost, no more accurate at 128 px).
         fit_shape: Refine the identity shape too.
         avatar: A trained run (RUN folder) of this person: fit every per-frame parameter against its avatar instead
-            of the mesh-bound albedo, each frame alone; the options above do not apply. On the run's own dataset,
-            the frames it trained on keep its refined parameters.
+            of the mesh-bound albedo, each frame from the previous frame's correction (as train's held-out fit); the
+            options above do not apply. On the run's own dataset, the frames it trained on keep its refined parameters.
         steps: With --avatar: Adam steps per frame.
         refit_trained: With --avatar on the run's own dataset: fit its training frames too.
         device: With --avatar: where the avatar renders (auto: CUDA when available).
