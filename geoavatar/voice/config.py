@@ -24,8 +24,6 @@ class VoiceConfig:
     velocity_weight: float = 1.0  # how much the frame-to-frame change counts beside the frame itself
     upper_weight: float = 0.5  # upper-face vertices against lip vertices in the loss
     augment: float = 0.8  # share of steps with a random recording condition (inputs.Augmentation)
-    spec_mask: float = 0.0  # EXPERIMENT: share of windows with one band mask and one time mask (SpecAugment)
-    target_rank: int = 0  # EXPERIMENT: targets projected on their top modes in the vertex metric (0: off)
     # the share of the training frames that chooses the step kept: each member of the ensemble holds out its own
     # block of it (member k's ends at (k + 1) / members of the frames, in time) and learns from the rest, so the
     # ensemble learns from every frame; on french.mp4 held-out r 0.68 -> 0.72 and LVE -8 % against one shared last

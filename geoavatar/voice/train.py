@@ -114,32 +114,6 @@ def _runs(count: int, config: VoiceConfig, rng: np.random.Generator) -> torch.Te
     return torch.as_tensor(starts[:, None] + np.arange(config.run_length)[None]).clamp_max(count - 1)
 
 
-def _spec_mask(inputs: torch.Tensor, share: float, rng: np.random.Generator) -> torch.Tensor:
-    """SpecAugment on [N, M, W] windows: in a `share` of them one run of up to 8 bands and one of up to 6 frames
-    set to 0 (the recording's mean speech)."""
-    n, m, w = inputs.shape
-    out = inputs.clone()
-    for i in np.flatnonzero(rng.random(n) < share):
-        f = int(rng.integers(1, 9)); f0 = int(rng.integers(0, m - f + 1))
-        t = int(rng.integers(1, 7)); t0 = int(rng.integers(0, w - t + 1))
-        out[i, f0:f0 + f] = 0.0
-        out[i, :, t0:t0 + t] = 0.0
-    return out
-
-
-def _project_targets(z: torch.Tensor, metric: torch.Tensor, rank: int) -> torch.Tensor:
-    """[N, D] standardised targets kept on their `rank` largest modes in the vertex metric [D, D]."""
-    values, vectors = torch.linalg.eigh(metric.double())
-    root = vectors @ torch.diag(values.clamp_min(1e-12).sqrt()) @ vectors.T
-    inverse = vectors @ torch.diag(values.clamp_min(1e-12).rsqrt()) @ vectors.T
-    y = z.double() @ root  # [N, D] metric-whitened
-    centre = y.mean(0)
-    _, _, vt = torch.linalg.svd(y - centre, full_matrices=False)
-    basis = vt[:rank].T  # [D, k]
-    kept = (y - centre) @ basis @ basis.T + centre
-    return (kept @ inverse).float()
-
-
 class _Trainer:
     """One voice model's optimisation (see the module docstring); `step` and `validate` on the data given."""
 
@@ -153,7 +127,6 @@ class _Trainer:
             if block.stop - block.start < count:
                 self.learns[member, block] = False
         self.z = (data.targets - mean) / std  # [N, D]
-        self.learned = _project_targets(self.z, metric, config.target_rank) if config.target_rank > 0 else self.z
         self.rng = np.random.default_rng([config.seed, 0x701CE])
         self.optimiser = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
         # the rate falls along a half cosine to a tenth: late steps settle instead of jumping between minima
@@ -189,12 +162,8 @@ class _Trainer:
     def step(self) -> float:
         self.net.train()
         rows = _runs(len(self.z), self.config, self.rng)  # [R, L] anywhere; each member's block is masked
-        inputs = windows(self._features(), self.data.centres[rows.reshape(-1)], self.past, self.ahead)
-        if self.config.spec_mask > 0:
-            inputs = _spec_mask(inputs, self.config.spec_mask, self.rng)
-        predicted = self.net(inputs)
-        loss = self._loss(predicted.reshape(predicted.shape[0], *rows.shape, -1), self.learned[rows],
-                          self.learns[:, rows])
+        predicted = self.net(windows(self._features(), self.data.centres[rows.reshape(-1)], self.past, self.ahead))
+        loss = self._loss(predicted.reshape(predicted.shape[0], *rows.shape, -1), self.z[rows], self.learns[:, rows])
         self.optimiser.zero_grad(set_to_none=True)
         loss.backward()
         self.optimiser.step()
