@@ -82,12 +82,11 @@ def training_fit_openings(run, subject, blocks: int) -> None:
     import torch
 
     from geoavatar.train.avatar_tracking import AvatarTrackingConfig, dataset_frames, track_frames
-    from geoavatar.train.checkpoint import load_run, open_run_dataset
+    from geoavatar.train.checkpoint import open_run_dataset
     from geoavatar.train.held_out_fit import BLOCK, HeldOutFitConfig
     from geoavatar.train.run_frames import RunFrames
     from geoavatar.voice.face import FaceProbe
 
-    run = load_run(run.info.run_dir, "cpu")  # with the avatar
     train = open_run_dataset(run, "train")
     count = len(train.timesteps)
     starts = [int((count - BLOCK) * (k + 0.5) / blocks) for k in range(blocks)]
@@ -117,9 +116,9 @@ def training_fit_openings(run, subject, blocks: int) -> None:
           f"{tracker.mean():.2f}; fit - run's {np.mean(fit - learned):+.2f} mm (std {np.std(fit - learned):.2f}, "
           f"r {np.corrcoef(fit, learned)[0, 1]:.3f})")
     test = [int(t) for t in run.info.timesteps["test"]]
-    reference = opening(frames.values.expr[[frames.row(t) for t in test]],
-                        frames.values.jaw_pose[[frames.row(t) for t in test]])
-    tracked = opening(subject.params["expr"][[row[t] for t in test]], subject.params["jaw_pose"][[row[t] for t in test]])
+    fitted_rows, tracker_rows = [frames.row(t) for t in test], [row[t] for t in test]
+    reference = opening(frames.values.expr[fitted_rows], frames.values.jaw_pose[fitted_rows])
+    tracked = opening(subject.params["expr"][tracker_rows], subject.params["jaw_pose"][tracker_rows])
     print(f"the {len(test)} held-out frames: the run's fit {reference.mean():.2f} mm, the tracker's {tracked.mean():.2f}; "
           f"fit - tracker's {np.mean(reference - tracked):+.2f} mm (r {np.corrcoef(reference, tracked)[0, 1]:.3f})")
 
