@@ -41,14 +41,14 @@ def main() -> None:
     held_out = read_held_out(args.run, run.info.step)
     if held_out is None:
         raise SystemExit(f"{args.run}: no held-out fit for its checkpoint")
-    timesteps, fitted = held_out
+    timesteps, fitted, scored = held_out.timesteps, held_out.rows, set(held_out.scored)
     fit_row = {t: i for i, t in enumerate(timesteps)}
     ids = run.head.landmark_ids.cpu().numpy()  # [L] MediaPipe ids of the model's landmarks
     position = {int(m): i for i, m in enumerate(ids)}
     lips = [position[m] for m in LIPS if m in position]
     scores: dict[str, list] = {"tracker": [], "fit": []}
     openings: dict[str, list] = {"mediapipe": [], "tracker": [], "fit": []}
-    for frame in test.frames:
+    for frame in (frame for frame in test.frames if frame.timestep in scored):  # not the rows filled between
         detected = detected_all[frame.timestep][:, :2]  # [478, 2]
         width = float(np.linalg.norm(detected[234] - detected[454]))
         openings["mediapipe"].append(np.linalg.norm(detected[INNER_UPPER] - detected[INNER_LOWER]) / width)
@@ -63,7 +63,7 @@ def main() -> None:
                                  torch.from_numpy(frame.K).float()[None])[0][0].numpy()  # [L, 2]
             scores[name].append(np.linalg.norm(pixels[lips] - detected[ids[lips]], axis=-1).mean() / width)
             openings[name].append(np.linalg.norm(pixels[position[INNER_UPPER]] - pixels[position[INNER_LOWER]]) / width)
-    report = {"frames": len(test.frames)}
+    report = {"frames": len(openings["fit"])}
     mediapipe = np.asarray(openings["mediapipe"])
     for name in ("tracker", "fit"):
         opening = np.asarray(openings[name])
@@ -72,10 +72,11 @@ def main() -> None:
                         "opening_bias": round(float((opening - mediapipe).mean()), 5),
                         "opening_mean_error": round(float(np.abs(opening - mediapipe).mean()), 5)}
     rows = {t: i for i, t in enumerate(test.subject.timesteps)}
-    position_in_block = np.arange(len(timesteps)) % BLOCK < BLOCK // 2
+    picked = [i for i, t in enumerate(timesteps) if t in scored]  # the fitted rows, in the blocks' order
+    position_in_block = np.arange(len(picked)) % BLOCK < BLOCK // 2
     for key in ("expr", "jaw_pose", "rotation", "translation"):
-        tracked = test.subject.params[key][[rows[t] for t in timesteps]].numpy().reshape(len(timesteps), -1)
-        moved = np.linalg.norm(fitted[key].reshape(len(timesteps), -1)[:, :tracked.shape[1]] - tracked, axis=1)
+        tracked = test.subject.params[key][[rows[timesteps[i]] for i in picked]].numpy().reshape(len(picked), -1)
+        moved = np.linalg.norm(fitted[key][picked].reshape(len(picked), -1)[:, :tracked.shape[1]] - tracked, axis=1)
         report[f"fit_moved_{key}"] = {"first_half_of_blocks": round(float(moved[position_in_block].mean()), 4),
                                       "second_half_of_blocks": round(float(moved[~position_in_block].mean()), 4)}
     print(json.dumps(report, indent=1))

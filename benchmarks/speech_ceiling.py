@@ -115,7 +115,7 @@ def training_fit_openings(run, subject, blocks: int) -> None:
           f"lips' opening mean: fit {fit.mean():.2f} mm, the run's rows {learned.mean():.2f}, the tracker's "
           f"{tracker.mean():.2f}; fit - run's {np.mean(fit - learned):+.2f} mm (std {np.std(fit - learned):.2f}, "
           f"r {np.corrcoef(fit, learned)[0, 1]:.3f})")
-    test = [int(t) for t in run.info.timesteps["test"]]
+    test = [int(t) for t in run.info.held_out_scored or run.info.timesteps["test"]]  # not the rows filled between
     fitted_rows, tracker_rows = [frames.row(t) for t in test], [row[t] for t in test]
     reference = opening(frames.values.expr[fitted_rows], frames.values.jaw_pose[fitted_rows])
     tracked = opening(subject.params["expr"][tracker_rows], subject.params["jaw_pose"][tracker_rows])

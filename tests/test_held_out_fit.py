@@ -18,7 +18,8 @@ from geoavatar.render.camera import Camera
 from geoavatar.train import held_out_fit
 from geoavatar.train.avatar_tracking import AvatarFrame, AvatarTrackingConfig, track_frames
 from geoavatar.train.checkpoint import load_run
-from geoavatar.train.held_out_fit import HELD_OUT_FILE, HeldOutFitConfig, fit_held_out
+from geoavatar.train.held_out_fit import (HELD_OUT_FILE, RUN_LENGTH, WARM_UP, HeldOutFitConfig, fill_between,
+                                          fit_held_out, fit_plan)
 from geoavatar.train.run_frames import RunFrames
 
 
@@ -119,3 +120,53 @@ def test_eval_says_where_the_test_parameters_came_from_and_a_stale_fit_is_ignore
     assert eval_runs([run_dir], mouth=False, floaters=False, faces=False, max_frames=1, progress=False) == 0
     settings = json.loads((run_dir / "eval" / "test" / "metrics.json").read_text())["settings"]
     assert settings["test_params"] == "as the dataset holds them (no prepare or track report beside it)"
+
+
+def test_a_long_split_is_fitted_in_runs_of_neighbours_spread_over_it():
+    blocks, scored = fit_plan(70, 144)
+    assert [len(b) for b in blocks] == [16, 16, 16, 16, 6] and scored == list(range(70))  # all of a short video's
+    blocks, scored = fit_plan(302, 144)
+    picked = np.concatenate(blocks)
+    assert len(picked) == 144 and picked[0] == 0 and picked[-1] == 301 and len(blocks) == 6
+    runs = picked.reshape(-1, RUN_LENGTH)  # [24, 6] neighbours each, gaps between
+    assert (np.diff(runs, axis=1) == 1).all() and (np.diff(runs[:, 0]) > RUN_LENGTH).all()
+    assert scored == runs[:, WARM_UP:].reshape(-1).tolist()  # a run's first frames hand their correction on
+
+
+def test_rows_between_fitted_frames_carry_their_neighbours_correction():
+    timesteps = [10, 11, 12, 13, 14]
+    tracked = {"translation": np.arange(15, dtype=np.float32).reshape(5, 3)}  # [N, 3]
+    picked = [1, 3]
+    fitted = {"translation": tracked["translation"][picked] + np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 3.0]], np.float32)}
+    rows = fill_between(timesteps, tracked, picked, fitted)["translation"]
+    correction = rows[:, 2] - tracked["translation"][:, 2]
+    assert np.allclose(correction, [1.0, 1.0, 2.0, 3.0, 3.0])  # held beyond the ends, linear between
+    assert np.array_equal(rows[picked], fitted["translation"]) and np.allclose(rows[:, :2], tracked["translation"][:, :2])
+
+
+def test_a_long_test_split_is_fitted_in_runs_and_eval_scores_their_scored_frames(tmp_path):
+    from geoavatar.apps.eval import eval_runs
+
+    data = make_subject(tmp_path / "data", frames=40, size=64)
+    run_dir = make_untrained_run(data, tmp_path / "run", init_opacity=0.9)
+    before = load_run(run_dir, torch.device("cpu"))
+    test = before.info.timesteps["test"]
+    assert len(test) > RUN_LENGTH
+    report = fit_held_out(run_dir, HeldOutFitConfig(steps=1, max_frames=RUN_LENGTH), workers=1, progress=False,
+                          log=lambda line: None)
+    assert report["frames"] == RUN_LENGTH and report["scored_frames"] == RUN_LENGTH - WARM_UP
+    assert report["test_frames"] == len(test)
+    run = load_run(run_dir, torch.device("cpu"))
+    assert sorted(run.info.held_out) == sorted(test)  # every test frame has its row (the others filled between)
+    assert run.info.held_out_scored == test[WARM_UP:RUN_LENGTH]  # one run, from the start
+    frames, start = RunFrames(run), RunFrames(before)
+    last = test[RUN_LENGTH - 1]
+    for t in test[RUN_LENGTH:]:  # beyond the run: the tracker's rows plus the last fitted frame's correction
+        correction = frames.values.translation[frames.row(last)] - start.values.translation[start.row(last)]
+        assert torch.allclose(frames.values.translation[frames.row(t)],
+                              start.values.translation[start.row(t)] + correction, atol=1e-6)
+    assert eval_runs([run_dir], mouth=False, floaters=False, faces=False, progress=False) == 0
+    metrics = json.loads((run_dir / "eval" / "test" / "metrics.json").read_text())
+    assert [f["timestep"] for f in metrics["frames"]] == test[WARM_UP:RUN_LENGTH]
+    assert metrics["settings"]["frames_left_out_unscored"] == len(test) - (RUN_LENGTH - WARM_UP)
+    assert f"{RUN_LENGTH - WARM_UP} of the {len(test)} held-out frames scored" in metrics["settings"]["test_params"]

@@ -23,6 +23,7 @@ from geoavatar.config import (ABLATIONS, CPU_RESOLUTION, CPU_STEPS, DEFAULT_PRES
                               TrainConfig, config_values, preset as make_preset, with_values)
 from geoavatar.data.splits import ShortVideoWarning
 from geoavatar.errors import GeoAvatarError, OptionError
+from geoavatar.train.held_out_fit import MAX_FRAMES
 from geoavatar.train.options import RunOptions
 from geoavatar.train.trainer import train as run_training
 
@@ -79,6 +80,11 @@ class TrainArgs:
     # its own frames' (RUN/held_out.npz; eval and every command then render them so). The avatar never sees their
     # pixels while it learns. --no-held-out-fit keeps the tracker's parameters for them.
     held_out_fit: bool = True
+    # The held-out frames that fit fits at most (0: all). A longer test split is fitted in runs of neighbouring
+    # frames spread evenly over it, and eval scores those runs; the frames between them render with the tracker's
+    # parameters plus their fitted neighbours' correction. The default fits a 12-s video's ~70 held-out frames all,
+    # and bounds the fit's time on a long video (train/held_out_fit.py).
+    held_out_frames: int = MAX_FRAMES
     # Also learn the voice model when the dataset has speech (geoavatar voice; RUN/voice/): sound -> face, from the
     # training frames only. --no-voice skips it.
     voice: bool = True
@@ -171,20 +177,21 @@ def train(args: TrainArgs) -> int:
     print(f"{summary}\nrun: {result.run_dir}")
     if result.status != "finished":
         return 130
-    if args.held_out_fit and not _fit_held_out(result.run_dir, options):
+    if args.held_out_fit and not _fit_held_out(result.run_dir, options, args.held_out_frames):
         return 130
     if args.voice:
         _learn_voice(result.run_dir, options)
     return 0
 
 
-def _fit_held_out(run_dir, options: RunOptions) -> bool:
-    """The held-out frames fitted against the finished avatar (train/held_out_fit.py; silent without test frames);
-    False on Ctrl-C (the avatar is saved; the fit writes nothing until it is complete)."""
-    from geoavatar.train.held_out_fit import fit_held_out
+def _fit_held_out(run_dir, options: RunOptions, frames: int) -> bool:
+    """The held-out frames (at most `frames` of them, 0: all) fitted against the finished avatar
+    (train/held_out_fit.py; silent without test frames); False on Ctrl-C (the avatar is saved; the fit writes nothing
+    until it is complete)."""
+    from geoavatar.train.held_out_fit import HeldOutFitConfig, fit_held_out
 
     try:
-        fit_held_out(run_dir, progress=options.progress)
+        fit_held_out(run_dir, HeldOutFitConfig(max_frames=frames or None), progress=options.progress)
     except KeyboardInterrupt:
         print(f"held-out fit: interrupted; the avatar is saved, and its held-out frames keep the tracker's parameters "
               f"until `geoavatar train --out {run_dir} --resume` fits them")
@@ -235,6 +242,8 @@ def _check_options(args: TrainArgs, options: RunOptions) -> None:
                         ("--log-every", options.log_every)):
         if value is not None and not value > 0:
             raise OptionError(f"{name} must be positive, got {value}")
+    if args.held_out_frames < 0:
+        raise OptionError(f"--held-out-frames must be 0 (all of them) or positive, got {args.held_out_frames}")
     if args.minutes is not None and args.steps is not None:
         raise OptionError("--minutes and --steps together: give one (--minutes chooses the steps)")
     if args.schedule is not None:

@@ -412,6 +412,8 @@ class _Evaluation:
             "split": config.split,
             "frames_in_split": len(dataset),
             "frames_evaluated": len(self.indices),
+            "frames_left_out_unscored": sum(f.timestep in unscored_timesteps(run, dataset.subject.root)
+                                            for f in dataset.frames),
             "max_frames": config.max_frames,
             "data_root": str(dataset.subject.root),
             "resolution": run.info.resolution,
@@ -464,7 +466,7 @@ def evaluate_run(
     dataset = open_run_dataset(run, config.split, data, flame_dir)
     if len(dataset) == 0:
         raise RunError(f"{run.info.run_dir}: the '{config.split}' split of {dataset.subject.root} is empty")
-    indices = evenly_spaced(len(dataset), config.max_frames)
+    indices = scored_indices(run, dataset, config.max_frames)
     evaluation = _Evaluation(run, config, dataset, indices, data, flame_dir)
     bar = tqdm(total=len(indices), disable=not progress, dynamic_ncols=True, unit="frame",
                desc=f"eval {run_label(run)[0]}")
@@ -478,6 +480,22 @@ def evaluate_run(
         bar.close()
         evaluation.close()
     return evaluation.result(time.perf_counter() - started)
+
+
+def scored_indices(run: LoadedRun, dataset: HeadAvatarDataset, max_frames: int | None) -> list[int]:
+    """The items of `dataset` that eval scores: `max_frames` of them spread evenly (None: all), leaving out, on the
+    run's own dataset, the held-out frames that train's held-out fit did not score (a long video's: the frames
+    between its runs and their warm-ups, train/held_out_fit.py)."""
+    unscored = unscored_timesteps(run, dataset.subject.root)
+    candidates = [i for i, frame in enumerate(dataset.frames) if frame.timestep not in unscored]
+    return [candidates[i] for i in evenly_spaced(len(candidates), max_frames)]
+
+
+def unscored_timesteps(run: LoadedRun, root: str | Path) -> set[int]:
+    """The held-out timesteps whose rows train's held-out fit wrote but does not score (filled between its runs, or
+    a run's warm-up), for the dataset folder `root` (none unless it is the run's own)."""
+    unscored = set(run.info.held_out) - set(run.info.held_out_scored)
+    return unscored if unscored and is_own_dataset(run.info.data_root, root) else set()
 
 
 def face_scorer(run: LoadedRun, data: str | Path | None = None, flame_dir: str | Path | None = None) -> FaceScorer:
@@ -498,7 +516,10 @@ def test_params_source(run: LoadedRun, root: str | Path, fitted: bool = True) ->
     if fitted and run.info.held_out and is_own_dataset(run.info.data_root, root):
         report = _read_json(Path(run.info.run_dir) / HELD_OUT_REPORT)
         steps = f", {report['steps']} Adam steps a frame" if "steps" in report else ""
-        return f"fitted against this avatar after training (geoavatar train's held-out fit{steps})"
+        scored, held_out = len(run.info.held_out_scored), len(run.info.held_out)
+        some = (f"; {scored} of the {held_out} held-out frames scored, in runs spread evenly" if scored < held_out
+                else "")
+        return f"fitted against this avatar after training (geoavatar train's held-out fit{steps}{some})"
     track = _read_json(root / "track.json")
     if "avatar_tracking" in track:
         return f"geoavatar track --avatar {track['avatar_tracking'].get('avatar', '?')} (the copy's track.json)"
@@ -585,5 +606,5 @@ def frame_dicts(result: EvalResult) -> list[dict]:
 __all__ = [
     "EvalConfig", "EvalResult", "FrameMetrics", "METRIC_NAMES", "RenderedFrame", "SPLITS", "crop_box",
     "evaluate_run", "frame_dicts", "mouth_face_mask", "mouth_mask", "open_run_dataset",
-    "render_run_frames", "run_label", "summarize",
+    "render_run_frames", "run_label", "scored_indices", "summarize", "unscored_timesteps",
 ]

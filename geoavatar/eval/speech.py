@@ -204,6 +204,8 @@ def write_speech_report(result: SpeechResult, folder: Path) -> dict[str, Path]:
                "tracked": result.scores.get("tracked", {}), "settings": result.settings,
                "units": {"lip_vertex_error": "m^2", "upper_face_dynamics": "m^2", "lag_ms": "ms"}}
     pictures = result.settings.get("picture_frames")
+    reference = result.settings.get("face_scores_reference")  # said when not simply every frame's row
+    reference = None if reference == "every held-out frame's row" else reference
     markdown = (f"# Speech-driven held-out frames: {result.label}\n\n{result.frames} held-out frames at "
                 f"{result.fps:g} fps, driven by their own sound (never heard in training)"
                 + (f"; PSNR, LPIPS and mouth PSNR over {pictures} of them, spread evenly" if pictures else "")
@@ -212,6 +214,7 @@ def write_speech_report(result: SpeechResult, folder: Path) -> dict[str, Path]:
                 + "\nvoice: the voice model; tracked: the held-out frames' tracked parameters (the reference the face "
                   "scores compare with; its pictures are the avatar's best), from "
                 + str(result.settings.get("test_params", "the dataset"))
+                + (f"; the face scores against {reference}" if reference else "")
                 + ". Baselines: mean_face, nearest, linear (geoavatar/eval/speech.py).\n")
     return {"json": atomic_write_json(folder / "metrics.json", payload),
             "markdown": atomic_write_text(folder / "metrics.md", markdown)}

@@ -316,6 +316,7 @@ class RunInfo:
     face_sets: torch.Tensor  # [F]
     run_options: dict = field(default_factory=dict)
     held_out: list[int] = field(default_factory=list)  # timesteps whose rows train's held-out fit wrote
+    held_out_scored: list[int] = field(default_factory=list)  # those eval scores (a long video's: some, the rest filled)
 
 
 def _lay_held_out_over(info: RunInfo) -> None:
@@ -325,7 +326,7 @@ def _lay_held_out_over(info: RunInfo) -> None:
     held_out = read_held_out(info.run_dir, info.step)
     if held_out is None:
         return
-    timesteps, rows = held_out
+    timesteps, rows = held_out.timesteps, held_out.rows
     row_of = {t: i for i, t in enumerate(info.timesteps["all"])}
     if any(t not in row_of for t in timesteps):
         return  # fitted on other frames: not this run's rows
@@ -336,6 +337,7 @@ def _lay_held_out_over(info: RunInfo) -> None:
             merged[index] = torch.as_tensor(values, dtype=merged.dtype)
             info.frame_params[key] = merged
     info.held_out = list(timesteps)
+    info.held_out_scored = list(held_out.scored)
 
 
 class LoadedRun(NamedTuple):

@@ -1,7 +1,7 @@
 """The held-out frames' head parameters fitted against the finished avatar: the last stage of `geoavatar train`.
 
     report = fit_held_out(run_dir, HeldOutFitConfig())     # writes RUN/held_out.npz and RUN/held_out.json
-    rows = read_held_out(run_dir, step)                    # {key: [N, ...]} and timesteps, or None (none / stale)
+    stored = read_held_out(run_dir, step)                  # HeldOutRows (timesteps, rows, fitted), or None (none / stale)
 
 Why: training refines the parameters of the frames it trains on against the avatar it learns
 (train/frame_params.py); the held-out frames keep the tracker's, whose appearance model (prepare's mesh-bound
@@ -15,8 +15,14 @@ the whole video that `prepare` once trained for the same purpose (a second train
 How: the test frames in fixed blocks of BLOCK frames, each block on a worker process (both cores busy, one
 torch thread each: geoavatar.workers), each frame from the previous frame's correction when that renders closer
 (AvatarTrackingConfig.carry), so fewer steps reach the full fit. The blocks do not depend on the worker count,
-so neither does the result. The rows are kept beside the checkpoint, tagged with its step: `load_run` lays them
-over the run's parameters while they belong to its checkpoint (an --extend makes them stale until refitted).
+so neither does the result. A long video (more than MAX_FRAMES test frames) is fitted on runs of RUN_LENGTH
+neighbours spread evenly over its test split, so the fit's time is bounded whatever the video's length: a frame's
+fit needs its neighbours' correction (the carry builds it up over a few frames), so the first WARM_UP frames of each
+run only hand their correction on and are not scored. The frames between the runs get the tracker's rows plus the
+correction interpolated from their fitted neighbours, so a render of the whole split stays smooth; `geoavatar eval`
+scores the scored ones (eval/evaluate.py). The rows are kept beside the checkpoint, tagged with its step: `load_run`
+lays them over the run's parameters while they belong to its checkpoint (an --extend makes them stale until
+refitted).
 """
 
 from __future__ import annotations
@@ -24,15 +30,19 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
 from geoavatar.head.params import FRAME_KEYS
 
-HELD_OUT_FILE = "held_out.npz"  # timesteps [N], step, and the per-frame keys [N, ...]
+HELD_OUT_FILE = "held_out.npz"  # timesteps [N], scored [N] (bool), step, and the per-frame keys [N, ...]
 HELD_OUT_REPORT = "held_out.json"
 BLOCK = 16  # frames per task: the carry restarts at each block
+MAX_FRAMES = 144  # test frames fitted at most: beyond, 24 runs of RUN_LENGTH, 96 of them scored
+RUN_LENGTH = 6  # a long video's runs of neighbouring frames...
+WARM_UP = 2  # ...whose first frames only hand their correction on (not scored)
+RUNS_PER_BLOCK = 4  # runs per worker task: the carry goes on across the gaps between them
 
 
 @dataclass
@@ -44,10 +54,16 @@ class HeldOutFitConfig:
     # (34.84)
     steps: int = 20
     carry: bool = True
+    # Test frames fitted at most (None: all), beyond which the fit takes runs spread evenly (module docstring). A
+    # 12-s video's ~70 are all fitted; all of a 50-s video's 302 took 9 minutes, a 3-minute video's ~1,080 would take
+    # over half an hour (BENCHMARKS.md, Time to a good avatar).
+    max_frames: int | None = MAX_FRAMES
 
     def __post_init__(self):
         if self.steps < 1:
             raise ValueError(f"held-out fit: need steps >= 1, got {self.steps}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise ValueError(f"held-out fit: need max_frames >= 1 (or None: all), got {self.max_frames}")
 
 
 def _fit_block(task: tuple) -> dict:
@@ -85,26 +101,66 @@ def fit_held_out(run_dir: Path, config: HeldOutFitConfig = HeldOutFitConfig(), w
     test = open_run_dataset(run, "test")
     if len(test) == 0:
         return None
-    blocks = [tuple(range(start, min(start + BLOCK, len(test)))) for start in range(0, len(test), BLOCK)]
+    blocks, scored = fit_plan(len(test), config.max_frames)  # indices into the test split, in time order
+    picked = [index for block in blocks for index in block]
     workers = max(1, min(workers or default_workers(), len(blocks)))
     started = time.perf_counter()
     tasks = [(str(run_dir), run.info.step, block, asdict(config)) for block in blocks]
-    with tqdm(total=len(test), desc="train: held-out fit", unit="frame", disable=not progress) as bar, \
+    with tqdm(total=len(picked), desc="train: held-out fit", unit="frame", disable=not progress) as bar, \
             WorkerPool(workers) as pool:
         results = pool.map(_fit_block, tasks, progress=bar.update)
     seconds = time.perf_counter() - started
-    timesteps = [t for result in results for t in result["timesteps"]]
-    rows = {key: np.concatenate([result["rows"][key] for result in results]) for key in FRAME_KEYS}  # [N, ...]
-    before = np.concatenate([result["before"] for result in results])  # [N] L1, NaN: empty mask
+    fitted = {key: np.concatenate([result["rows"][key] for result in results]) for key in FRAME_KEYS}  # [n, ...]
+    before = np.concatenate([result["before"] for result in results])  # [n] L1, NaN: empty mask
     after = np.concatenate([result["after"] for result in results])
+    timesteps = [int(frame.timestep) for frame in test.frames]  # [N] the whole test split
+    tracked = {key: np.concatenate([np.asarray(test.subject.frame_params(frame.row)[key]) for frame in test.frames])
+               for key in FRAME_KEYS}  # [N, ...] the tracker's rows
+    rows = fill_between(timesteps, tracked, picked, fitted)
     atomic_write_npz(Path(run_dir) / HELD_OUT_FILE, timesteps=np.asarray(timesteps, dtype=np.int64),
-                     step=np.asarray(run.info.step), **rows)
-    report = {"frames": len(timesteps), "checkpoint_step": run.info.step, **asdict(config), "workers": workers,
-              "seconds": round(seconds, 1), "l1_before": _nanmean(before), "l1": _nanmean(after)}
+                     scored=np.isin(np.arange(len(timesteps)), scored), step=np.asarray(run.info.step), **rows)
+    report = {"frames": len(picked), "scored_frames": len(scored), "test_frames": len(timesteps),
+              "checkpoint_step": run.info.step, **asdict(config), "workers": workers, "seconds": round(seconds, 1),
+              "l1_before": _nanmean(before), "l1": _nanmean(after)}
     atomic_write_json(Path(run_dir) / HELD_OUT_REPORT, report)
-    log(f"held-out fit: {len(timesteps)} test frames fitted against the avatar in {seconds:.0f} s "
+    some = (f"{len(picked)} of the {len(timesteps)} test frames ({len(scored)} scored)" if len(picked) < len(timesteps)
+            else f"{len(picked)} test frames")
+    log(f"held-out fit: {some} fitted against the avatar in {seconds:.0f} s "
         f"({config.steps} steps a frame, {workers} worker(s)); L1 {report['l1_before']:.4f} -> {report['l1']:.4f}")
     return report
+
+
+def fit_plan(count: int, limit: int | None) -> tuple[list[tuple[int, ...]], list[int]]:
+    """(blocks: tuples of indices into a test split of `count` frames, one worker task each, the carry running
+    through it; scored: the indices eval scores). Up to `limit` frames (None: no limit) every frame in blocks of
+    BLOCK; beyond, runs of RUN_LENGTH neighbours spread evenly, RUNS_PER_BLOCK to a block, without their first
+    WARM_UP frames in the scores. Fitted alone from a predecessor two to three frames away, the frames of french.mp4
+    scored 0.22 dB under the full fit's; in runs of four a run's n-th frame scored -0.38 / -0.21 / -0.12 / +0.04 dB
+    against it (BENCHMARKS.md, Time to a good avatar)."""
+    if limit is None or count <= max(limit, RUN_LENGTH):
+        return [tuple(range(s, min(s + BLOCK, count))) for s in range(0, count, BLOCK)], list(range(count))
+    starts = np.round(np.linspace(0, count - RUN_LENGTH, max(1, limit // RUN_LENGTH))).astype(int)
+    runs = [tuple(range(int(start), int(start) + RUN_LENGTH)) for start in starts]
+    blocks = [sum(runs[i:i + RUNS_PER_BLOCK], ()) for i in range(0, len(runs), RUNS_PER_BLOCK)]
+    return blocks, [index for run in runs for index in run[WARM_UP:]]
+
+
+def fill_between(timesteps: list[int], tracked: dict[str, np.ndarray], picked: list[int],
+                 fitted: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Rows [N, ...] of every test frame: the fitted rows at `picked` (indices into `timesteps`, rising), elsewhere
+    the tracker's row plus the fit's correction (fitted - tracked) interpolated linearly in time between the
+    nearest fitted frames (held beyond the ends). A frame's correction is not smooth in time (docs/REJECTED.md,
+    #40 ninth round), so these rows render a smooth video of the split but are not scored."""
+    times = np.asarray(timesteps, dtype=np.float64)
+    rows = {}
+    for key, values in tracked.items():
+        flat = values.reshape(len(times), -1).astype(np.float64)  # [N, D]
+        correction = fitted[key].reshape(len(picked), -1) - flat[picked]  # [n, D]
+        filled = np.stack([np.interp(times, times[picked], correction[:, d]) for d in range(flat.shape[1])], 1)
+        filled = flat + filled
+        filled[picked] = fitted[key].reshape(len(picked), -1)
+        rows[key] = filled.reshape(values.shape).astype(fitted[key].dtype)
+    return rows
 
 
 def _nanmean(values: np.ndarray) -> float | None:
@@ -112,16 +168,26 @@ def _nanmean(values: np.ndarray) -> float | None:
     return round(float(finite.mean()), 5) if finite.size else None
 
 
-def read_held_out(run_dir: Path, step: int) -> tuple[list[int], dict[str, np.ndarray]] | None:
-    """(timesteps [N], per-frame keys [N, ...]) of RUN/held_out.npz when it was fitted against the checkpoint of
-    `step`; None when there is none or it is stale (the run trained on since)."""
+class HeldOutRows(NamedTuple):
+    timesteps: list[int]  # [N] the test frames the file holds rows for
+    rows: dict[str, np.ndarray]  # per-frame keys [N, ...]
+    scored: list[int]  # the timesteps among them that eval scores (fitted, not warm-ups; the others: fill_between)
+
+
+def read_held_out(run_dir: Path, step: int) -> HeldOutRows | None:
+    """RUN/held_out.npz when it was fitted against the checkpoint of `step`; None when there is none or it is stale
+    (the run trained on since)."""
     path = Path(run_dir) / HELD_OUT_FILE
     if not path.is_file():
         return None
     with np.load(path, allow_pickle=False) as stored:
         if int(stored["step"]) != int(step):
             return None
-        return [int(t) for t in stored["timesteps"]], {key: stored[key] for key in FRAME_KEYS}
+        timesteps = [int(t) for t in stored["timesteps"]]
+        scored = stored["scored"] if "scored" in stored.files else np.ones(len(timesteps), bool)  # before the cap
+        return HeldOutRows(timesteps, {key: stored[key] for key in FRAME_KEYS},
+                           [t for t, was in zip(timesteps, scored) if was])
 
 
-__all__ = ["BLOCK", "HELD_OUT_FILE", "HELD_OUT_REPORT", "HeldOutFitConfig", "fit_held_out", "read_held_out"]
+__all__ = ["BLOCK", "HELD_OUT_FILE", "HELD_OUT_REPORT", "MAX_FRAMES", "RUN_LENGTH", "WARM_UP", "HeldOutFitConfig",
+           "HeldOutRows", "fill_between", "fit_held_out", "fit_plan", "read_held_out"]
