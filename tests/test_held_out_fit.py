@@ -131,6 +131,7 @@ def test_a_long_split_is_fitted_in_runs_of_neighbours_spread_over_it():
     runs = picked.reshape(-1, RUN_LENGTH)  # [24, 6] neighbours each, gaps between
     assert (np.diff(runs, axis=1) == 1).all() and (np.diff(runs[:, 0]) > RUN_LENGTH).all()
     assert scored == runs[:, WARM_UP:].reshape(-1).tolist()  # a run's first frames hand their correction on
+    assert len(fit_plan(51, 2 * RUN_LENGTH)[0]) == 2  # two runs: a task each, both cores busy
 
 
 def test_rows_between_fitted_frames_carry_their_neighbours_correction():

@@ -187,7 +187,9 @@ def _evaluate_and_report(run_dir: Path, config: EvalConfig, split: str, test_par
     if test_params == "dataset" and folder.name == split:  # the run's own dataset: beside the fitted report
         folder = folder.with_name(f"{split}@dataset_params")
     written = write_run_report(result, folder)
-    print(f"{result.label}: {len(result.frames)} {split} frames in {result.seconds:.1f} s -> {written['json']}")
+    left_out = result.settings.get("frames_left_out_unscored") or 0
+    scored = f" (the held-out fit's runs; {left_out} frames between them not scored)" if left_out else ""
+    print(f"{result.label}: {len(result.frames)} {split} frames{scored} in {result.seconds:.1f} s -> {written['json']}")
     return result
 
 

@@ -42,7 +42,8 @@ BLOCK = 16  # frames per task: the carry restarts at each block
 MAX_FRAMES = 144  # test frames fitted at most: beyond, 24 runs of RUN_LENGTH, 96 of them scored
 RUN_LENGTH = 6  # a long video's runs of neighbouring frames...
 WARM_UP = 2  # ...whose first frames only hand their correction on (not scored)
-RUNS_PER_BLOCK = 4  # runs per worker task: the carry goes on across the gaps between them
+RUNS_PER_BLOCK = 4  # runs per worker task at most (fewer when that leaves a worker idle): the carry goes on across
+                    # the gaps between them
 
 
 @dataclass
@@ -141,7 +142,8 @@ def fit_plan(count: int, limit: int | None) -> tuple[list[tuple[int, ...]], list
         return [tuple(range(s, min(s + BLOCK, count))) for s in range(0, count, BLOCK)], list(range(count))
     starts = np.round(np.linspace(0, count - RUN_LENGTH, max(1, limit // RUN_LENGTH))).astype(int)
     runs = [tuple(range(int(start), int(start) + RUN_LENGTH)) for start in starts]
-    blocks = [sum(runs[i:i + RUNS_PER_BLOCK], ()) for i in range(0, len(runs), RUNS_PER_BLOCK)]
+    per_block = max(1, min(RUNS_PER_BLOCK, len(runs) // 2))  # two tasks at least: both cores busy
+    blocks = [sum(runs[i:i + per_block], ()) for i in range(0, len(runs), per_block)]
     return blocks, [index for run in runs for index in run[WARM_UP:]]
 
 
