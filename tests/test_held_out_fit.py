@@ -19,7 +19,7 @@ from geoavatar.train import held_out_fit
 from geoavatar.train.avatar_tracking import AvatarFrame, AvatarTrackingConfig, track_frames
 from geoavatar.train.checkpoint import load_run
 from geoavatar.train.held_out_fit import (HELD_OUT_FILE, RUN_LENGTH, WARM_UP, HeldOutFitConfig, fill_between,
-                                          fit_held_out, fit_plan)
+                                          fit_held_out, fit_plan, is_fitted)
 from geoavatar.train.run_frames import RunFrames
 
 
@@ -171,3 +171,7 @@ def test_a_long_test_split_is_fitted_in_runs_and_eval_scores_their_scored_frames
     assert [f["timestep"] for f in metrics["frames"]] == test[WARM_UP:RUN_LENGTH]
     assert metrics["settings"]["frames_left_out_unscored"] == len(test) - (RUN_LENGTH - WARM_UP)
     assert f"{RUN_LENGTH - WARM_UP} of the {len(test)} held-out frames scored" in metrics["settings"]["test_params"]
+    # a --resume of the finished run keeps a fit made with its settings, and fits again with others
+    assert is_fitted(run_dir, HeldOutFitConfig(steps=1, max_frames=RUN_LENGTH))
+    assert not is_fitted(run_dir, HeldOutFitConfig(steps=1, max_frames=None))
+    assert not is_fitted(run_dir, HeldOutFitConfig(steps=2, max_frames=RUN_LENGTH))

@@ -188,10 +188,14 @@ def _fit_held_out(run_dir, options: RunOptions, frames: int) -> bool:
     """The held-out frames (at most `frames` of them, 0: all) fitted against the finished avatar
     (train/held_out_fit.py; silent without test frames); False on Ctrl-C (the avatar is saved; the fit writes nothing
     until it is complete)."""
-    from geoavatar.train.held_out_fit import HeldOutFitConfig, fit_held_out
+    from geoavatar.train.held_out_fit import HeldOutFitConfig, fit_held_out, is_fitted
 
+    config = HeldOutFitConfig(max_frames=frames or None)
+    if is_fitted(run_dir, config):  # a --resume of a finished run: the fit is deterministic, so it would repeat itself
+        print(f"held-out fit: already done for this checkpoint with these settings ({run_dir}/held_out.json)")
+        return True
     try:
-        fit_held_out(run_dir, HeldOutFitConfig(max_frames=frames or None), progress=options.progress)
+        fit_held_out(run_dir, config, progress=options.progress)
     except KeyboardInterrupt:
         print(f"held-out fit: interrupted; the avatar is saved, and its held-out frames keep the tracker's parameters "
               f"until `geoavatar train --out {run_dir} --resume` fits them")

@@ -165,6 +165,22 @@ def fill_between(timesteps: list[int], tracked: dict[str, np.ndarray], picked: l
     return rows
 
 
+def is_fitted(run_dir: Path, config: HeldOutFitConfig) -> bool:
+    """Whether RUN/held_out.npz belongs to the run's last checkpoint and RUN/held_out.json says it was fitted with
+    `config` (the same frames, steps and carry give the same rows, whatever the worker count)."""
+    import json
+
+    from geoavatar.train.checkpoint import run_checkpoint_path, saved_step
+
+    try:
+        report = json.loads((Path(run_dir) / HELD_OUT_REPORT).read_text())
+    except (OSError, ValueError):
+        return False
+    step = saved_step(run_checkpoint_path(run_dir, "last"))
+    same = isinstance(report, dict) and all(report.get(key, "missing") == value for key, value in asdict(config).items())
+    return same and step is not None and read_held_out(run_dir, step) is not None
+
+
 def _nanmean(values: np.ndarray) -> float | None:
     finite = values[np.isfinite(values)]
     return round(float(finite.mean()), 5) if finite.size else None
@@ -192,4 +208,4 @@ def read_held_out(run_dir: Path, step: int) -> HeldOutRows | None:
 
 
 __all__ = ["BLOCK", "HELD_OUT_FILE", "HELD_OUT_REPORT", "MAX_FRAMES", "RUN_LENGTH", "WARM_UP", "HeldOutFitConfig",
-           "HeldOutRows", "fill_between", "fit_held_out", "fit_plan", "read_held_out"]
+           "HeldOutRows", "fill_between", "fit_held_out", "fit_plan", "is_fitted", "read_held_out"]
