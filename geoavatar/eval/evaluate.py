@@ -412,8 +412,7 @@ class _Evaluation:
             "split": config.split,
             "frames_in_split": len(dataset),
             "frames_evaluated": len(self.indices),
-            "frames_left_out_unscored": sum(f.timestep in unscored_timesteps(run, dataset.subject.root)
-                                            for f in dataset.frames),
+            "frames_left_out_unscored": len(dataset) - len(scored_indices(run, dataset, None)),
             "max_frames": config.max_frames,
             "data_root": str(dataset.subject.root),
             "resolution": run.info.resolution,
