@@ -1,7 +1,7 @@
 """The held-out frames' head parameters fitted against the finished avatar: the last stage of `geoavatar train`.
 
     report = fit_held_out(run_dir, HeldOutFitConfig())     # writes RUN/held_out.npz and RUN/held_out.json
-    stored = read_held_out(run_dir, step)                  # HeldOutRows (timesteps, rows, scored), or None (none / stale)
+    stored = read_held_out(run_dir, step)                  # HeldOutRows(timesteps, rows, scored); None: none / stale
 
 Why: training refines the parameters of the frames it trains on against the avatar it learns
 (train/frame_params.py); the held-out frames keep the tracker's, whose appearance model (prepare's mesh-bound
@@ -177,7 +177,8 @@ def is_fitted(run_dir: Path, config: HeldOutFitConfig) -> bool:
     except (OSError, ValueError):
         return False
     step = saved_step(run_checkpoint_path(run_dir, "last"))
-    same = isinstance(report, dict) and all(report.get(key, "missing") == value for key, value in asdict(config).items())
+    settings = asdict(config)
+    same = isinstance(report, dict) and all(report.get(key, "missing") == value for key, value in settings.items())
     return same and step is not None and read_held_out(run_dir, step) is not None
 
 
