@@ -83,8 +83,7 @@ def _fit_block(task: tuple) -> dict:
     fit = AvatarTrackingConfig(steps=config["steps"], carry=config["carry"])
     result = track_frames(run.avatar, run.head, run.deformer, dataset_frames(test, indices, run.device), fit,
                           progress=report_progress)
-    return {"timesteps": [int(test.timesteps[i]) for i in indices],
-            "rows": {key: getattr(result.params, key).cpu().numpy() for key in FRAME_KEYS},
+    return {"rows": {key: getattr(result.params, key).cpu().numpy() for key in FRAME_KEYS},
             "before": result.loss_before, "after": result.loss_after}
 
 
