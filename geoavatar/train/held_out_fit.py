@@ -114,8 +114,8 @@ def fit_held_out(run_dir: Path, config: HeldOutFitConfig = HeldOutFitConfig(), w
     before = np.concatenate([result["before"] for result in results])  # [n] L1, NaN: empty mask
     after = np.concatenate([result["after"] for result in results])
     timesteps = [int(frame.timestep) for frame in test.frames]  # [N] the whole test split
-    tracked = {key: np.concatenate([np.asarray(test.subject.frame_params(frame.row)[key]) for frame in test.frames])
-               for key in FRAME_KEYS}  # [N, ...] the tracker's rows
+    rows_of_split = [frame.row for frame in test.frames]
+    tracked = {key: test.subject.params[key][rows_of_split].numpy() for key in FRAME_KEYS}  # [N, ...] the tracker's
     rows = fill_between(timesteps, tracked, picked, fitted)
     atomic_write_npz(Path(run_dir) / HELD_OUT_FILE, timesteps=np.asarray(timesteps, dtype=np.int64),
                      scored=np.isin(np.arange(len(timesteps)), scored), step=np.asarray(run.info.step), **rows)
