@@ -28,3 +28,12 @@ def test_building_one_extension_leaves_the_key_of_the_next_unchanged(monkeypatch
     native._build(fused._EXTENSION, verbose=False)
     assert native.build_key(cpu_backend._EXTENSION) == rasterizer_key
     assert native.LDFLAGS == ("-fopenmp",)
+
+
+def test_two_environments_with_the_same_versions_build_in_two_folders(monkeypatch):
+    """ninja rebuilds when its build command changes, and the command names the environment's torch and Python
+    headers: a venv and a fresh clone's venv sharing one folder rebuilt it each time the other had used it."""
+    key = native.build_key(cpu_backend._EXTENSION)
+    other = {**native.sysconfig.get_paths(), "include": "/elsewhere/include/python3"}
+    monkeypatch.setattr(native.sysconfig, "get_paths", lambda: other)
+    assert native.build_key(cpu_backend._EXTENSION) != key

@@ -8,7 +8,8 @@ headers, the thread count, a parallel loop, input checks). Each is an `Extension
 
 An extension is built with torch.utils.cpp_extension (g++ and ninja) into $GEOAVATAR_EXT_CACHE/<name>-<key>,
 else $GEOAVATAR_CACHE/ext/..., else ~/.cache/geoavatar/ext/...; the key hashes the sources (the header
-included), the compiler flags, torch, Python and the machine, so a cache is never reused by a different build.
+included), the compiler flags, torch and Python (versions and folders) and the machine, so a cache is never reused
+by a different build.
 Without a compiler, or when the build fails, `load_extension` warns once (naming the extension and what runs
 instead) and returns None; the callers then take their PyTorch path.
 """
@@ -20,6 +21,7 @@ import os
 import platform
 import shutil
 import sys
+import sysconfig
 import threading
 import time
 import warnings
@@ -78,9 +80,17 @@ def build_key(spec: ExtensionSpec) -> str:
     digest = hashlib.sha256()
     for source in spec.sources:
         digest.update(source.read_bytes())
-    for part in (CFLAGS, LDFLAGS, torch.__version__, sys.version, platform.machine(), platform.system()):
+    for part in (CFLAGS, LDFLAGS, torch.__version__, sys.version, platform.machine(), platform.system(),
+                 *_toolchain_paths()):
         digest.update(repr(part).encode())
     return digest.hexdigest()[:16]
+
+
+def _toolchain_paths() -> tuple[str, str]:
+    """The folders ninja's build command names (torch's headers and libraries, Python's headers). Two
+    environments with the same versions (a venv and a fresh clone's) write different commands, and ninja rebuilds
+    when the command changes: with one key they rebuilt each other's folder, ~30 s an extension, every time."""
+    return str(Path(torch.__file__).resolve().parent), sysconfig.get_paths()["include"]
 
 
 def load_extension(spec: ExtensionSpec, state: dict, verbose: bool = False) -> Optional[ModuleType]:
