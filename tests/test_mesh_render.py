@@ -11,6 +11,7 @@ from geoavatar.render.camera import (
     fov_from_intrinsics, intrinsics_from_fov, look_at, opengl_c2w_to_viewmat, project,
     viewmat_to_opengl_c2w, world_to_camera,
 )
+from geoavatar.render import mesh as mesh_module
 from geoavatar.render.mesh import (
     Lighting, behind_surface, box_downsample, face_attribute, interpolate, rasterize_mesh, render_mesh, shade,
     vertex_normals,
@@ -156,7 +157,49 @@ def test_backface_culling_keeps_faces_whose_normal_points_at_the_camera():
     assert survivors in ([True, False], [False, True])
 
 
-def test_chunking_and_splitting_do_not_change_the_result():
+def random_triangles(count: int, seed: int, spread: float = 40.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Overlapping triangles of random sizes and depths over the image: vertices [3 count, 3], faces [count, 3]."""
+    g = torch.Generator().manual_seed(seed)
+    centres = torch.rand(count, 1, 2, generator=g) * torch.tensor([W, H])
+    corners = centres + (torch.rand(count, 3, 2, generator=g) - 0.5) * spread  # [count, 3, 2]
+    depths = 1.0 + torch.rand(count, 3, 1, generator=g) * 3
+    verts = torch.tensor(
+        [unproject(x, y, z) for (x, y), z in zip(corners.reshape(-1, 2).tolist(), depths.reshape(-1).tolist())]
+    )
+    return verts, torch.arange(3 * count).reshape(count, 3)
+
+
+@pytest.fixture
+def torch_scan(monkeypatch):
+    """rasterize_mesh with its PyTorch scan, as on CUDA or without a compiler (the CPU's is native)."""
+    monkeypatch.setattr(mesh_module, "_native_kernels", lambda: None)
+
+
+def test_the_native_scan_writes_the_torch_scans_fragments(monkeypatch):
+    """The CPU's native z-buffer and the PyTorch one agree bit for bit, on a triangle soup and on a turned head."""
+    if mesh_module._native_kernels() is None:
+        pytest.skip("the native kernels cannot be built here")
+    from geoavatar.head import load_head_model
+
+    head = load_head_model("openhead")
+    turn = torch.tensor([[0.94, 0.0, 0.34], [0.0, 1.0, 0.0], [-0.34, 0.0, 0.94]])
+    head_cam = head.v_template.float() @ turn.T + torch.tensor([0.0, 0.02, 0.6])
+    K_head = torch.tensor([[250.0, 0.0, 64.0], [0.0, 250.0, 64.0], [0.0, 0.0, 1.0]])
+    soup = random_triangles(200, seed=1)
+    cases = [(*soup, K, W, H, False), (head_cam, head.faces, K_head, 128, 128, False),
+             (head_cam, head.faces, K_head, 128, 128, True)]
+    for verts, faces, intrinsics, width, height, cull in cases:
+        native = rasterize_mesh(verts, faces, intrinsics, width, height, cull_backfaces=cull)
+        with monkeypatch.context() as patch:
+            patch.setattr(mesh_module, "_native_kernels", lambda: None)
+            scanned = rasterize_mesh(verts, faces, intrinsics, width, height, cull_backfaces=cull)
+        assert native.mask.sum() > 1000
+        assert torch.equal(native.face_id, scanned.face_id)
+        assert torch.equal(native.depth, scanned.depth)
+        assert torch.equal(native.bary, scanned.bary)
+
+
+def test_chunking_and_splitting_do_not_change_the_result(torch_scan):
     g = torch.Generator().manual_seed(0)
     centres = torch.rand(60, 1, 2, generator=g) * torch.tensor([W, H])
     corners = centres + (torch.rand(60, 3, 2, generator=g) - 0.5) * 40  # [60, 3, 2] overlapping triangles

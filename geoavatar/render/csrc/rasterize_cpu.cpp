@@ -22,6 +22,9 @@
 //                    one zmm, or two ymm, per block, masks as bits);
 //                    picked at run time; forward and backward state is float32.
 // Outside its box a Gaussian's alpha is below 1/255 (see torch_backend.py), so only box pixels count.
+//
+// Beside the Gaussians, mesh_zbuffer: the scan of render/mesh.py's triangle z-buffer (head pictures, prepare's
+// overlay video, synthetic subjects), mesh.py's PyTorch candidate loop as one serial loop over the triangles.
 
 #include "cpu_common.h"  // torch headers, threads_for_torch, parallel_over, check_input (geoavatar/native/csrc)
 
@@ -1621,6 +1624,55 @@ std::vector<torch::Tensor> project_backward(const torch::Tensor& means, const to
   return {g_means, g_quats, g_scales};
 }
 
+// The triangle z-buffer of render/mesh.py (rasterize_mesh): every pixel centre of each triangle's box, the inside
+// test and the depth in float32, the step-by-step arithmetic of mesh.py's _rasterize_pieces (no FMA contraction:
+// CFLAGS), so both write the same keys bit for bit; a pixel keeps the smallest key (z's float32 bits << 32 | face
+// id: nearest first, then the smaller id), whatever the order. One thread: a head mesh takes ~1 ms at 256 px.
+void mesh_zbuffer(const torch::Tensor& table, const torch::Tensor& inv_z, const torch::Tensor& face_ids,
+                  const torch::Tensor& box, int64_t width, torch::Tensor zbuf) {
+  using geoavatar_native::check_input;
+  check_input(table, "table", 2, torch::kFloat32);  // [F, 6]: vertex-0 x, y; d(b1, b2)/dx; d(b1, b2)/dy
+  check_input(inv_z, "inv_z", 2, torch::kFloat32);  // [F, 3]
+  check_input(face_ids, "face_ids", 1, torch::kInt64);  // [F]
+  check_input(box, "box", 2, torch::kInt64);  // [F, 4]: first and last pixel column and row, inside the image
+  check_input(zbuf, "zbuf", 1, torch::kInt64);  // [H * W], updated in place
+  const int64_t n = table.size(0);
+  TORCH_CHECK(table.size(1) == 6 && inv_z.size(0) == n && inv_z.size(1) == 3 && face_ids.size(0) == n &&
+                  box.size(0) == n && box.size(1) == 4 && width > 0,
+              "mesh_zbuffer: expected table [F, 6], inv_z [F, 3], face_ids [F], box [F, 4] and a positive width");
+  const float* tp = table.data_ptr<float>();
+  const float* izp = inv_z.data_ptr<float>();
+  const int64_t* ids = face_ids.data_ptr<int64_t>();
+  const int64_t* bp = box.data_ptr<int64_t>();
+  int64_t* keys = zbuf.data_ptr<int64_t>();
+  const int64_t pixels = zbuf.size(0);
+  const float eps = 1e-5f;  // mesh.py's _INSIDE_EPS
+  for (int64_t f = 0; f < n; ++f) {
+    const float* t = tp + 6 * f;
+    const float* iz = izp + 3 * f;
+    const int64_t* b = bp + 4 * f;
+    TORCH_CHECK(b[0] >= 0 && b[1] >= 0 && b[2] < width && (b[3] + 1) * width <= pixels,
+                "mesh_zbuffer: a triangle's box leaves the image");
+    for (int64_t py = b[1]; py <= b[3]; ++py) {
+      const float dy = (static_cast<float>(py) + 0.5f) - t[1];
+      for (int64_t px = b[0]; px <= b[2]; ++px) {
+        const float dx = (static_cast<float>(px) + 0.5f) - t[0];
+        const float b1 = dx * t[2] + dy * t[4];
+        const float b2 = dx * t[3] + dy * t[5];
+        const float b0 = (1.0f - b1) - b2;
+        if (!(b0 >= -eps && b1 >= -eps && b2 >= -eps)) continue;
+        const float c0 = std::max(b0, 0.0f), c1 = std::max(b1, 0.0f), c2 = std::max(b2, 0.0f);
+        const float depth = ((c0 + c1) + c2) / ((c0 * iz[0] + c1 * iz[1]) + c2 * iz[2]);
+        int32_t bits;
+        std::memcpy(&bits, &depth, sizeof(bits));
+        const int64_t key = (static_cast<int64_t>(bits) << 32) | ids[f];
+        int64_t& kept = keys[py * width + px];
+        if (key < kept) kept = key;
+      }
+    }
+  }
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
@@ -1630,6 +1682,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.def("backward", &backward, "grads of means2d, conics, opacities, colors", release_gil());
   module.def("project", &project, "means2d, conics, depths, radii, visible of one camera", release_gil());
   module.def("project_backward", &project_backward, "grads of means, quats, scales", release_gil());
+  module.def("mesh_zbuffer", &mesh_zbuffer, "render/mesh.py's triangle z-buffer, in place", release_gil());
   module.def("simd_paths", &simd_paths, "SIMD paths of the float32 compositing this CPU runs, fastest first");
   module.def("max_threads", []() { return omp_get_max_threads(); });
 }
