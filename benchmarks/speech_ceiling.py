@@ -83,20 +83,21 @@ def training_fit_openings(run, subject, blocks: int) -> None:
 
     from geoavatar.train.avatar_tracking import AvatarTrackingConfig, dataset_frames, track_frames
     from geoavatar.train.checkpoint import open_run_dataset
-    from geoavatar.train.held_out_fit import BLOCK, HeldOutFitConfig
+    from geoavatar.train.held_out_fit import HeldOutFitConfig
     from geoavatar.train.run_frames import RunFrames
     from geoavatar.voice.face import FaceProbe
 
+    block = 16  # frames a block: the held-out fit's blocks when this was measured (BENCHMARKS.md, Speech)
     train = open_run_dataset(run, "train")
     count = len(train.timesteps)
-    starts = [int((count - BLOCK) * (k + 0.5) / blocks) for k in range(blocks)]
+    starts = [int((count - block) * (k + 0.5) / blocks) for k in range(blocks)]
     held_out = HeldOutFitConfig()
     config = AvatarTrackingConfig(steps=held_out.steps, carry=held_out.carry)
     started = time.perf_counter()
     torch.set_num_threads(1)  # as the fit's workers
     fitted = [track_frames(run.avatar, run.head, run.deformer,
-                           dataset_frames(train, range(s, s + BLOCK), run.device), config).params for s in starts]
-    timesteps = [int(train.timesteps[s + i]) for s in starts for i in range(BLOCK)]
+                           dataset_frames(train, range(s, s + block), run.device), config).params for s in starts]
+    timesteps = [int(train.timesteps[s + i]) for s in starts for i in range(block)]
     frames = RunFrames(run)
     probe = FaceProbe(run.head, frames.identity())
     width = int(run.head.num_expr)

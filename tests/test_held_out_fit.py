@@ -124,7 +124,9 @@ def test_eval_says_where_the_test_parameters_came_from_and_a_stale_fit_is_ignore
 
 def test_a_long_split_is_fitted_in_runs_of_neighbours_spread_over_it():
     blocks, scored = fit_plan(70, 144)
-    assert [len(b) for b in blocks] == [16, 16, 16, 16, 6] and scored == list(range(70))  # all of a short video's
+    assert [len(b) for b in blocks] == [35, 35] and scored == list(range(70))  # all of a short video's, 2 tasks
+    assert [len(b) for b in fit_plan(80, 144)[0]] == [20, 20, 20, 20]  # even: neither worker waits at the end
+    assert [b[0] for b in fit_plan(144, 144)[0]] == [0, 36, 72, 108] and fit_plan(1, 144)[0] == [(0,)]
     blocks, scored = fit_plan(302, 144)
     picked = np.concatenate(blocks)
     assert len(picked) == 144 and picked[0] == 0 and picked[-1] == 301 and len(blocks) == 6
