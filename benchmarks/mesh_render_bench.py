@@ -65,7 +65,8 @@ def main() -> None:
     camera_vertices = vertices + viewmat[:3, 3]
     print(f"OpenHead template: {vertices.shape[0]} vertices, {head.faces.shape[0]} faces; {args.threads} thread(s); "
           f"load {os.getloadavg()[0]:.2f}")
-    print("| side | rasterize_mesh native / PyTorch scan (ms) | ratio | render_mesh native / PyTorch scan (ms) | ratio |")
+    print("| side | rasterize_mesh native / PyTorch scan (ms) | ratio "
+          "| render_mesh native / PyTorch scan (ms) | ratio |")
     print("|---|---|---|---|---|")
     for size in args.sizes:
         K = torch.tensor([[size * 2.2, 0.0, size / 2], [0.0, size * 2.2, size / 2], [0.0, 0.0, 1.0]])

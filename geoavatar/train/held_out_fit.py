@@ -15,10 +15,10 @@ the whole video that `prepare` once trained for the same purpose (a second train
 How: the test frames in an even number of contiguous blocks of at most BLOCK frames (two for a 12-s video), each
 block on a worker process (both cores busy to the end, one torch thread each: geoavatar.workers), each frame from
 the previous frame's correction when that renders closer (AvatarTrackingConfig.carry), so fewer steps reach the
-full fit. The blocks do not depend on the worker count, so neither does the result. A long video (more than MAX_FRAMES test frames) is fitted on runs of RUN_LENGTH
-neighbours spread evenly over its test split, so the fit's time is bounded whatever the video's length: a frame's
-fit needs its neighbours' correction (the carry builds it up over a few frames), so the first WARM_UP frames of each
-run only hand their correction on and are not scored. The frames between the runs get the tracker's rows plus the
+full fit. The blocks do not depend on the worker count, so neither does the result. A long video (more than
+MAX_FRAMES test frames) is fitted on runs of RUN_LENGTH neighbours spread evenly over its test split, so the fit's
+time is bounded whatever the video's length: a frame's fit needs its neighbours' correction (the carry builds it up
+over a few frames), so the first WARM_UP frames of each run only hand their correction on and are not scored. The frames between the runs get the tracker's rows plus the
 correction interpolated from their fitted neighbours, so a render of the whole split stays smooth; `geoavatar eval`
 scores the scored ones (eval/evaluate.py). The rows are kept beside the checkpoint, tagged with its step: `load_run`
 lays them over the run's parameters while they belong to its checkpoint (an --extend makes them stale until
@@ -40,7 +40,7 @@ from geoavatar.workers import split_range
 
 HELD_OUT_FILE = "held_out.npz"  # timesteps [N], scored [N] (bool), step, and the per-frame keys [N, ...]
 HELD_OUT_REPORT = "held_out.json"
-BLOCK = 36  # frames per task at most, in an even number of tasks: the carry restarts at each
+BLOCK = 36  # frames per task at most, in an even number of tasks: the carry restarts at each block
 MAX_FRAMES = 144  # test frames fitted at most: beyond, 24 runs of RUN_LENGTH, 96 of them scored
 RUN_LENGTH = 6  # a long video's runs of neighbouring frames...
 WARM_UP = 2  # ...whose first frames only hand their correction on (not scored)
@@ -136,9 +136,9 @@ def fit_plan(count: int, limit: int | None) -> tuple[list[tuple[int, ...]], list
     """(blocks: tuples of indices into a test split of `count` frames, one worker task each, the carry running
     through it; scored: the indices eval scores). Up to `limit` frames (None: no limit) every frame, in an even
     number of blocks of at most BLOCK; beyond, runs of RUN_LENGTH neighbours spread evenly, RUNS_PER_BLOCK to a
-    block, without their first WARM_UP frames in the scores. Fitted alone from a predecessor two to three frames away, the frames of french.mp4
-    scored 0.22 dB under the full fit's; in runs of four a run's n-th frame scored -0.38 / -0.21 / -0.12 / +0.04 dB
-    against it (BENCHMARKS.md, Time to a good avatar)."""
+    block, without their first WARM_UP frames in the scores. Fitted alone from a predecessor two to three frames
+    away, the frames of french.mp4 scored 0.22 dB under the full fit's; in runs of four a run's n-th frame scored
+    -0.38 / -0.21 / -0.12 / +0.04 dB against it (BENCHMARKS.md, Time to a good avatar)."""
     if limit is None or count <= max(limit, RUN_LENGTH):
         tasks = 2 * math.ceil(count / (2 * BLOCK))  # even: two workers end together (blocks of 16 left one idle)
         return [tuple(range(a, b)) for a, b in split_range(count, tasks)], list(range(count))
