@@ -485,9 +485,14 @@ def scored_indices(run: LoadedRun, dataset: HeadAvatarDataset, max_frames: int |
     """The items of `dataset` that eval scores: `max_frames` of them spread evenly (None: all), leaving out, on the
     run's own dataset, the held-out frames that train's held-out fit did not score (a long video's: the frames
     between its runs and their warm-ups, train/held_out_fit.py)."""
-    unscored = unscored_timesteps(run, dataset.subject.root)
-    candidates = [i for i, frame in enumerate(dataset.frames) if frame.timestep not in unscored]
-    return [candidates[i] for i in evenly_spaced(len(candidates), max_frames)]
+    timesteps = [frame.timestep for frame in dataset.frames]
+    return spread_scored(timesteps, unscored_timesteps(run, dataset.subject.root), max_frames)
+
+
+def spread_scored(timesteps: list[int], unscored: set[int], count: int | None) -> list[int]:
+    """Positions in `timesteps` of `count` frames spread evenly over those not in `unscored` (None: all of them)."""
+    candidates = [i for i, timestep in enumerate(timesteps) if timestep not in unscored]
+    return [candidates[i] for i in evenly_spaced(len(candidates), count)]
 
 
 def unscored_timesteps(run: LoadedRun, root: str | Path) -> set[int]:
@@ -605,5 +610,5 @@ def frame_dicts(result: EvalResult) -> list[dict]:
 __all__ = [
     "EvalConfig", "EvalResult", "FrameMetrics", "METRIC_NAMES", "RenderedFrame", "SPLITS", "crop_box",
     "evaluate_run", "frame_dicts", "mouth_face_mask", "mouth_mask", "open_run_dataset",
-    "render_run_frames", "run_label", "scored_indices", "summarize", "unscored_timesteps",
+    "render_run_frames", "run_label", "scored_indices", "spread_scored", "summarize", "unscored_timesteps",
 ]

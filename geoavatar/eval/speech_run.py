@@ -12,13 +12,12 @@ import numpy as np
 import torch
 
 from geoavatar.avatar import render_avatar
-from geoavatar.data import evenly_spaced
 from geoavatar.data.dataset import item_camera, item_to
 from geoavatar.data.errors import DatasetError
 from geoavatar.data.sound import read_dataset_sound
 from geoavatar.eval import metrics
 from geoavatar.eval.evaluate import (EvalConfig, RenderedFrame, image_metrics, measure_mouth, mouth_face_mask, run_label,
-                                     test_params_source, unscored_timesteps)
+                                     spread_scored, test_params_source, unscored_timesteps)
 from geoavatar.eval.speech import (SpeechInputs, SpeechResult, baseline_faces, face_scores, normalised_mel)
 from geoavatar.head.params import HeadParams
 from geoavatar.render import composite_target
@@ -140,8 +139,7 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     scores = {name: face_scores(probe, face, tracked, fps) for name, face in faces.items()}
     scores["tracked"] = {}
     unscored = unscored_timesteps(run, root)  # a long video's held-out frames outside the fit's scored runs
-    candidates = [row for row, t in enumerate(test) if t not in unscored]
-    rows = [candidates[i] for i in evenly_spaced(len(candidates), picture_frames)]
+    rows = spread_scored(list(test), unscored, picture_frames)
     if render:
         config = EvalConfig(split="test", backend=backend)
         pictures = picture_scores(run, dataset, index_of, [test[r] for r in rows],
