@@ -212,6 +212,14 @@ def _live(speaker, sound_input, live, seconds, callbacks=None):
     return result["source"], stats, viewer
 
 
+def _drawn_without_a_queue(stats):
+    """The page drew meshes posed from sound, each timed to the GPU's end of it, and never had more than one frame
+    on the GPU: software GL draws a frame in ~0.5 s here, so most meshes are skipped rather than queued."""
+    latency = stats["soundToPicture"]
+    assert latency["count"] >= 1 and 0 < latency["p50"] <= latency["p95"], latency
+    assert stats["finished"] >= 1 and stats["drawn"] - stats["finished"] <= 1, stats
+
+
 @browser
 def test_a_sound_file_played_live_drives_the_browser(speaker, clip):
     from geoavatar.animation.sources.speech import RealTimeSound
@@ -219,8 +227,8 @@ def test_a_sound_file_played_live_drives_the_browser(speaker, clip):
 
     source, stats, viewer = _live(speaker, RealTimeSound(read_sound(clip)), True, 2.0)
     assert source.stats.frames >= 10 and viewer.server.sent >= 10
-    assert stats["received"] >= 10  # meshes drawn in the page as the sound arrived
-    assert stats["soundToPicture"]["count"] >= 5  # each with its sound's capture time: the page's latency
+    assert stats["received"] >= 10  # meshes that reached the page as the sound arrived
+    _drawn_without_a_queue(stats)
 
 
 @browser
@@ -233,7 +241,8 @@ def test_the_browsers_microphone_drives_the_avatar(speaker, clip, tmp_path):
     source, stats, _ = _live(speaker, microphone, "speak", 2.0, callbacks)
     assert microphone.chunks_received >= 90  # 2 s of 20 ms chunks
     assert source.stats.frames >= 10
-    assert stats["microphoneChunks"] >= 90 and stats["soundToPicture"]["count"] >= 5
+    assert stats["microphoneChunks"] >= 90
+    _drawn_without_a_queue(stats)
 
 
 @browser

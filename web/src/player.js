@@ -10,15 +10,19 @@
 //
 // Deep link: index.html?frame=N&paused=1&view=dataset draws clip frame N from the dataset camera at the dataset
 // image size; document.body.dataset.drawnFrame = "N" once that frame is drawn with its splats sorted.
-// window.geoavatar.stats: counters for tests and benchmarks (docs/web_player.md): drawn, received, frameCostMs,
+// window.geoavatar.stats: counters for tests and benchmarks (docs/web_player.md): drawn (frames handed to WebGL),
+// finished (frames the GPU has finished drawing), received, frameCostMs,
 // costs, transportMs; with sound audioTime (the sound's clock, seconds), audioFrame (the frame shown for it),
 // audioBlocked; live "speak" microphoneChunks, microphoneError, soundToPictureMs and soundToPicture {count, p50,
-// p95} (ms from a sound chunk's capture to the drawing of the first mesh posed from it).
+// p95} (ms from a sound chunk's capture to the GPU's end of drawing the first mesh posed from it).
+//
+// At most one frame is in flight on the GPU (inflight.js): a slow GPU skips frames instead of queueing them.
 import * as THREE from "three";
 import { SparkRenderer } from "@sparkjsdev/spark";
 import { faceFrames, dequantiseFrame, FACE_STRIDE } from "./binding.js";
 import { avatarGenerator, floatTexture, halfTexture, FACE_TEXELS, POSE_TEXELS, ROW_TEXELS } from "./generator.js";
 import { clamp, fittedIntrinsics, orbitWorld, placeCamera, projectionFromIntrinsics, worldFromViewmat } from "./camera.js";
+import { FrameInFlight } from "./inflight.js";
 import { LiveLink } from "./live.js";
 import { buildControls } from "./controls.js";
 import { ClipSound } from "./sound.js";
@@ -89,7 +93,7 @@ class Player {
     this.vertexCount = manifest.avatar.vertices;
     this.frameCount = manifest.clip.frames;
     this.vertices = new Float32Array(this.vertexCount * 3);
-    this.stats = { drawn: 0, received: 0, lastReceived: -1, frameCostMs: 0, costs: [], ready: false };
+    this.stats = { drawn: 0, finished: 0, received: 0, lastReceived: -1, frameCostMs: 0, costs: [], ready: false };
     this.frame = Math.min(options.frame ?? 0, this.frameCount - 1);
     this.playing = !options.paused && this.frameCount > 1;
     this.orbit = { yaw: 0, pitch: 0, distance: 1, free: false };
@@ -130,6 +134,7 @@ class Player {
       onDirty: () => { this.needsDraw = true; },
     });
     this.scene.add(this.spark);
+    this.inFlight = new FrameInFlight(this.renderer.getContext());
     this.setBackground(this.manifest.background);
     this.resize();
     window.addEventListener("resize", () => this.resize());
@@ -238,9 +243,9 @@ class Player {
     this.dirtyFrame = true;
   }
 
-  // A mesh posed from sound is drawn: how long after its newest sound chunk was captured.
-  recordSoundLatency(capture) {
-    const ms = performance.timeOrigin + performance.now() - capture * 1000;
+  // A mesh posed from sound is drawn (`drawnAt`, performance time): how long after its newest sound chunk's capture.
+  recordSoundLatency(capture, drawnAt) {
+    const ms = performance.timeOrigin + drawnAt - capture * 1000;
     const window_ = this.stats.soundToPictureMs;
     window_.push(ms);
     if (window_.length > LATENCY_WINDOW) window_.shift();
@@ -260,9 +265,20 @@ class Player {
       await this.spark.update({ scene: this.scene, camera: this.camera });
       if (!this.spark.sorting && !this.spark.sortDirty) break;
     }
+    while (!this.inFlight.poll()) await new Promise((resolve) => requestAnimationFrame(resolve));
+    this.needsDraw = false;
+    this.renderFrame();
+  }
+
+  // Hand the frame to WebGL and fence it (inFlight.poll() has said the GPU is free); `onDrawn(performance time)`
+  // once the GPU has drawn it.
+  renderFrame(onDrawn = null) {
     this.renderer.render(this.scene, this.camera);
     this.stats.drawn += 1;
-    this.needsDraw = false;
+    this.inFlight.mark((drawnAt) => {
+      this.stats.finished += 1;
+      onDrawn?.(drawnAt);
+    });
   }
 
   async start() {
@@ -320,15 +336,13 @@ class Player {
       });
       return;
     }
+    if (!this.inFlight.poll()) return; // the GPU is still drawing the last frame: the newest is drawn after it
     if (this.dirtyFrame) this.uploadFrame();
     if (this.needsDraw) {
       this.needsDraw = false;
-      this.renderer.render(this.scene, this.camera);
-      this.stats.drawn += 1;
-      if (this.liveCapture !== null && this.liveVertices) {
-        this.recordSoundLatency(this.liveCapture);
-        this.liveCapture = null;
-      }
+      const capture = this.liveVertices ? this.liveCapture : null;
+      this.liveCapture = null;
+      this.renderFrame(capture === null ? null : (drawnAt) => this.recordSoundLatency(capture, drawnAt));
     }
   }
 
