@@ -15,11 +15,12 @@ $(STAMP): $(REQS)
 	$(PY) -m pip install -q -r requirements/base.txt -r requirements/dev.txt
 	$(PY) -m pip install -q --no-deps -r requirements/nodeps.txt
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
-	@# The native CPU code (the rasterizer; the avatar's placement loops), built now, the two at once, instead of
-	@# inside the first command that renders (a minute of one core). Without a compiler each warns, and the
-	@# PyTorch paths run.
+	@# The native CPU code (the rasterizer; the avatar's placement loops; the SSIM), built now, side by side,
+	@# instead of inside the first command that renders (a minute of one core). Without a compiler each warns,
+	@# and the PyTorch paths run.
 	$(PY) -c "from geoavatar.render import cpu_backend; cpu_backend.load_extension()" & \
-	  $(PY) -c "from geoavatar.avatar import fused; fused.load_extension()"; wait
+	  $(PY) -c "from geoavatar.avatar import fused; fused.load_extension()" & \
+	  $(PY) -c "from geoavatar.imaging import quality; quality.load_extension()"; wait
 	touch $(STAMP)
 
 # On a machine with CUDA: gsplat is then used automatically for rendering and training.

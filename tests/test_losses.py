@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from geoavatar.avatar.aps import BASELINE, FLEXIBLE, MOUTH, RIGID
 from geoavatar.config import LossConfig
 from geoavatar.imaging import ssim
+from geoavatar.imaging.quality import load_extension as load_ssim_extension
 from geoavatar.train.losses import (
     angle_loss, avatar_loss, position_loss, regularization_losses, rgb_loss, scale_loss,
 )
@@ -38,6 +39,34 @@ def test_ssim_matches_the_3dgs_formula_and_is_one_for_identical_images():
     assert batched.item() == pytest.approx(ssim(a, b).item(), abs=1e-6)
     with pytest.raises(ValueError, match="differ in shape"):
         ssim(a, b[:-1])
+
+
+@pytest.mark.skipif(load_ssim_extension() is None, reason="the native SSIM did not build (no compiler)")
+@pytest.mark.parametrize("shape", [(40, 48, 3), (2, 17, 23, 3), (9, 7, 1)])
+def test_the_native_ssim_and_its_gradient_equal_the_convolutions(shape):
+    g = torch.Generator().manual_seed(2)
+    a = torch.rand(*shape, generator=g, requires_grad=True)
+    b = (a.detach() + 0.2 * torch.randn(*shape, generator=g)).clamp(0, 1)
+    values, grads = [], []
+    for native in (True, False):
+        value = ssim(a, b, native=native)
+        (grad,) = torch.autograd.grad(value, a)
+        values.append(value.item())
+        grads.append(grad)
+    assert values[0] == pytest.approx(values[1], abs=1e-6)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-9)
+    assert grads[0].abs().max() > 1e-6  # a gradient to compare, not zeros on both sides
+    a64 = a.detach().double()[..., :6, :5, :].contiguous().requires_grad_()
+    b64 = b.double()[..., :6, :5, :].contiguous()
+    assert torch.autograd.gradcheck(lambda t: ssim(t, b64), (a64,))
+
+
+def test_a_target_that_needs_a_gradient_gets_one():
+    g = torch.Generator().manual_seed(3)
+    a, b = torch.rand(12, 12, 3, generator=g), torch.rand(12, 12, 3, generator=g, requires_grad=True)
+    (grad,) = torch.autograd.grad(ssim(a, b), b)  # the native kernels differentiate the image only: convolutions
+    (expected,) = torch.autograd.grad(ssim(a, b, native=False), b)
+    torch.testing.assert_close(grad, expected)
 
 
 def test_rgb_loss_weights_l1_and_dssim():

@@ -1,8 +1,9 @@
 """GeoAvatar's native CPU extensions: C++/OpenMP kernels built by `make install` (else on first use) and cached.
 
-Two extensions, each owned by its layer: the renderer's rasterizer (render/csrc/rasterize_cpu.cpp, loaded by
-render/cpu_backend.py) and the avatar's face placement, polar coordinates and surface splats
-(avatar/csrc/binding_cpu.cpp, loaded by avatar/fused.py). Both include csrc/cpu_common.h from this package (torch
+Three extensions, each owned by its layer: the renderer's rasterizer (render/csrc/rasterize_cpu.cpp, loaded by
+render/cpu_backend.py), the avatar's face placement, polar coordinates and surface splats
+(avatar/csrc/binding_cpu.cpp, loaded by avatar/fused.py) and the SSIM of the training loss and eval
+(imaging/csrc/ssim_cpu.cpp, loaded by imaging/quality.py). Each includes csrc/cpu_common.h from this package (torch
 headers, the thread count, a parallel loop, input checks). Each is an `ExtensionSpec`; its loader keeps a
 `new_state()` dict and calls `load_extension(spec, state)`.
 

@@ -1,4 +1,5 @@
-// What GeoAvatar's native CPU extensions share (render/csrc/rasterize_cpu.cpp, avatar/csrc/binding_cpu.cpp):
+// What GeoAvatar's native CPU extensions share (render/csrc/rasterize_cpu.cpp, avatar/csrc/binding_cpu.cpp,
+// imaging/csrc/ssim_cpu.cpp):
 // the torch headers they need, their thread count, a parallel loop and the input checks. geoavatar/native
 // copies this header beside each extension's source in its build folder, so `#include "cpu_common.h"` finds it.
 //
