@@ -204,6 +204,9 @@ def _live(speaker, sound_input, live, seconds, callbacks=None):
             thread.start()
             thread.join(timeout=60 + seconds * 3)
             time.sleep(0.5)
+            # the frame still on the GPU (software GL: ~0.5 s), so that its latency is counted
+            page.wait_for_function("() => { const s = window.geoavatar.stats; return s.drawn === s.finished; }",
+                                   timeout=30_000)
             stats = page.evaluate("window.geoavatar.stats")
     finally:
         viewer.stop()

@@ -46,6 +46,11 @@ def _as_bchw(image: Tensor, name: str) -> Tensor:
     return image.permute(0, 3, 1, 2)
 
 
+def _batched(image: Tensor) -> Tensor:
+    """[H, W, C] or [B, H, W, C] -> contiguous [B, H, W, C]."""
+    return (image if image.dim() == 4 else image[None]).contiguous()
+
+
 class _NativeSSIM(torch.autograd.Function):
     """Mean SSIM of [B, H, W, C] images by the native kernels; the gradient reaches `image` only."""
 
@@ -76,9 +81,8 @@ def ssim(image: Tensor, target: Tensor, window_size: int = 11, sigma: float = 1.
     if (native and image.device.type == "cpu" and target.device.type == "cpu" and image.dtype == target.dtype
             and image.dtype in (torch.float32, torch.float64) and not target.requires_grad
             and load_extension() is not None):
-        batch = (lambda t: t if t.dim() == 4 else t[None])
         window = _gaussian_window_1d(window_size, sigma).to(image)
-        return _NativeSSIM.apply(batch(image).contiguous(), batch(target).contiguous(), window)
+        return _NativeSSIM.apply(_batched(image), _batched(target), window)
     x, y = _as_bchw(image, "ssim"), _as_bchw(target, "ssim")
     channels = x.shape[1]
     w1 = _gaussian_window_1d(window_size, sigma).to(x)
