@@ -4,7 +4,7 @@ Images are channel-last, [H, W, C] or [B, H, W, C], values in [0, 1] (the render
 
 On CPU the SSIM and its gradient run as this layer's native extension (csrc/ssim_cpu.cpp: the moments blurred
 and the map's terms fused, ~15 ms less a training step at 256 px), when it builds; the PyTorch convolutions
-serve CUDA, a target that needs a gradient, and machines without a compiler. tests/test_ssim.py checks the two
+serve CUDA, a target that needs a gradient, and machines without a compiler. tests/test_losses.py checks the two
 against each other and the native gradient with gradcheck."""
 
 from __future__ import annotations
@@ -78,9 +78,9 @@ def ssim(image: Tensor, target: Tensor, window_size: int = 11, sigma: float = 1.
         raise ValueError(f"ssim: image {tuple(image.shape)} and target {tuple(target.shape)} differ in shape")
     if image.dim() not in (3, 4):
         raise ValueError(f"ssim: expected an image [H, W, C] or [B, H, W, C], got shape {tuple(image.shape)}")
-    if (native and image.device.type == "cpu" and target.device.type == "cpu" and image.dtype == target.dtype
-            and image.dtype in (torch.float32, torch.float64) and not target.requires_grad
-            and load_extension() is not None):
+    if (native and window_size % 2 == 1 and image.device.type == "cpu" and target.device.type == "cpu"
+            and image.dtype == target.dtype and image.dtype in (torch.float32, torch.float64)
+            and not target.requires_grad and load_extension() is not None):
         window = _gaussian_window_1d(window_size, sigma).to(image)
         return _NativeSSIM.apply(_batched(image), _batched(target), window)
     x, y = _as_bchw(image, "ssim"), _as_bchw(target, "ssim")

@@ -11,24 +11,27 @@ export class FrameInFlight {
   }
 
   // True when no frame is pending on the GPU; a pending one that has finished calls its onDone(performance time).
+  // A fence of a context lost since (or lost and restored: the old fence is then invalid) holds nothing and counts
+  // no frame: that frame was never drawn.
   poll() {
     if (this.sync === null) return true;
     const gl = this.gl;
-    if (gl.getSyncParameter(this.sync, gl.SYNC_STATUS) !== gl.SIGNALED && !gl.isContextLost()) return false;
-    gl.deleteSync(this.sync);
+    const lost = gl.isContextLost();
+    const status = lost ? null : gl.getSyncParameter(this.sync, gl.SYNC_STATUS);
+    if (status === gl.UNSIGNALED) return false;
+    const done = status === gl.SIGNALED ? this.onDone : null;
+    if (!lost) gl.deleteSync(this.sync);
     this.sync = null;
-    const done = this.onDone;
     this.onDone = null;
     done?.(performance.now());
     return true;
   }
 
-  // After a frame's drawing calls: the GPU's end of them is what poll() waits for.
+  // After a frame's drawing calls: the GPU's end of them is what poll() waits for (nothing on a lost context).
   mark(onDone = null) {
     const gl = this.gl;
-    this.sync = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0); // null on a lost context: nothing to wait for
+    this.sync = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
     gl.flush();
     this.onDone = this.sync === null ? null : onDone;
-    if (this.sync === null) onDone?.(performance.now());
   }
 }

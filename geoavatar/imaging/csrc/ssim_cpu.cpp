@@ -32,7 +32,8 @@ void add_scaled(double* __restrict out, const double* __restrict in, double w, i
   for (int64_t i = 0; i < n; ++i) out[i] += w * in[i];
 }
 
-// Zero-padded separable blur of `planes` planes [P][H][W] in place, window w [K] (K odd); tmp: as large.
+// Zero-padded separable blur of `planes` planes [P][H][W] in place, window w [K] (K odd, symmetric: the backward
+// uses the blur as its own transpose); tmp: as large.
 // Each pass adds whole shifted rows (contiguous, so the compiler vectorises the inner loop).
 template <typename T>
 void blur_planes(T* data, T* tmp, int64_t planes, int64_t H, int64_t W, const T* w, int64_t K) {
@@ -45,7 +46,7 @@ void blur_planes(T* data, T* tmp, int64_t planes, int64_t H, int64_t W, const T*
       const int64_t shift = k - r;
       const T wk = w[k];
       const int64_t lo = std::max<int64_t>(0, -shift), hi = std::min<int64_t>(W, W - shift);
-      add_scaled(out + lo, in + lo + shift, wk, hi - lo);
+      if (hi > lo) add_scaled(out + lo, in + lo + shift, wk, hi - lo);  // a row narrower than the window
     }
   });
   parallel_over(planes * H, [&](int64_t row) {  // along y: tmp -> data
