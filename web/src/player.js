@@ -329,9 +329,10 @@ class Player {
     if (!this.playing && this.dirtyFrame && !this.liveVertices) {
       // a still frame (paused, scrubbed): drawn once its splats are sorted, then announced
       this.settling = true;
+      const frame = this.frame; // the frame uploaded now (a scrub meanwhile is drawn next, and announced then)
       this.uploadFrame();
       this.drawSettled().then(() => {
-        document.body.dataset.drawnFrame = String(this.frame);
+        document.body.dataset.drawnFrame = String(frame);
         this.settling = false;
       });
       return;
