@@ -20,9 +20,9 @@ MAX_FRAMES test frames) is fitted on runs of RUN_LENGTH neighbours spread evenly
 time is bounded whatever the video's length: a frame's fit needs its neighbours' correction (the carry builds it up
 over a few frames), so the first WARM_UP frames of each run only hand their correction on and are not scored. The
 frames between the runs get the tracker's rows plus the correction interpolated from their fitted neighbours, so a
-render of the whole split stays smooth; `geoavatar eval` scores the scored ones (eval/evaluate.py). The rows are kept beside the checkpoint, tagged with its step: `load_run`
-lays them over the run's parameters while they belong to its checkpoint (an --extend makes them stale until
-refitted).
+render of the whole split stays smooth; `geoavatar eval` scores the scored ones (eval/evaluate.py). The rows are
+kept beside the checkpoint, tagged with its step: `load_run` lays them over the run's parameters while they belong
+to its checkpoint (an --extend makes them stale until refitted).
 """
 
 from __future__ import annotations
