@@ -170,6 +170,19 @@ def test_lpips_identical_images_and_growing_noise(alex):
         alex(image[:20, :20], image[:20, :20])
 
 
+def test_lpips_target_taps_score_as_the_pair_does(vgg):
+    """eval --speech scores five renders against one target from its taps, computed once: the same numbers."""
+    generator = torch.Generator().manual_seed(3)
+    target = torch.rand(40, 56, 3, generator=generator)
+    renders = [(target + s * torch.rand(40, 56, 3, generator=generator)).clamp(0, 1) for s in (0.0, 0.05, 0.3)]
+    taps = metrics.LpipsTarget(target, "vgg")
+    for render in renders:
+        assert torch.equal(taps.lpips(render), metrics.lpips(render, target, "vgg"))
+    assert float(taps.lpips(renders[0])[0]) == 0.0
+    with pytest.raises(ValueError, match="differ in shape"):
+        taps.lpips(target[:32])
+
+
 def _np_conv(x: np.ndarray, kernel: np.ndarray, bias: np.ndarray, stride: int, pad: int) -> np.ndarray:
     """Direct convolution of x [H, W, Cin] with a flax kernel [kh, kw, Cin, Cout] (float64), then ReLU."""
     kh, kw = kernel.shape[:2]

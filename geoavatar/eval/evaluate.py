@@ -296,19 +296,24 @@ def run_label(run: LoadedRun) -> tuple[str, str | None, str]:
     return (f"{preset} · {subject}" if preset else f"{run.info.run_dir.name} · {subject}"), preset, subject
 
 
-def image_metrics(frame: RenderedFrame, config: EvalConfig) -> FrameMetrics:
-    """A frame's record with its whole-image MSE, PSNR, SSIM and LPIPS (render vs composited ground truth)."""
+def image_metrics(frame: RenderedFrame, config: EvalConfig, target_taps: metrics.LpipsTarget | None = None
+                  ) -> FrameMetrics:
+    """A frame's record with its whole-image MSE, PSNR, SSIM and LPIPS (render vs composited ground truth);
+    `target_taps`: the target's LPIPS taps when several renders are scored against it (computed here otherwise)."""
     pred, target, item = frame.pred, frame.target, frame.item
     mse = metrics.mse(pred, target)
+    lpips = (target_taps.lpips(pred) if target_taps is not None
+             else metrics.lpips(pred, target, config.lpips_net, config.lpips_unit_inputs))
     return FrameMetrics(
         index=frame.index, timestep=int(item["timestep"]), camera=int(item["camera"]), mse=mse,
-        psnr=metrics.psnr_from_mse(mse), ssim=metrics.ssim(pred, target),
-        lpips=float(metrics.lpips(pred, target, config.lpips_net, config.lpips_unit_inputs)[0]),
+        psnr=metrics.psnr_from_mse(mse), ssim=metrics.ssim(pred, target), lpips=float(lpips[0]),
     )
 
 
-def measure_mouth(record: FrameMetrics, frame: RenderedFrame, head, mouth_faces: Tensor, config: EvalConfig) -> Tensor:
-    """The mouth numbers of a frame (module docstring) onto its record; returns the mouth mask [H, W] bool."""
+def measure_mouth(record: FrameMetrics, frame: RenderedFrame, head, mouth_faces: Tensor, config: EvalConfig,
+                  lpips: bool = True) -> Tensor:
+    """The mouth numbers of a frame (module docstring) onto its record (the mouth LPIPS unless `lpips` is off);
+    returns the mouth mask [H, W] bool."""
     pred, target, item = frame.pred, frame.target, frame.item
     dilate = dilation_pixels(config.mouth_dilate, item["width"], item["height"])
     mask = mouth_mask(frame.vertices, head.faces, mouth_faces, item["viewmat"], item["K"], item["width"],
@@ -321,7 +326,7 @@ def measure_mouth(record: FrameMetrics, frame: RenderedFrame, head, mouth_faces:
     record.mouth_share = record.mouth_pixels / float(item["width"] * item["height"])
     record.mouth_psnr = metrics.masked_psnr(pred, target, mask)
     record.mouth_box = box
-    if min(y1 - y0, x1 - x0) >= MIN_SIZE[config.lpips_net]:  # else the image itself is too small
+    if lpips and min(y1 - y0, x1 - x0) >= MIN_SIZE[config.lpips_net]:  # else the image itself is too small
         record.mouth_lpips = float(metrics.lpips(pred[y0:y1, x0:x1], target[y0:y1, x0:x1], config.lpips_net,
                                                  config.lpips_unit_inputs)[0])
     return mask

@@ -176,20 +176,29 @@ class LPIPS(nn.Module):
             x = 2.0 * x - 1.0
         return (x - self.shift) / self.scale
 
+    def taps(self, image: Tensor, name: str = "image") -> list[Tensor]:
+        """The unit-length backbone taps of images [B, H, W, 3] or [H, W, 3] in [0, 1]: one side of `forward`. A
+        target's taps serve every render scored against it (`distance`; eval --speech: five renders a frame)."""
+        if min(image.shape[-3], image.shape[-2]) < MIN_SIZE[self.net]:
+            raise ValueError(f"LPIPS {self.net}: images must be at least {MIN_SIZE[self.net]} px on each side, "
+                             f"got {tuple(image.shape[-3:-1])}")
+        return [f / (f.square().sum(1, keepdim=True).sqrt() + 1e-10) for f in self.features(self._prepare(image, name))]
+
+    def distance(self, pred: Tensor, target_taps: list[Tensor]) -> Tensor:
+        """LPIPS distance of pred [B, H, W, 3] or [H, W, 3] to a target given by its `taps` -> [B]."""
+        pred_taps = self.taps(pred, "pred")
+        if pred_taps[0].shape[-2:] != target_taps[0].shape[-2:]:
+            raise ValueError(f"LPIPS: pred {tuple(pred.shape)} and the target's taps differ in size")
+        total = pred_taps[0].new_zeros(pred_taps[0].shape[0])
+        for fx, fy, lin in zip(pred_taps, target_taps, self.lins):
+            total = total + lin((fx - fy).square()).mean(dim=(1, 2, 3))  # [B]
+        return total
+
     def forward(self, pred: Tensor, target: Tensor) -> Tensor:
         """LPIPS distance of each pair: pred, target [B, H, W, 3] or [H, W, 3] in [0, 1] -> [B]."""
         if pred.shape != target.shape:
             raise ValueError(f"LPIPS: pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
-        if min(pred.shape[-3], pred.shape[-2]) < MIN_SIZE[self.net]:
-            raise ValueError(f"LPIPS {self.net}: images must be at least {MIN_SIZE[self.net]} px on each side, "
-                             f"got {tuple(pred.shape[-3:-1])}")
-        x, y = self._prepare(pred, "pred"), self._prepare(target, "target")
-        total = x.new_zeros(x.shape[0])
-        for fx, fy, lin in zip(self.features(x), self.features(y), self.lins):
-            fx = fx / (fx.square().sum(1, keepdim=True).sqrt() + 1e-10)
-            fy = fy / (fy.square().sum(1, keepdim=True).sqrt() + 1e-10)
-            total = total + lin((fx - fy).square()).mean(dim=(1, 2, 3))  # [B]
-        return total
+        return self.distance(pred, self.taps(target, "target"))
 
 
 @lru_cache(maxsize=4)

@@ -1,7 +1,8 @@
 """Image metrics of the paper's tables: MSE, PSNR, SSIM, LPIPS (+ the masked PSNR of the mouth region).
 
 Images are channel-last in [0, 1], [H, W, 3] (the renderer's layout); each function scores ONE image
-pair (the per-frame numbers that the tables average), except `lpips`, which also takes a batch.
+pair (the per-frame numbers that the tables average), except `lpips`, which also takes a batch, and
+`LpipsTarget`, which scores several renders against one target.
 
 - MSE  mean squared error over pixels and channels (data range 1; Table 1 prints it x 1e3).
 - PSNR -10 log10(MSE), data range 1; inf for identical images (`geoavatar.imaging.psnr_from_mse`, which the
@@ -69,4 +70,22 @@ def lpips(pred: Tensor, target: Tensor, net: str = "vgg", unit_inputs: bool = Fa
         return model(pred, target)
 
 
-__all__ = ["lpips", "masked_psnr", "mse", "psnr", "psnr_from_mse", "ssim"]
+class LpipsTarget:
+    """One target image [H, W, 3] whose LPIPS taps are computed once, for several renders scored against it: the
+    backbone's pass over the target is half of each `lpips` call (eval --speech scores five renders a frame)."""
+
+    def __init__(self, image: Tensor, net: str = "vgg", unit_inputs: bool = False):
+        self.shape = tuple(image.shape)
+        self.model = lpips_model(net, image.device, unit_inputs)
+        with torch.no_grad():
+            self.taps = self.model.taps(image, "target")
+
+    def lpips(self, pred: Tensor) -> Tensor:
+        """`lpips(pred, target)` -> [B], without the target's pass."""
+        if tuple(pred.shape[-3:]) != self.shape[-3:]:
+            raise ValueError(f"lpips: pred {tuple(pred.shape)} and target {self.shape} differ in shape")
+        with torch.no_grad():
+            return self.model.distance(pred, self.taps)
+
+
+__all__ = ["LpipsTarget", "lpips", "masked_psnr", "mse", "psnr", "psnr_from_mse", "ssim"]

@@ -87,6 +87,7 @@ def picture_scores(run: LoadedRun, dataset, index_of: dict[int, int], timesteps:
         item = item_to(dataset[index_of[timestep]], device)
         tracked = frames.params(timestep, HeadParams.from_npz(item["params"]), own_dataset=own)[0].to(device)
         target = composite_target(item["image"], item["mask"], item["background"])
+        target_taps = metrics.LpipsTarget(target, config.lpips_net, config.lpips_unit_inputs)  # for all five renders
         camera = item_camera(item)
         tracked_vertices = None  # the tracked render comes first: its mesh gives every face's mouth pixels
         for name, face in {"tracked": None, **faces}.items():
@@ -97,8 +98,8 @@ def picture_scores(run: LoadedRun, dataset, index_of: dict[int, int], timesteps:
                 tracked_vertices = frame.vertices
             rendered = RenderedFrame(row, item, frame.result.rgb.clamp(0, 1), target, tracked_vertices,
                                      frame.result.alpha, params, None)
-            record = image_metrics(rendered, config)
-            measure_mouth(record, rendered, run.head, mouth_faces, config)
+            record = image_metrics(rendered, config, target_taps)
+            measure_mouth(record, rendered, run.head, mouth_faces, config, lpips=False)  # its PSNR is what is kept
             for key in ("psnr", "lpips", "mouth_psnr"):
                 value = getattr(record, key)
                 if value is not None and np.isfinite(value):
