@@ -97,8 +97,8 @@ def main() -> None:
 
     fwd, both = best_of(forward, args.calls), best_of(forward_backward, args.calls)
     print(f"{args.run}: {len(leaves[0])} Gaussians, {work['on_screen']} on screen at {camera.width} x {camera.height}; "
-          f"their boxes cover {work['box_area_over_image']:.1f} x the image (median box {work['median_box_px']:.0f} px), "
-          f"{work['blocks']} blocks of 4 x 4 px")
+          f"their boxes cover {work['box_area_over_image']:.1f} x the image "
+          f"(median box {work['median_box_px']:.0f} px), {work['blocks']} blocks of 4 x 4 px")
     covered = float((forward().alpha > 0.5).float().mean())
     print(f"the avatar covers {100 * covered:.0f} % of the image (alpha > 0.5): each covered pixel lies in "
           f"~{work['box_area_over_image'] / covered:.0f} boxes; the boxes' area by opacity "
