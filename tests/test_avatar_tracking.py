@@ -106,6 +106,29 @@ def test_track_command_fits_the_held_out_frames_and_keeps_the_runs_own(tiny, tmp
     assert report["from_run"] == [] and len(report["fitted"]) == len(train) + len(test)
 
 
+def test_track_fits_the_held_out_frames_as_train_does_on_any_number_of_workers(tiny, tmp_path):
+    """`track --avatar` cuts its frames into the held-out fit's blocks: on the run's own dataset it gives train's
+    held-out rows, on one worker process or two."""
+    import shutil
+
+    from geoavatar.apps.track import track
+    from geoavatar.train.held_out_fit import HeldOutFitConfig, fit_held_out, read_held_out
+
+    data, run_dir = tiny
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    fit_held_out(copy, HeldOutFitConfig(steps=2), workers=1, progress=False, log=lambda line: None)
+    held = read_held_out(copy, load_run(copy).info.step)
+    for workers in (1, 2):
+        out = tmp_path / f"tracked_{workers}"
+        assert track(data, out, avatar=run_dir, steps=2, workers=workers, progress=False) == 0
+        tracked = open_subject(out)
+        rows = {t: i for i, t in enumerate(tracked.timesteps)}
+        for key in FRAME_KEYS:
+            got = np.stack([tracked.params[key][rows[t]].numpy() for t in held.timesteps])
+            assert np.allclose(got, held.rows[key], atol=1e-6), key
+
+
 def test_track_command_refuses_options_that_do_not_apply(tiny, tmp_path):
     from geoavatar.apps.track import track
 
@@ -116,4 +139,8 @@ def test_track_command_refuses_options_that_do_not_apply(tiny, tmp_path):
         track(data, tmp_path / "x", refit_trained=True, progress=False)
     with pytest.raises(OptionError, match="--steps"):
         track(data, tmp_path / "x", avatar=run_dir, steps=-1, progress=False)
+    with pytest.raises(OptionError, match="--workers"):
+        track(data, tmp_path / "x", workers=2, progress=False)
+    with pytest.raises(OptionError, match="--workers"):
+        track(data, tmp_path / "x", avatar=run_dir, workers=0, progress=False)
     assert not (tmp_path / "x").exists()

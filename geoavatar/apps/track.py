@@ -11,7 +11,8 @@ frame's parameters are fitted so that the avatar explains its image. On the run'
 it trained on keep the run's refined parameters (training already fitted them against the avatar) unless
 `--refit-trained`; the others, the held-out frames, are fitted. On any other dataset of the same person
 (a new clip, prepared with `prepare`) every frame is fitted. The fit is train's held-out fit (train/held_out_fit.py):
-its steps, each frame from the previous frame's correction when that renders closer, on one thread.
+its steps, each frame from the previous frame's correction when that renders closer, in its blocks of neighbouring
+frames, one worker process per core (one thread each) on a CPU.
 """
 
 from __future__ import annotations
@@ -104,15 +105,18 @@ def track_subject(subject, config=None, flame_dir: Path | None = None, progress:
 
 
 def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, device: str = "auto",
-                      flame_dir: Path | None = None, progress: bool = True, log=print) -> tuple[HeadParams, dict]:
+                      flame_dir: Path | None = None, progress: bool = True, log=print,
+                      workers: int | None = None) -> tuple[HeadParams, dict]:
     """The dataset's parameters [T] with its frames fitted against the run's avatar, and a report (which rows
-    came from the run, which were fitted, their L1 before and after)."""
+    came from the run, which were fitted, their L1 before and after). The frames to fit go in the held-out fit's
+    blocks (train/held_out_fit.py: the same rows as `train`'s fit on its own held-out frames), on `workers`
+    processes on a CPU (default: every core), in this process on a GPU."""
     from tqdm import tqdm
 
-    from geoavatar.data.dataset import DataConfig, HeadAvatarDataset
     from geoavatar.prep.photometric import residual_report
-    from geoavatar.train.avatar_tracking import dataset_frames, track_frames
     from geoavatar.train.checkpoint import open_run
+    from geoavatar.train.held_out_fit import FitTask, clip_dataset, fit_plan, fit_tasks
+    from geoavatar.workers import default_workers
 
     run = open_run(run_dir, device, flame_dir=flame_dir)
     if subject.head_model != run.info.head_model:
@@ -121,24 +125,28 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
     if len({frame.camera for frame in subject.frames}) > 1:
         raise TrackError(f"{subject.root}: several cameras; geoavatar track fits monocular datasets only")
     try:
-        config = AvatarTrackingConfig(steps=steps, carry=_AVATAR_DEFAULTS.carry)
+        AvatarTrackingConfig(steps=steps, carry=_AVATAR_DEFAULTS.carry)
     except ValueError as err:
         raise OptionError(f"--steps: {err}") from None
     trained = _trained_timesteps(subject, run, refit_trained)
     rows = _start_rows(subject, run, trained)  # key -> [T, ...]
-    dataset = HeadAvatarDataset(subject, "all", DataConfig(resolution=run.info.resolution, cache="none"))
+    dataset = clip_dataset(run, subject.root, flame_dir)
     to_fit = [index for index in range(len(dataset)) if dataset.timesteps[index] not in trained]
     nothing = np.zeros(0)
     report = {"avatar": str(Path(run_dir).resolve()), "steps": steps, "from_run": sorted(trained),
               "fitted": [int(dataset.timesteps[index]) for index in to_fit], "l1": residual_report(nothing, nothing)}
     if to_fit:
+        on_cpu = run.device.type == "cpu"
+        tasks = [FitTask(str(run_dir), run.info.step, tuple(to_fit[i] for i in block), steps,
+                         _AVATAR_DEFAULTS.carry, str(subject.root), str(run.device),
+                         str(flame_dir) if flame_dir is not None else None)
+                 for block in fit_plan(len(to_fit), None)[0]]
         with tqdm(total=len(to_fit), desc="track (avatar)", unit="frame", disable=not progress) as bar:
-            frames = dataset_frames(dataset, to_fit, run.device)
-            result = track_frames(run.avatar, run.head, run.deformer, frames, config, progress=bar.update)
+            fitted, before, after = fit_tasks(tasks, (workers or default_workers()) if on_cpu else 1, bar.update)
         for i, index in enumerate(to_fit):
             for key in FRAME_KEYS:
-                rows[key][dataset.frames[index].row] = getattr(result.params, key)[i].cpu()
-        report["l1"] = residual_report(result.loss_after, result.loss_before)  # null: an empty mask, not fitted
+                rows[key][dataset.frames[index].row] = torch.from_numpy(fitted[key][i])
+        report["l1"] = residual_report(after, before)  # null: an empty mask, not fitted
     l1 = report["l1"]  # means NaN when no frame had pixels to compare
     log(f"track: {len(to_fit)} frame(s) fitted against the avatar ({len(trained)} kept the run's refined parameters); "
         f"L1 {l1['mean_before']:.4f} -> {l1['mean']:.4f}")
@@ -200,6 +208,7 @@ def track(
     overwrite: bool = False,
     flame_dir: Path | None = None,
     threads: int = 1,
+    workers: int | None = None,
     progress: bool = True,
 ) -> int:
     """Photometric tracking of an existing monocular dataset: fit every frame's rotation, translation, neck,
@@ -225,6 +234,7 @@ def track(
         flame_dir: FLAME files for a FLAME dataset.
         threads: Torch threads (1 is fastest on a busy 2-core machine: the fit runs many small operations and
             renders; 2 threads made it 26x slower there, BENCHMARKS.md).
+        workers: With --avatar on a CPU: worker processes, one thread each (default: every core, at most 8).
         progress: Show a progress bar.
     """
     import time
@@ -247,6 +257,10 @@ def track(
     except ValueError as err:
         raise OptionError(str(err)) from None
     check_threads(threads)
+    if workers is not None and (isinstance(workers, bool) or workers < 1):
+        raise OptionError(f"--workers must be at least 1, got {workers}")
+    if avatar is None and workers is not None:
+        raise OptionError("--workers applies to --avatar only (the photometric fit runs in this process)")
     subject = open_subject(dataset)
     started = time.perf_counter()
     with torch_threads(threads):
@@ -255,7 +269,7 @@ def track(
             fitted = result.params
         else:
             fitted, avatar_report = track_with_avatar(subject, Path(avatar), steps, refit_trained, device, flame_dir,
-                                                      progress)
+                                                      progress, workers=workers)
     seconds = time.perf_counter() - started
     report = {"source": str(Path(dataset).resolve()), "frames": subject.num_timesteps, "seconds": round(seconds, 2)}
     if avatar is None:

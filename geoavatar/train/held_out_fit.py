@@ -69,24 +69,60 @@ class HeldOutFitConfig:
             raise ValueError(f"held-out fit: need max_frames >= 1 (or None: all), got {self.max_frames}")
 
 
-def _fit_block(task: tuple) -> dict:
-    """A worker's task: fit the test frames `indices` of the run in `run_dir`; rows [n, ...] and L1 [n]."""
+@dataclass(frozen=True)
+class FitTask:
+    """One worker task: fit frames `indices` of a dataset against the run's avatar, the carry running through them."""
+
+    run_dir: str
+    step: int  # the checkpoint's (a worker's cache key)
+    indices: tuple[int, ...]  # into the run's test split, or into the "all" split of `data`
+    steps: int
+    carry: bool
+    data: str | None = None  # another dataset of the run's person (track --avatar); None: the run's own test split
+    device: str = "cpu"
+    flame_dir: str | None = None
+
+
+def clip_dataset(run, data: Path | str, flame_dir: Path | str | None = None):
+    """Every frame of a dataset of the run's person at the run's resolution, as `track --avatar` fits them."""
+    from geoavatar.data.dataset import DataConfig, HeadAvatarDataset, open_subject
+
+    head_options = {"flame_dir": flame_dir or run.info.run_options.get("flame_dir")} \
+        if run.info.head_model == "flame" else {}
+    return HeadAvatarDataset(open_subject(data), "all", DataConfig(resolution=run.info.resolution, cache="none"),
+                             head_options=head_options)
+
+
+def _fit_block(task: FitTask) -> dict:
+    """A worker's task: rows [n, ...] of its frames and their L1 [n] before and after."""
     from geoavatar.train.avatar_tracking import AvatarTrackingConfig, dataset_frames, track_frames
     from geoavatar.train.checkpoint import load_run, open_run_dataset
     from geoavatar.workers import report_progress, worker_cache
 
-    run_dir, step, indices, config = task
-
     def opened():
-        run = load_run(run_dir, "cpu")
-        return run, open_run_dataset(run, "test")
+        run = load_run(task.run_dir, task.device, flame_dir=task.flame_dir)
+        dataset = open_run_dataset(run, "test") if task.data is None else clip_dataset(run, task.data, task.flame_dir)
+        return run, dataset
 
-    run, test = worker_cache(f"held-out:{run_dir}:{step}", opened)
-    fit = AvatarTrackingConfig(steps=config["steps"], carry=config["carry"])
-    result = track_frames(run.avatar, run.head, run.deformer, dataset_frames(test, indices, run.device), fit,
+    run, dataset = worker_cache(f"avatar-fit:{task.run_dir}:{task.step}:{task.data}:{task.device}", opened)
+    fit = AvatarTrackingConfig(steps=task.steps, carry=task.carry)
+    result = track_frames(run.avatar, run.head, run.deformer, dataset_frames(dataset, task.indices, run.device), fit,
                           progress=report_progress)
     return {"rows": {key: getattr(result.params, key).cpu().numpy() for key in FRAME_KEYS},
             "before": result.loss_before, "after": result.loss_after}
+
+
+def fit_tasks(tasks: list[FitTask], workers: int, progress: Callable[[int], None] | None = None
+              ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The tasks on `workers` processes (one torch thread each; inline with one): the fitted rows [n, ...] of all
+    their frames in task order, and the L1 [n] before and after (NaN: an empty mask, not fitted)."""
+    from geoavatar.workers import WorkerPool
+
+    with WorkerPool(max(1, min(workers, len(tasks)))) as pool:
+        results = pool.map(_fit_block, tasks, progress=progress)
+    rows = {key: np.concatenate([result["rows"][key] for result in results]) for key in FRAME_KEYS}
+    return (rows, np.concatenate([result["before"] for result in results]),
+            np.concatenate([result["after"] for result in results]))
 
 
 def fit_held_out(run_dir: Path, config: HeldOutFitConfig = HeldOutFitConfig(), workers: int | None = None,
@@ -97,7 +133,7 @@ def fit_held_out(run_dir: Path, config: HeldOutFitConfig = HeldOutFitConfig(), w
 
     from geoavatar.io.atomic import atomic_write_json, atomic_write_npz
     from geoavatar.train.checkpoint import load_run, open_run_dataset
-    from geoavatar.workers import WorkerPool, default_workers
+    from geoavatar.workers import default_workers
 
     run = load_run(run_dir, "cpu")
     test = open_run_dataset(run, "test")
@@ -107,14 +143,10 @@ def fit_held_out(run_dir: Path, config: HeldOutFitConfig = HeldOutFitConfig(), w
     picked = [index for block in blocks for index in block]
     workers = max(1, min(workers or default_workers(), len(blocks)))
     started = time.perf_counter()
-    tasks = [(str(run_dir), run.info.step, block, asdict(config)) for block in blocks]
-    with tqdm(total=len(picked), desc="train: held-out fit", unit="frame", disable=not progress) as bar, \
-            WorkerPool(workers) as pool:
-        results = pool.map(_fit_block, tasks, progress=bar.update)
+    tasks = [FitTask(str(run_dir), run.info.step, block, config.steps, config.carry) for block in blocks]
+    with tqdm(total=len(picked), desc="train: held-out fit", unit="frame", disable=not progress) as bar:
+        fitted, before, after = fit_tasks(tasks, workers, bar.update)  # [n, ...], [n], [n]
     seconds = time.perf_counter() - started
-    fitted = {key: np.concatenate([result["rows"][key] for result in results]) for key in FRAME_KEYS}  # [n, ...]
-    before = np.concatenate([result["before"] for result in results])  # [n] L1, NaN: empty mask
-    after = np.concatenate([result["after"] for result in results])
     timesteps = [int(frame.timestep) for frame in test.frames]  # [N] the whole test split
     rows_of_split = [frame.row for frame in test.frames]
     tracked = {key: test.subject.params[key][rows_of_split].numpy() for key in FRAME_KEYS}  # [N, ...] the tracker's
@@ -210,5 +242,6 @@ def read_held_out(run_dir: Path, step: int) -> HeldOutRows | None:
                            [t for t, was in zip(timesteps, scored) if was])
 
 
-__all__ = ["BLOCK", "HELD_OUT_FILE", "HELD_OUT_REPORT", "MAX_FRAMES", "RUN_LENGTH", "WARM_UP", "HeldOutFitConfig",
-           "HeldOutRows", "fill_between", "fit_held_out", "fit_plan", "is_fitted", "read_held_out"]
+__all__ = ["BLOCK", "HELD_OUT_FILE", "HELD_OUT_REPORT", "MAX_FRAMES", "RUN_LENGTH", "WARM_UP", "FitTask",
+           "HeldOutFitConfig", "HeldOutRows", "clip_dataset", "fill_between", "fit_held_out", "fit_plan", "fit_tasks",
+           "is_fitted", "read_held_out"]
