@@ -187,7 +187,7 @@ class LPIPS(nn.Module):
     def distance(self, pred: Tensor, target_taps: list[Tensor]) -> Tensor:
         """LPIPS distance of pred [B, H, W, 3] or [H, W, 3] to a target given by its `taps` -> [B]."""
         pred_taps = self.taps(pred, "pred")
-        if pred_taps[0].shape[-2:] != target_taps[0].shape[-2:]:
+        if any(fx.shape[-2:] != fy.shape[-2:] for fx, fy in zip(pred_taps, target_taps)):
             raise ValueError(f"LPIPS: pred {tuple(pred.shape)} and the target's taps differ in size")
         total = pred_taps[0].new_zeros(pred_taps[0].shape[0])
         for fx, fy, lin in zip(pred_taps, target_taps, self.lins):
