@@ -114,8 +114,8 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
     from tqdm import tqdm
 
     from geoavatar.prep.photometric import residual_report
-    from geoavatar.train.checkpoint import open_run
-    from geoavatar.train.held_out_fit import FitTask, clip_dataset, fit_plan, fit_tasks
+    from geoavatar.train.checkpoint import open_clip_dataset, open_run
+    from geoavatar.train.held_out_fit import FitTask, fit_plan, fit_tasks
     from geoavatar.workers import default_workers
 
     run = open_run(run_dir, device, flame_dir=flame_dir)
@@ -124,13 +124,13 @@ def track_with_avatar(subject, run_dir: Path, steps: int, refit_trained: bool, d
                          f"'{run.info.head_model}'")
     if len({frame.camera for frame in subject.frames}) > 1:
         raise TrackError(f"{subject.root}: several cameras; geoavatar track fits monocular datasets only")
-    try:
+    try:  # --steps checked here, before the workers load anything
         AvatarTrackingConfig(steps=steps, carry=_AVATAR_DEFAULTS.carry)
     except ValueError as err:
         raise OptionError(f"--steps: {err}") from None
     trained = _trained_timesteps(subject, run, refit_trained)
     rows = _start_rows(subject, run, trained)  # key -> [T, ...]
-    dataset = clip_dataset(run, subject.root, flame_dir)
+    dataset = open_clip_dataset(run, subject.root, flame_dir)
     to_fit = [index for index in range(len(dataset)) if dataset.timesteps[index] not in trained]
     nothing = np.zeros(0)
     report = {"avatar": str(Path(run_dir).resolve()), "steps": steps, "from_run": sorted(trained),

@@ -446,6 +446,19 @@ def open_run(run_dir: str | os.PathLike, device: str = "auto", flame_dir: str | 
     return load_run(run_dir, torch_device, flame_dir=flame_dir)
 
 
+def _head_options(info: RunInfo, flame_dir: str | os.PathLike | None) -> dict:
+    """The head model's options of a dataset opened for the run: a FLAME run's FLAME folder."""
+    return {"flame_dir": flame_dir or info.run_options.get("flame_dir")} if info.head_model == "flame" else {}
+
+
+def open_clip_dataset(run: LoadedRun, data: str | os.PathLike,
+                      flame_dir: str | os.PathLike | None = None) -> HeadAvatarDataset:
+    """Every frame of another dataset of the run's person (a new clip, or the run's own without its split) at the
+    run's resolution, decoded on demand: what `geoavatar track --avatar` fits."""
+    return HeadAvatarDataset(open_subject(data), "all", DataConfig(resolution=run.info.resolution, cache="none"),
+                             head_options=_head_options(run.info, flame_dir))
+
+
 def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None = None,
                      flame_dir: str | os.PathLike | None = None, resolution: int | None = None) -> HeadAvatarDataset:
     """A split of the dataset the run trained on, loaded as training loaded it (resolution, split rule).
@@ -458,7 +471,7 @@ def open_run_dataset(run: LoadedRun, split: str, data: str | os.PathLike | None 
     if not root.is_dir():
         raise RunError(f"{info.run_dir}: its dataset folder {root} is not found; pass --data DIR to point at it")
     config = DataConfig(resolution=resolution or info.resolution, test_frames=info.run_options.get("test_frames"))
-    head_options = {"flame_dir": flame_dir or info.run_options.get("flame_dir")} if info.head_model == "flame" else {}
+    head_options = _head_options(info, flame_dir)
     try:
         subject = open_subject(root)
         dataset = HeadAvatarDataset(subject, split, config, head_options=head_options)
@@ -481,6 +494,6 @@ __all__ = [
     "APS_FILE", "CHECKPOINT_DIR", "CONFIG_FILE", "FINAL_CHECKPOINT", "LAST_CHECKPOINT", "LOG_FILE", "VAL_DIR",
     "FIELDS_ADDED_LATER", "FIELDS_REMOVED", "LoadedRun", "RemovedOptionWarning", "RunError", "RunInfo",
     "config_from_json", "config_to_dict", "dataclass_from_dict", "drop_removed_fields", "last_good_checkpoint",
-    "load_checkpoint", "load_head_for", "load_run", "open_run", "open_run_dataset", "restore_state", "run_checkpoint_path",
+    "load_checkpoint", "load_head_for", "load_run", "open_clip_dataset", "open_run", "open_run_dataset", "restore_state", "run_checkpoint_path",
     "save_checkpoint", "saved_step", "state_payload", "write_aps_report",
 ]

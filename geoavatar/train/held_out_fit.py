@@ -83,25 +83,16 @@ class FitTask:
     flame_dir: str | None = None
 
 
-def clip_dataset(run, data: Path | str, flame_dir: Path | str | None = None):
-    """Every frame of a dataset of the run's person at the run's resolution, as `track --avatar` fits them."""
-    from geoavatar.data.dataset import DataConfig, HeadAvatarDataset, open_subject
-
-    head_options = {"flame_dir": flame_dir or run.info.run_options.get("flame_dir")} \
-        if run.info.head_model == "flame" else {}
-    return HeadAvatarDataset(open_subject(data), "all", DataConfig(resolution=run.info.resolution, cache="none"),
-                             head_options=head_options)
-
-
 def _fit_block(task: FitTask) -> dict:
     """A worker's task: rows [n, ...] of its frames and their L1 [n] before and after."""
     from geoavatar.train.avatar_tracking import AvatarTrackingConfig, dataset_frames, track_frames
-    from geoavatar.train.checkpoint import load_run, open_run_dataset
+    from geoavatar.train.checkpoint import load_run, open_clip_dataset, open_run_dataset
     from geoavatar.workers import report_progress, worker_cache
 
     def opened():
         run = load_run(task.run_dir, task.device, flame_dir=task.flame_dir)
-        dataset = open_run_dataset(run, "test") if task.data is None else clip_dataset(run, task.data, task.flame_dir)
+        dataset = open_run_dataset(run, "test") if task.data is None else open_clip_dataset(run, task.data,
+                                                                                             task.flame_dir)
         return run, dataset
 
     run, dataset = worker_cache(f"avatar-fit:{task.run_dir}:{task.step}:{task.data}:{task.device}", opened)
@@ -243,5 +234,5 @@ def read_held_out(run_dir: Path, step: int) -> HeldOutRows | None:
 
 
 __all__ = ["BLOCK", "HELD_OUT_FILE", "HELD_OUT_REPORT", "MAX_FRAMES", "RUN_LENGTH", "WARM_UP", "FitTask",
-           "HeldOutFitConfig", "HeldOutRows", "clip_dataset", "fill_between", "fit_held_out", "fit_plan", "fit_tasks",
+           "HeldOutFitConfig", "HeldOutRows", "fill_between", "fit_held_out", "fit_plan", "fit_tasks",
            "is_fitted", "read_held_out"]
