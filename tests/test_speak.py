@@ -4,6 +4,7 @@ in real Chromium, and bad input as one line."""
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 import time
@@ -102,7 +103,7 @@ def test_speech_moves_the_mouth_and_the_head(speaker, clip):
 
 
 @pytest.mark.parametrize("case", ["no voice model", "no sound track", "not a sound", "missing", "no source",
-                                  "microphone without view"])
+                                  "microphone without view", "video loudness of a text"])
 def test_bad_input_is_one_line(speaker, clip, tmp_path, capsys, case):
     from apps_fixtures import make_subject, make_untrained_run
 
@@ -124,8 +125,10 @@ def test_bad_input_is_one_line(speaker, clip, tmp_path, capsys, case):
         argv, expected = ["speak", run, "--audio", str(tmp_path / "nope.wav")], "nope.wav: file not found"
     elif case == "no source":
         argv, expected = ["speak", run], "give one thing to say"
-    else:
+    elif case == "microphone without view":
         argv, expected = ["speak", run, "--microphone"], "--microphone needs --view"
+    else:
+        argv, expected = ["speak", run, "--text", "hello", "--loudness", "video"], "--loudness video is for a recording"
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err
@@ -257,3 +260,15 @@ def test_a_page_without_a_microphone_ends_speak_with_one_line(speaker):
     with pytest.raises(MicrophoneError, match=r"^--microphone: microphone: ") as error:
         _live(speaker, microphone, "speak", 30.0, callbacks)
     assert "\n" not in str(error.value)
+
+
+def test_eval_speech_with_the_videos_loudness_writes_its_own_report(speaker, capsys):
+    from geoavatar.cli import main
+
+    run = speaker[1]
+    assert main(["eval", str(run), "--speech", "--loudness", "video", "--max-frames", "2", "--no-progress"]) == 0
+    report = json.loads((run / "eval" / "speech@video-loudness" / "metrics.json").read_text())
+    assert "training sound's speech statistics" in report["settings"]["normalisation"]
+    assert not (run / "eval" / "speech").exists()  # the default report is not overwritten
+    assert main(["eval", str(run), "--loudness", "video"]) == 2
+    assert capsys.readouterr().err.strip().endswith("--loudness goes with --speech")

@@ -136,6 +136,39 @@ def test_the_live_stream_gives_the_files_faces(talking, learned):
         assert heard >= k / 25.0 + voice.config.ahead - 0.011
 
 
+def test_the_videos_loudness_lets_a_softer_voice_move_the_mouth_less(talking, learned):
+    """own (the default): a sound 12 dB softer gives the same faces, normalised by its own speech; video: by the
+    training sound's, so the softer sound opens the mouth less, and a live stream keeps those statistics."""
+    from geoavatar.data.sound import read_dataset_sound
+    from geoavatar.sound.track import Sound
+    from geoavatar.voice.stream import VoiceStream
+
+    data, _ = talking
+    _, voice = learned
+    sound = read_dataset_sound(data).sound.segment(0.0, 6.0)
+    softer = Sound(sound.samples / 4.0, sound.rate, sound.start)
+    times = np.arange(140) / 25.0
+    own, own_softer = voice.predict(sound, times), voice.predict(softer, times)
+    assert np.abs(own.jaw - own_softer.jaw).max() < 1e-3
+    video = voice.hearing("video")
+    assert voice.loudness == "own" and video.loudness == "video"  # a copy: the loaded voice is unchanged
+    loud, soft = video.predict(sound, times), video.predict(softer, times)
+    fixed = voice.predict(softer, times, voice.speech)
+    assert np.array_equal(soft.jaw, fixed.jaw) and np.array_equal(soft.expr, fixed.expr)
+    opened, softly = loud.jaw[:, 0], soft.jaw[:, 0]  # [140] the jaw's opening angle
+    assert softly.mean() < opened.mean() - 0.2 * opened.std(), (softly.mean(), opened.mean())
+
+    stream = VoiceStream(video, 25.0)
+    live = []
+    for at in range(0, len(softer.samples), 800):
+        live += stream.push(softer.samples[at:at + 800])
+    assert stream.fixed and stream.stats is voice.speech
+    live_jaw = np.concatenate([face.jaw for _, face, _ in live])[:len(times)]  # [140, 3]
+    assert len(live_jaw) == len(times) and np.abs(live_jaw - soft.jaw).max() < 1e-5
+    with pytest.raises(ValueError, match="loudness must be one of own, video"):
+        voice.hearing("loud")
+
+
 def test_idle_motion_keeps_the_lips_still_and_plays_the_training_motion(learned):
     from geoavatar.voice.face import FaceProbe
 

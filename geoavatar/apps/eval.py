@@ -51,6 +51,7 @@ def eval_runs(
     transfer: tuple[TransferMode, ...] = (),
     driver_cache: Optional[Path] = None,
     speech: bool = False,
+    loudness: Literal["own", "video"] = "own",
 ) -> int:
     """Evaluate trained runs on a split of their datasets, as the paper's Table 1 does, or score one run's cross
     re-enactment (--driver / --driver-video), as the paper's appendix does.
@@ -113,10 +114,15 @@ def eval_runs(
             RUN/eval/speech/metrics.json and metrics.md (docs/speech.md). The face scores use every held-out frame,
             the picture scores 40 of them spread evenly (--max-frames N: N of them). With --data COPY (track
             --avatar's), the copy's parameters of the held-out frames are the reference and give the head pose.
+        loudness: With --speech: how the held-out sound is normalised, as `speak --loudness` does: own (its own
+            speech statistics, as a new recording is) or video (the training sound's, the same recording's loudness):
+            RUN/eval/speech@video-loudness/.
     """
     mode = _eval_mode(runs, split, out, driver, driver_video, driver_cache, relative, transfer, speech)
+    if loudness != "own" and mode != "speech":
+        raise OptionError("--loudness goes with --speech")
     if mode == "speech":
-        return eval_speech(runs[0], max_frames, device, data, checkpoint, backend, flame_dir, progress)
+        return eval_speech(runs[0], max_frames, device, data, checkpoint, backend, flame_dir, progress, loudness)
     if mode == "cross":
         return eval_cross(runs[0], driver, driver_video, driver_cache, relative, transfer, max_frames, device, data,
                           checkpoint, backend, flame_dir, progress)
@@ -248,8 +254,8 @@ def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, dr
 
 
 def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path | None, checkpoint: str, backend: str,
-                flame_dir: Path | None, progress: bool) -> int:
-    """`geoavatar eval RUN --speech`: RUN/eval/speech/metrics.{json,md} (eval/speech.py)."""
+                flame_dir: Path | None, progress: bool, loudness: str = "own") -> int:
+    """`geoavatar eval RUN --speech`: RUN/eval/speech/metrics.{json,md} (eval/speech.py; speech_dir for --loudness)."""
     from geoavatar.eval.speech import speech_dir, speech_table, write_speech_report
     from geoavatar.eval.speech_run import PICTURE_FRAMES, evaluate_speech
     from geoavatar.runtime import resolve_device
@@ -263,9 +269,9 @@ def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path |
     except ValueError as err:
         raise OptionError(str(err)) from err
     run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
-    voice = VoiceModel.load(run.info.run_dir)
+    voice = VoiceModel.load(run.info.run_dir).hearing(loudness)
     result = evaluate_speech(run, voice, data, max_frames or PICTURE_FRAMES, backend, progress=progress)
-    written = write_speech_report(result, speech_dir(run.info.run_dir))
+    written = write_speech_report(result, speech_dir(run.info.run_dir, loudness))
     print(speech_table(result.scores), end="")
     print(f"{result.label}: {result.frames} held-out frames driven by their own sound in {result.seconds:.1f} s -> "
           f"{written['json']}")

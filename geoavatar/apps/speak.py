@@ -33,9 +33,12 @@ from geoavatar.voice import VoiceModel
 PLAYBACK_RATE = 24000  # the sound the mp4 and the player carry: speech at full quality, half of CD's size
 
 
-def _check_options(audio, text, microphone, live, view, out, fps, max_seconds) -> None:
+def _check_options(audio, text, microphone, live, view, out, fps, max_seconds, loudness) -> None:
     if sum(x is not None and x is not False for x in (audio, text, microphone or None)) != 1:
         raise OptionError("give one thing to say: --audio FILE, --text \"...\" or --microphone")
+    if loudness == "video" and text is not None:
+        raise OptionError("--loudness video is for a recording made as the video was; --text's synthesised voice "
+                          "has a loudness of its own")
     if microphone and not view:
         raise OptionError("--microphone needs --view: the browser page is the microphone and shows the avatar")
     if live and audio is None:
@@ -130,6 +133,7 @@ def speak(
     status: bool = True,
     threads: int = 1,
     serve_forever: bool = True,
+    loudness: Literal["own", "video"] = "own",
 ) -> int:
     """Make the avatar say something new: a sound file, a text (offline speech synthesis) or a live microphone, through
     the voice model the run learned from its own video (`geoavatar train` on a video with speech, or `geoavatar
@@ -159,12 +163,16 @@ def speak(
         status: Live: print a status line (FPS, drops, latency) about once a second.
         threads: CPU threads of the rendering loop (1: a frame's tensors are small).
         serve_forever: --view of a file: keep serving until Ctrl-C (off: start, print the address and stop).
+        loudness: How the sound is normalised before the voice hears it: own (by its own speech: any voice, any
+            microphone, any level moves the mouth) or video (by the video's speech: for a recording made as the
+            video was, same microphone and distance, where speaking louder or softer opens the mouth more or less;
+            a microphone then keeps the video's statistics instead of following its own).
     """
-    _check_options(audio, text, microphone, live, view, out, fps, max_seconds)
+    _check_options(audio, text, microphone, live, view, out, fps, max_seconds, loudness)
     check_threads(threads)
     check_resolution(resolution)
     loaded = open_run(run, device, flame_dir)
-    voice = VoiceModel.load(loaded.info.run_dir)  # VoiceModelError: how to get one
+    voice = VoiceModel.load(loaded.info.run_dir).hearing(loudness)  # VoiceModelError: how to get one
     if microphone or live:
         return _speak_live(loaded, voice, audio, microphone, out, view, fps, seed, resolution, max_seconds, host,
                            port, data, backend, status)

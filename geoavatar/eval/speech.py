@@ -21,7 +21,8 @@ Baselines, scored the same way: mean_face (the training frames' mean expression,
 training frame whose sound window, as the voice model hears it, is nearest) and linear (ridge regression from
 +-120 ms of log-mel and MFCC frames to the parameters, its strength chosen on the last tenth of the training frames).
 Everything learned here (nearest, linear) sees the training frames only; the held-out sound is normalised by its own
-statistics, as a new recording is.
+statistics, as a new recording is (or, for a voice hearing the video's loudness, by the training sound's: voice and
+baselines alike).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import torch
 from geoavatar.io.atomic import atomic_write_json, atomic_write_text
 from geoavatar.sound.features import mfcc, power_frames
 from geoavatar.voice.face import FaceProbe
-from geoavatar.voice.inputs import log_mel_torch, normalise, speech_stats, windows
+from geoavatar.voice.inputs import SpeechStats, log_mel_torch, normalise, speech_stats, windows
 from geoavatar.voice.model import SpokenFace
 
 REPORT_FORMAT = "geoavatar-eval-speech"
@@ -153,9 +154,10 @@ def baseline_faces(inputs: SpeechInputs, past: int, ahead: int) -> dict[str, Spo
     return faces
 
 
-def normalised_mel(sound) -> torch.Tensor:
+def normalised_mel(sound, stats: SpeechStats | None = None) -> torch.Tensor:
+    """[F, M] a sound's log-mel frames normalised by `stats` (None: its own speech statistics)."""
     mel = log_mel_torch(torch.from_numpy(power_frames(sound)))
-    return normalise(mel, speech_stats(mel))
+    return normalise(mel, stats or speech_stats(mel))
 
 
 # --- the report ------------------------------------------------------------------------------------
@@ -172,8 +174,9 @@ class SpeechResult:
     seconds: float = 0.0
 
 
-def speech_dir(run_dir: str | Path) -> Path:
-    return Path(run_dir) / "eval" / "speech"
+def speech_dir(run_dir: str | Path, loudness: str = "own") -> Path:
+    """RUN/eval/speech, or RUN/eval/speech@video-loudness for a voice hearing the video's loudness."""
+    return Path(run_dir) / "eval" / ("speech" if loudness == "own" else f"speech@{loudness}-loudness")
 
 
 def _cell(value, key: str) -> str:

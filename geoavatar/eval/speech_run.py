@@ -25,20 +25,25 @@ from geoavatar.sound import FRAME_RATE
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
 from geoavatar.train.run_frames import RunFrames
 from geoavatar.voice.face import FaceProbe
+from geoavatar.voice.inputs import SpeechStats
 from geoavatar.voice.model import SpokenFace, VoiceModel
 from geoavatar.voice.train import voice_data
 
+NORMALISATION = {"own": "the held-out sound by its own speech statistics (as speak normalises a new recording)",
+                 "video": "the held-out sound by the training sound's speech statistics (speak --loudness video)"}
 
-def _segment_inputs(run: LoadedRun, frames: RunFrames, sound, test: list[int], expr_dims: int
-                    ) -> tuple[SpeechInputs, SpokenFace, float]:
-    """The baselines' inputs, the tracked faces of the held-out frames, and their frame rate."""
+
+def _segment_inputs(run: LoadedRun, frames: RunFrames, sound, test: list[int], expr_dims: int,
+                    stats: SpeechStats | None = None) -> tuple[SpeechInputs, SpokenFace, float]:
+    """The baselines' inputs, the tracked faces of the held-out frames, and their frame rate; the held-out sound
+    normalised by `stats` (None: its own speech statistics)."""
     data = voice_data(run, frames, sound, expr_dims)
     times = sound.times(test)  # [N'] seconds
     cut = float(data.power.shape[0] - 1) / FRAME_RATE  # where the training sound ends
     start = min(float(times[0]) - 0.5 / max(data.fps, 1.0), cut)
     held_out = sound.sound.segment(start, sound.sound.seconds)
     train_mel = normalised_mel(sound.sound.segment(0.0, cut))
-    inputs = SpeechInputs(data.targets.numpy(), train_mel, data.centres.numpy(), normalised_mel(held_out),
+    inputs = SpeechInputs(data.targets.numpy(), train_mel, data.centres.numpy(), normalised_mel(held_out, stats),
                           np.round((times - start) * FRAME_RATE).astype(np.int64), expr_dims, data.expr_width)
     rows = [frames.row(t) for t in test]
     tracked = SpokenFace.from_rows(frames.values.expr, frames.values.jaw_pose, rows)
@@ -127,7 +132,8 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
         raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
     dataset, index_of = _test_items(run, data) if render or data is not None else (None, {})
     try:
-        inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims)
+        inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims,
+                                               voice.speech if voice.loudness == "video" else None)
         if data is not None:  # a copy's parameters (track --avatar's) are the reference, as for plain eval --data
             tracked = _copy_faces(dataset, test, tracked)
     except DatasetError as err:
@@ -149,7 +155,7 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
             scores[name].update(values)
     settings = {"voice": {k: voice.config.to_dict()[k] for k in ("past", "ahead", "members")},
                 "held_out_frames": len(test), "picture_frames": len(rows),
-                "normalisation": "the held-out sound by its own speech statistics", "render": render,
+                "normalisation": NORMALISATION[voice.loudness], "render": render,
                 "head_pose": "tracked (rotation, neck, translation, eyes); T = 0", "metrics": metrics.__name__,
                 "test_params": test_params_source(run, root),
                 "face_scores_reference": ("every held-out frame's row: fitted in the held-out fit's runs, between "

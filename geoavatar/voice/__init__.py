@@ -3,6 +3,7 @@
     voice = train_voice(run)                          # train.py: sound -> expression and jaw (+ the idle motion)
     voice.save(run_dir); VoiceModel.load(run_dir)     # model.py: RUN/voice/voice.npz + voice.json (no pickle)
     face = voice.predict(sound, times)                # SpokenFace: expr [N, E], jaw [N, 3]
+    voice.hearing("video")                            # the same voice, hearing loudness as the video's (model.py)
     VoiceStream(voice, fps).push(chunk)               # stream.py: the same, live, frame by frame
     speaking_params(face, idle.player(fps).take(N), identity)   # compose.py: the full head parameters
 
@@ -14,6 +15,6 @@ source of the animation layer.
 
 from geoavatar.voice.compose import speaking_params
 from geoavatar.voice.config import VoiceConfig
-from geoavatar.voice.model import SpokenFace, VoiceModel, VoiceModelError
+from geoavatar.voice.model import LOUDNESS, SpokenFace, VoiceModel, VoiceModelError
 
-__all__ = ["SpokenFace", "VoiceConfig", "VoiceModel", "VoiceModelError", "speaking_params"]
+__all__ = ["LOUDNESS", "SpokenFace", "VoiceConfig", "VoiceModel", "VoiceModelError", "speaking_params"]

@@ -12,7 +12,7 @@ The expression has the run's width (a head model with fewer modes uses the leadi
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +32,11 @@ WEIGHTS_FILE = "voice.npz"
 INFO_FILE = "voice.json"
 FORMAT = "geoavatar-voice"
 VERSION = 2  # 2: an ensemble of networks (1: one)
+# how a sound is normalised before the networks hear it (VoiceModel.hearing): by its own speech statistics, so that any
+# voice and any microphone move the mouth; or by the video's, for a recording made as the video was, where how loudly
+# the person speaks moves the mouth too (french.mp4's held-out LVE 0.76-0.78x -> 0.64-0.65x the mean face's, r +0.01-
+# 0.04, three seeds: BENCHMARKS.md, Speech)
+LOUDNESS = ("own", "video")
 
 
 class VoiceModelError(GeoAvatarError, ValueError):
@@ -69,6 +74,17 @@ class VoiceModel:
     # the networks' standardised output is scaled by this, fitted on the validation frames: averaging what a sound may
     # mean (and three networks' outputs) shrinks the mouth's motion; the least-squares gain restores what it can
     gain: float = 1.0
+    loudness: str = "own"  # LOUDNESS: the caller's choice (hearing), not saved with the model
+
+    def hearing(self, loudness: str) -> "VoiceModel":
+        """This voice, normalising what it hears by `loudness` (LOUDNESS)."""
+        if loudness not in LOUDNESS:
+            raise ValueError(f"loudness must be one of {', '.join(LOUDNESS)}, got {loudness!r}")
+        return replace(self, loudness=loudness)
+
+    def stats_of(self, mel: torch.Tensor) -> SpeechStats:
+        """The statistics a sound's log-mel frames [F, M] are normalised by (`loudness`)."""
+        return self.speech if self.loudness == "video" else speech_stats(mel)
 
     @property
     def past(self) -> int:
@@ -99,10 +115,10 @@ class VoiceModel:
         return SpokenFace(expr, values[:, self.expr_dims:].astype(np.float32))
 
     def predict(self, sound: Sound, times: np.ndarray, stats: SpeechStats | None = None) -> SpokenFace:
-        """Each frame's face at `times` (seconds from the sound's first sample); the sound normalised by its own speech
-        statistics unless `stats` are given."""
+        """Each frame's face at `times` (seconds from the sound's first sample); the sound normalised as `loudness`
+        says unless `stats` are given."""
         mel = log_mel_torch(torch.from_numpy(power_frames(sound)))
-        stats = stats or speech_stats(mel)
+        stats = stats or self.stats_of(mel)
         centres = torch.from_numpy(np.round(np.asarray(times) * FRAME_RATE).astype(np.int64))
         return self.predict_features(normalise(mel, stats), centres)
 
@@ -154,4 +170,5 @@ class VoiceModel:
                           IdleMotion.from_arrays(arrays), info.get("info", {}), float(arrays.get("gain", 1.0)))
 
 
-__all__ = ["FORMAT", "INFO_FILE", "SpokenFace", "VOICE_DIR", "VoiceModel", "VoiceModelError", "WEIGHTS_FILE"]
+__all__ = ["FORMAT", "INFO_FILE", "LOUDNESS", "SpokenFace", "VOICE_DIR", "VoiceModel", "VoiceModelError",
+           "WEIGHTS_FILE"]

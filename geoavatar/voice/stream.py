@@ -5,8 +5,9 @@
 
 Frame k (shown at k / fps of the sound) needs the sound up to k / fps + ahead: that is the model's latency floor
 (0.1 s by default). The features are the same numbers as a whole file's (sound/features.py is chunk-exact), and so are
-the faces when the statistics are fixed (`stats`); live, they start from the training sound's statistics and follow
-the microphone's: every half second, those of its last ADAPT_SECONDS, once it has held LOUD_SECONDS of loud sound.
+the faces when the statistics are fixed (`stats`, or a voice hearing the video's loudness: VoiceModel.hearing); live,
+they start from the training sound's statistics and follow the microphone's: every half second, those of its last
+ADAPT_SECONDS, once it has held LOUD_SECONDS of loud sound.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ class VoiceStream:
         if fps <= 0:
             raise ValueError(f"VoiceStream: fps must be positive, got {fps}")
         self.voice, self.fps = voice, float(fps)
-        self.fixed = stats is not None
+        self.fixed = stats is not None or voice.loudness == "video"
         self.stats = stats or voice.speech
         self.power = PowerStream()
         self.mel = torch.zeros(0, voice.speech.mean.shape[0])  # [F, M] raw log-mel of the recent sound
