@@ -11,7 +11,8 @@ avatar, and two measurements of a frame from its pixels already disagree by that
 
 --training-blocks K also asks whether the ruler leans: it fits K blocks of 16 training frames as train fits the
 held-out ones (train/held_out_fit.py: its steps, the carry, one thread) and compares their lips' opening with the
-rows the voice learns from (the run's) and the tracker's. The voice can only learn the convention of its targets.
+rows the voice learns from (the run's) and the tracker's, and their lips' mean and LVE with the run's rows. The voice
+can only learn the convention of its targets.
 """
 
 from __future__ import annotations
@@ -107,6 +108,10 @@ def training_fit_openings(run, subject, blocks: int) -> None:
         with torch.no_grad():
             return probe.opening(expr[:, :width].float(), jaw.float()).numpy() * 1000.0
 
+    def lips(expr, jaw) -> torch.Tensor:
+        with torch.no_grad():
+            return probe.lips(expr[:, :width].float(), jaw.float()).double()  # [N, K, 3]
+
     fit = opening(torch.cat([p.expr for p in fitted]), torch.cat([p.jaw_pose for p in fitted]))
     rows = [frames.row(t) for t in timesteps]
     learned = opening(frames.values.expr[rows], frames.values.jaw_pose[rows])
@@ -116,6 +121,12 @@ def training_fit_openings(run, subject, blocks: int) -> None:
           f"lips' opening mean: fit {fit.mean():.2f} mm, the run's rows {learned.mean():.2f}, the tracker's "
           f"{tracker.mean():.2f}; fit - run's {np.mean(fit - learned):+.2f} mm (std {np.std(fit - learned):.2f}, "
           f"r {np.corrcoef(fit, learned)[0, 1]:.3f})")
+    fit_lips = lips(torch.cat([p.expr for p in fitted]), torch.cat([p.jaw_pose for p in fitted]))
+    run_lips = lips(frames.values.expr[rows], frames.values.jaw_pose[rows])
+    offset = float(((fit_lips.mean(0) - run_lips.mean(0)) ** 2).sum(-1).max().sqrt()) * 1000.0
+    apart = float(((fit_lips - run_lips) ** 2).sum(-1).max(-1).values.mean())
+    print(f"the fit's lips against the run's rows: means {offset:.2f} mm apart (at the vertex that moves most), LVE "
+          f"between them {apart:.2e} m2")
     test = [int(t) for t in run.info.held_out_scored or run.info.timesteps["test"]]  # not the rows filled between
     fitted_rows, tracker_rows = [frames.row(t) for t in test], [row[t] for t in test]
     reference = opening(frames.values.expr[fitted_rows], frames.values.jaw_pose[fitted_rows])

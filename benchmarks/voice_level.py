@@ -1,0 +1,118 @@
+"""Where the voice's held-out lip error lies: the segment's mean mouth, and the loudness that per-clip normalisation
+takes away.
+
+    .venv/bin/python benchmarks/voice_level.py RUN [--seeds 0,1,2]
+
+`eval --speech` normalises the held-out sound by its own speech statistics, as `geoavatar speak` normalises a new
+recording (so that another voice or a quieter microphone still moves the mouth). For each seed's voice model (the
+run's own for its seed, others learned here as `geoavatar voice` learns them) and for the linear baseline, this
+prints the held-out LVE (× the mean face's) and the lips' opening r three ways:
+
+    own        the held-out sound by its own statistics (eval --speech, speak)
+    video      by the training sound's statistics (`speak --loudness video`, `eval --speech --loudness video`)
+    centred    own, with the predicted lips moved by their mean error over the segment (an oracle: what is left when
+               the segment's mean mouth is given)
+
+and the level of the held-out speech against the training speech (dB, the bands' mean).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--stats-seconds", default=None,
+                        help="LO,HI: learn with each step's statistics from a stretch of LO-HI s (voice/train.py)")
+    args = parser.parse_args()
+
+    from geoavatar.runtime import num_threads, setup_process
+
+    setup_process()
+    from geoavatar.data.sound import read_dataset_sound
+    from geoavatar.eval.speech import baseline_faces, pearson
+    from geoavatar.eval.speech_run import _segment_inputs
+    from geoavatar.sound.features import power_frames
+    from geoavatar.train.checkpoint import open_run
+    from geoavatar.train.run_frames import RunFrames
+    from geoavatar.voice import VoiceConfig, VoiceModel
+    from geoavatar.voice.face import FaceProbe
+    from geoavatar.voice.inputs import log_mel_torch, speech_stats
+    from geoavatar.voice.train import _fit, voice_data
+
+    if args.stats_seconds:
+        import geoavatar.voice.train as voice_train
+
+        voice_train.STATS_SECONDS = tuple(float(s) for s in args.stats_seconds.split(","))
+    run = open_run(args.run, "cpu")
+    frames = RunFrames(run)
+    sound = read_dataset_sound(run.info.data_root)
+    test = sorted(run.info.timesteps["test"], key=lambda t: sound.frame_times.get(t, t))
+    own_inputs, tracked, fps = _segment_inputs(run, frames, sound, test, int(run.head.num_expr))
+    probe = FaceProbe(run.head, {k: v.cpu() for k, v in frames.identity().items()})
+    as_tensor = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+
+    def lips(face) -> torch.Tensor:
+        with torch.no_grad():
+            return probe.lips(as_tensor(face.expr), as_tensor(face.jaw)).double()  # [N, K, 3]
+
+    def opening(face) -> np.ndarray:
+        with torch.no_grad():
+            return probe.opening(as_tensor(face.expr), as_tensor(face.jaw)).numpy()
+
+    reference = lips(tracked)
+    lve = lambda predicted: float(((predicted - reference) ** 2).sum(-1).max(-1).values.mean())  # noqa: E731
+    mean_face = lve(lips(baseline_faces(own_inputs, 1, 1)["mean_face"]))
+
+    # the held-out sound normalised by the training sound's statistics (what the voice model keeps: speak --loudness
+    # video), for the voice and the baselines alike
+    training = speech_stats(log_mel_torch(voice_data(run, frames, sound, int(run.head.num_expr)).power))
+    video_inputs, _, _ = _segment_inputs(run, frames, sound, test, int(run.head.num_expr), training)
+    start = float(sound.times(test)[0]) - 0.5 / fps
+    held_out = log_mel_torch(torch.from_numpy(power_frames(sound.sound.segment(start, sound.sound.seconds).samples)))
+    level_db = 10.0 * float((speech_stats(held_out).mean - training.mean).mean())
+    print(f"{args.run}: held-out speech {level_db:+.1f} dB against the training speech; mean face LVE "
+          f"{mean_face:.3e} m2", flush=True)
+
+    def row(label: str, faces: dict) -> dict:
+        out = {}
+        for way, face in faces.items():
+            predicted = lips(face)
+            centred = predicted - (predicted - reference).mean(0)
+            out[way] = {"lve_x": lve(predicted) / mean_face, "r": pearson(opening(face), opening(tracked))}
+            if way == "own":
+                out["centred"] = {"lve_x": lve(centred) / mean_face, "r": out[way]["r"]}
+        print(f"{label:24s} " + "  ".join(f"{way} {v['lve_x']:.3f}x r {v['r']:.3f}" for way, v in out.items()),
+              flush=True)
+        return out
+
+    results = {"level_db": level_db,
+               "linear": row("linear", {"own": baseline_faces(own_inputs, 1, 1)["linear"],
+                                        "video": baseline_faces(video_inputs, 1, 1)["linear"]})}
+    saved = VoiceModel.load(run.info.run_dir) if VoiceModel.exists(run.info.run_dir) else None
+    for seed in (int(s) for s in args.seeds.split(",")):
+        started = time.perf_counter()
+        if saved is not None and saved.config.seed == seed and not args.stats_seconds:
+            voice = saved
+        else:
+            config = VoiceConfig(**{**saved.config.to_dict(), "seed": seed}) if saved else VoiceConfig(seed=seed)
+            with num_threads(config.threads):
+                voice = _fit(run, frames, sound, config, started, lambda _: None)
+        centres = torch.from_numpy(own_inputs.test_centres)
+        faces = {"own": voice.predict_features(own_inputs.test_mel, centres),
+                 "video": voice.predict_features(video_inputs.test_mel, centres)}
+        results[f"voice seed {seed}"] = row(f"voice seed {seed} ({time.perf_counter() - started:.0f} s)", faces)
+    print(json.dumps(results))
+
+
+if __name__ == "__main__":
+    main()
