@@ -4,6 +4,7 @@ in real Chromium, and bad input as one line."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -178,6 +179,28 @@ def test_the_web_export_plays_the_speech_with_its_sound(speaker, clip, tmp_path)
                               "document.getElementById('sound').currentTime, window.geoavatar.player.frame])))")
     audio_time, frame = shown
     assert abs(frame - math.floor(audio_time * FPS)) <= 1
+
+
+def test_the_web_export_hears_the_sound_by_the_chosen_loudness(speaker, tmp_path, capsys):
+    """`export --audio --loudness video` plays what `speak --loudness video` says: a quieter recording of the voice
+    moves the mouth less than by its own statistics, and the manifest names the choice."""
+    from geoavatar.cli import main
+    from geoavatar.data.synth.sound import new_speech
+    from geoavatar.sound.track import write_wav
+
+    speech = new_speech(3.0, seed=7)
+    quiet = write_wav(tmp_path / "quiet.wav", dataclasses.replace(speech, samples=speech.samples * 0.1))
+    clips = {}
+    for loudness in ("own", "video"):
+        out = tmp_path / loudness
+        assert main(["export", str(speaker[1]), "--format", "web", "--audio", str(quiet), "--loudness", loudness,
+                     "--out", str(out), "--no-progress"]) == 0
+        clips[loudness] = json.loads((out / "avatar.json").read_text())["clip"], (out / "clip.bin").read_bytes()
+    assert clips["own"][0]["source"] == "speech quiet.wav"
+    assert clips["video"][0]["source"] == "speech quiet.wav (video loudness)"
+    assert clips["own"][1] != clips["video"][1]
+    assert main(["export", str(speaker[1]), "--format", "web", "--loudness", "video"]) == 2
+    assert capsys.readouterr().err.strip().endswith("--loudness goes with --audio")
 
 
 def _live(speaker, sound_input, live, seconds, callbacks=None):

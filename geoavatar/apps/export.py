@@ -121,6 +121,7 @@ def export(
     driver: Optional[Path] = None,
     driver_video: Optional[Path] = None,
     audio: Optional[Path] = None,
+    loudness: Literal["own", "video"] = "own",
     relative: bool = False,
     transfer: Optional[TransferMode] = None,
     fps: Optional[float] = None,
@@ -151,6 +152,8 @@ def export(
         driver_video: --format web: play this video's motion (tracked as `geoavatar reenact --driver-video` does).
         audio: --format web: the avatar says this sound (any sound or video file; the run's voice model, as
             `geoavatar speak --audio`), and the player plays it with its sound in step.
+        loudness: With --audio: how the sound is normalised, as `geoavatar speak --loudness`: own (its own speech
+            statistics: any voice, any microphone) or video (the training sound's: a recording made as the video was).
         relative: With --driver / --driver-video: the same as --transfer relative.
         transfer: With --driver / --driver-video: how the driver's expression, jaw and eyes become the avatar's,
             as `geoavatar reenact --transfer` (absolute, relative, statistics, subspace; default: reenact's).
@@ -162,11 +165,12 @@ def export(
         progress: Show progress bars.
     """
     if format == "web":
-        return _export_web(run, out, frame, split, driver, driver_video, audio, relative, transfer, fps, overwrite,
-                           data, device, flame_dir, progress)
+        return _export_web(run, out, frame, split, driver, driver_video, audio, loudness, relative, transfer, fps,
+                           overwrite, data, device, flame_dir, progress)
     if (driver is not None or driver_video is not None or audio is not None or relative or transfer is not None
-            or fps is not None):
-        raise OptionError("--driver, --driver-video, --audio, --relative, --transfer and --fps go with --format web")
+            or fps is not None or loudness != "own"):
+        raise OptionError("--driver, --driver-video, --audio, --loudness, --relative, --transfer and --fps go with "
+                          "--format web")
     if frame is not None and sequence:
         raise OptionError("--frame and --sequence exclude each other (--sequence exports every frame of --split)")
     if out is not None and not sequence and out.suffix.lower() != ".ply":
@@ -191,8 +195,8 @@ def export(
     return 0
 
 
-def _export_web(run, out, frame, split, driver, driver_video, audio, relative, transfer, fps, overwrite, data, device,
-                flame_dir, progress) -> int:
+def _export_web(run, out, frame, split, driver, driver_video, audio, loudness, relative, transfer, fps, overwrite, data,
+                device, flame_dir, progress) -> int:
     from geoavatar.apps.web_export import export_web, folder_size
 
     if frame is not None:
@@ -202,6 +206,8 @@ def _export_web(run, out, frame, split, driver, driver_video, audio, relative, t
     if (driver is not None or driver_video is not None or audio is not None) and split is not None:
         raise OptionError("--split chooses the run's own frames; it does not go with --driver / --driver-video / "
                           "--audio")
+    if loudness != "own" and audio is None:
+        raise OptionError("--loudness goes with --audio")
     if (relative or transfer is not None) and driver is None and driver_video is None:
         raise OptionError("--relative and --transfer go with --driver or --driver-video")
     mode = resolve_transfer(transfer, relative)
@@ -209,7 +215,8 @@ def _export_web(run, out, frame, split, driver, driver_video, audio, relative, t
     named = driver_video or driver or audio
     clip = Path(named).stem if named is not None else (split or "test")
     target = check_folder_target(out or default_output(loaded, EXPORT_DIR, f"web_{clip}"), overwrite)
-    export_web(loaded, target, split or "test", driver, driver_video, mode, fps, data, flame_dir, progress, audio)
+    export_web(loaded, target, split or "test", driver, driver_video, mode, fps, data, flame_dir, progress, audio,
+               loudness)
     print(f"wrote {target}/ ({folder_size(target) / 1e6:.1f} MB): serve it with any static file server, e.g.\n"
           f"  python3 -m http.server 8000 --bind 127.0.0.1 --directory {target}\n"
           "and open http://127.0.0.1:8000/ in a browser")

@@ -10,8 +10,8 @@ opens with) fed by one of two sources:
                                       sources/driver.py's DriverMotion); a video is tracked first as reenact does
                                       (RUN/drivers/, reused)
     --audio FILE                      the avatar says the sound (sources/speech.py's SpeechFrames: the run's voice
-                                      model, as `geoavatar speak`); the folder carries the sound and the page plays
-                                      it in step (audio.wav, docs/web_player.md)
+                                      model, as `geoavatar speak`, --loudness as there); the folder carries the sound
+                                      and the page plays it in step (audio.wav, docs/web_player.md)
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | No
                driver_video: Path | None = None, transfer: TransferMode | bool = DEFAULT_TRANSFER,
                fps: float | None = None,
                data: Path | None = None, flame_dir: Path | None = None, show_progress: bool = True,
-               audio: Path | None = None) -> Path:
+               audio: Path | None = None, loudness: str = "own") -> Path:
     """Write the player folder `out` (complete or not at all); returns it."""
     if fps is not None and fps <= 0:
         raise OptionError(f"--fps must be positive, got {fps}")
@@ -61,8 +61,9 @@ def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | No
         driver, video_fps, _ = track_driver(run, None, driver_video, flame_dir=flame_dir, progress=show_progress)
         fps = fps or video_fps
     if audio is not None:
-        source = speech_frames(run, audio, fps or DEFAULT_FPS)
-        name, camera_timesteps = f"speech {Path(audio).name}", [frames.timesteps[0]]  # the avatar's first camera
+        source = speech_frames(run, audio, fps or DEFAULT_FPS, loudness)
+        heard = "" if loudness == "own" else f" ({loudness} loudness)"
+        name, camera_timesteps = f"speech {Path(audio).name}{heard}", [frames.timesteps[0]]  # the avatar's camera
     elif driver is not None:
         mode = transfer_mode(transfer)
         source = DriverMotion(run, Path(driver), mode, fps or DEFAULT_FPS, frames)
@@ -76,13 +77,14 @@ def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | No
     return Path(out)
 
 
-def speech_frames(run: LoadedRun, audio: Path, fps: float):
-    """The speech source of a sound file (the run's voice model; VoiceModelError says how to get one)."""
+def speech_frames(run: LoadedRun, audio: Path, fps: float, loudness: str = "own"):
+    """The speech source of a sound file (the run's voice model, hearing it by `loudness`: voice.LOUDNESS;
+    VoiceModelError says how to get one)."""
     from geoavatar.animation.sources.speech import SpeechFrames
     from geoavatar.apps.speak import spoken_sound
     from geoavatar.voice import VoiceModel
 
-    voice = VoiceModel.load(run.info.run_dir)
+    voice = VoiceModel.load(run.info.run_dir).hearing(loudness)
     sound, playback, _ = spoken_sound(audio)  # as `speak --audio` reads it
     return SpeechFrames(run, voice, sound, fps, playback)
 
