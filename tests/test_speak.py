@@ -293,5 +293,12 @@ def test_eval_speech_with_the_videos_loudness_writes_its_own_report(speaker, cap
     report = json.loads((run / "eval" / "speech@video-loudness" / "metrics.json").read_text())
     assert "training sound's speech statistics" in report["settings"]["normalisation"]
     assert not (run / "eval" / "speech").exists()  # the default report is not overwritten
+    assert main(["eval", str(run), "--speech", "--max-frames", "2", "--no-progress"]) == 0
+    own = json.loads((run / "eval" / "speech" / "metrics.json").read_text())
+    # the voice and the baselines that hear the sound (linear, nearest) all hear it by the chosen loudness
+    assert report["lip_vertex_error"] != own["lip_vertex_error"]
+    for baseline in ("linear", "nearest"):
+        assert report["baselines"][baseline]["lip_vertex_error"] != own["baselines"][baseline]["lip_vertex_error"]
+    assert report["baselines"]["mean_face"]["lip_vertex_error"] == own["baselines"]["mean_face"]["lip_vertex_error"]
     assert main(["eval", str(run), "--loudness", "video"]) == 2
     assert capsys.readouterr().err.strip().endswith("--loudness goes with --speech")

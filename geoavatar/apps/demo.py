@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
+from geoavatar.eval.speech import speech_dir
 from geoavatar.io.atomic import atomic_write_png, atomic_write_text
 from geoavatar.train.held_out_fit import HELD_OUT_REPORT
 
@@ -164,7 +165,7 @@ class DemoPlan:
                        "speak": out / "speak.mp4"}
         self.metrics = {"fitted": self.run / "eval" / "test" / "metrics.json",  # the held-out fit's parameters
                         "written": self.run / "eval" / "test@dataset_params" / "metrics.json"}  # the generator's
-        self.speech_metrics = self.run / "eval" / "speech" / "metrics.json"
+        self.speech_metrics = speech_dir(self.run) / "metrics.json"
         self.player = out / "web"
 
     def stages(self) -> list[tuple[str, Callable[[], bool], Callable[[], object]]]:

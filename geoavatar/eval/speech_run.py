@@ -132,8 +132,7 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
         raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
     dataset, index_of = _test_items(run, data) if render or data is not None else (None, {})
     try:
-        inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims,
-                                               voice.speech if voice.loudness == "video" else None)
+        inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims, voice.fixed_stats)
         if data is not None:  # a copy's parameters (track --avatar's) are the reference, as for plain eval --data
             tracked = _copy_faces(dataset, test, tracked)
     except DatasetError as err:

@@ -1,7 +1,7 @@
 """A trained voice model: sound -> each video frame's expression and jaw, plus the person's idle motion; saved beside
 the run as numpy arrays and JSON (nothing is unpickled when it loads).
 
-    voice = VoiceModel.load(run_dir)                      # RUN/voice/voice.npz + voice.json; None when absent
+    voice = VoiceModel.load(run_dir)                      # RUN/voice/voice.npz + voice.json; else VoiceModelError
     face = voice.predict(sound, times)                    # SpokenFace: expr [N, E], jaw [N, 3] at these times (s)
     voice.save(run_dir)
 
@@ -68,7 +68,8 @@ class VoiceModel:
     target_std: np.ndarray  # [D]
     expr_dims: int
     expr_width: int  # the run's expression width (predictions are zero-padded to it)
-    speech: SpeechStats  # the training sound's statistics: a live microphone starts from them
+    # the training sound's statistics: a live microphone starts from them; hearing("video") normalises sounds by them
+    speech: SpeechStats
     idle: IdleMotion
     info: dict = field(default_factory=dict)  # training report (times, losses, frames)
     # the networks' standardised output is scaled by this, fitted on the validation frames: averaging what a sound may
@@ -82,9 +83,14 @@ class VoiceModel:
             raise ValueError(f"loudness must be one of {', '.join(LOUDNESS)}, got {loudness!r}")
         return replace(self, loudness=loudness)
 
+    @property
+    def fixed_stats(self) -> SpeechStats | None:
+        """The statistics every sound is normalised by when the loudness is the video's; None: each sound's own."""
+        return self.speech if self.loudness == "video" else None
+
     def stats_of(self, mel: torch.Tensor) -> SpeechStats:
         """The statistics a sound's log-mel frames [F, M] are normalised by (`loudness`)."""
-        return self.speech if self.loudness == "video" else speech_stats(mel)
+        return self.fixed_stats or speech_stats(mel)
 
     @property
     def past(self) -> int:

@@ -30,7 +30,8 @@ class VoiceStream:
         if fps <= 0:
             raise ValueError(f"VoiceStream: fps must be positive, got {fps}")
         self.voice, self.fps = voice, float(fps)
-        self.fixed = stats is not None or voice.loudness == "video"
+        stats = stats or voice.fixed_stats
+        self.fixed = stats is not None
         self.stats = stats or voice.speech
         self.power = PowerStream()
         self.mel = torch.zeros(0, voice.speech.mean.shape[0])  # [F, M] raw log-mel of the recent sound
