@@ -105,7 +105,7 @@ def demo(
     --picture-resolution, learns the subject's voice from its training frames, scores it on the held-out frames'
     sound (`geoavatar eval RUN --speech`) and makes the avatar say a clip it never heard (`geoavatar speak`), and
     writes report.md (led by the test score) and report.json with timings and pictures. Re-running continues an
-    interrupted demo. The defaults take 3-6 minutes on 2 CPU cores (docs/demo.md).
+    interrupted demo. The defaults take 2-6 minutes on 2 CPU cores (docs/demo.md).
 
     Args:
         out: Output folder (data/, run/, videos, stills and report.md go here).
