@@ -82,6 +82,7 @@ def training_fit_openings(run, subject, blocks: int) -> None:
     import numpy as np
     import torch
 
+    from geoavatar.eval.speech import lip_vertex_error
     from geoavatar.train.avatar_tracking import AvatarTrackingConfig, dataset_frames, track_frames
     from geoavatar.train.checkpoint import open_run_dataset
     from geoavatar.train.held_out_fit import HeldOutFitConfig
@@ -124,7 +125,7 @@ def training_fit_openings(run, subject, blocks: int) -> None:
     fit_lips = lips(torch.cat([p.expr for p in fitted]), torch.cat([p.jaw_pose for p in fitted]))
     run_lips = lips(frames.values.expr[rows], frames.values.jaw_pose[rows])
     offset = float(((fit_lips.mean(0) - run_lips.mean(0)) ** 2).sum(-1).max().sqrt()) * 1000.0
-    apart = float(((fit_lips - run_lips) ** 2).sum(-1).max(-1).values.mean())
+    apart = lip_vertex_error(fit_lips, run_lips)
     print(f"the fit's lips against the run's rows: means {offset:.2f} mm apart (at the vertex that moves most), LVE "
           f"between them {apart:.2e} m2")
     test = [int(t) for t in run.info.held_out_scored or run.info.timesteps["test"]]  # not the rows filled between

@@ -39,7 +39,7 @@ def main() -> None:
 
     setup_process()
     from geoavatar.data.sound import read_dataset_sound
-    from geoavatar.eval.speech import baseline_faces, pearson
+    from geoavatar.eval.speech import baseline_faces, lip_vertex_error, pearson
     from geoavatar.eval.speech_run import _segment_inputs
     from geoavatar.sound.features import power_frames
     from geoavatar.train.checkpoint import open_run
@@ -70,7 +70,7 @@ def main() -> None:
             return probe.opening(as_tensor(face.expr), as_tensor(face.jaw)).numpy()
 
     reference = lips(tracked)
-    lve = lambda predicted: float(((predicted - reference) ** 2).sum(-1).max(-1).values.mean())  # noqa: E731
+    lve = lambda predicted: lip_vertex_error(predicted, reference)  # noqa: E731
     mean_face = lve(lips(baseline_faces(own_inputs, 1, 1)["mean_face"]))
 
     # the held-out sound normalised by the training sound's statistics (what the voice model keeps: speak --loudness

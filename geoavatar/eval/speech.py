@@ -68,13 +68,18 @@ def best_lag(predicted: np.ndarray, tracked: np.ndarray, fps: float, limit_ms: f
     return best
 
 
+def lip_vertex_error(predicted: torch.Tensor, reference: torch.Tensor) -> float:
+    """FaceFormer's LVE (m^2) of lip vertices [N, K, 3]: per frame the largest squared distance, mean over frames."""
+    return float(((predicted - reference) ** 2).sum(-1).max(-1).values.mean())
+
+
 def face_scores(probe: FaceProbe, predicted: SpokenFace, tracked: SpokenFace, fps: float) -> dict[str, float | None]:
     """FACE_KEYS of predicted against tracked faces [N]."""
     tensor = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
     with torch.no_grad():
         lips_p = probe.lips(tensor(predicted.expr), tensor(predicted.jaw))
         lips_t = probe.lips(tensor(tracked.expr), tensor(tracked.jaw))
-        lve = float(((lips_p - lips_t) ** 2).sum(-1).max(-1).values.mean())
+        lve = lip_vertex_error(lips_p, lips_t)
         open_p = probe.opening(tensor(predicted.expr), tensor(predicted.jaw)).numpy()
         open_t = probe.opening(tensor(tracked.expr), tensor(tracked.jaw)).numpy()
         neutral = probe.upper(torch.zeros(1, tracked.expr.shape[1]), torch.zeros(1, 3))
@@ -224,5 +229,5 @@ def write_speech_report(result: SpeechResult, folder: Path) -> dict[str, Path]:
 
 
 __all__ = ["FACE_KEYS", "PICTURE_KEYS", "SpeechInputs", "SpeechResult", "baseline_faces", "best_lag", "face_scores",
-           "linear_features", "normalised_mel", "pearson", "ridge_fit", "speech_dir", "speech_table",
-           "write_speech_report"]
+           "linear_features", "lip_vertex_error", "normalised_mel", "pearson", "ridge_fit", "speech_dir",
+           "speech_table", "write_speech_report"]
