@@ -13,7 +13,9 @@ prints the held-out LVE (× the mean face's) and the lips' opening r three ways:
     centred    own, with the predicted lips moved by their mean error over the segment (an oracle: what is left when
                the segment's mean mouth is given)
 
-and the level of the held-out speech against the training speech (dB, the bands' mean).
+and the level of the held-out speech against the training speech (dB, the bands' mean). Then where the error lies:
+each model's per-frame lip error (own) in the thirds of the held-out frames by their tracked opening, and in their
+speech and silence (Silero VAD), beside the mean face's; and the lips' opening of the training and held-out frames.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ def main() -> None:
     from geoavatar.sound.features import power_frames
     from geoavatar.train.checkpoint import open_run
     from geoavatar.train.run_frames import RunFrames
-    from geoavatar.voice import VoiceConfig, VoiceModel
+    from geoavatar.voice import SpokenFace, VoiceConfig, VoiceModel
     from geoavatar.voice.face import FaceProbe
     from geoavatar.voice.inputs import log_mel_torch, speech_stats
     from geoavatar.voice.train import _fit, voice_data
@@ -83,6 +85,34 @@ def main() -> None:
     print(f"{args.run}: held-out speech {level_db:+.1f} dB against the training speech; mean face LVE "
           f"{mean_face:.3e} m2", flush=True)
 
+    def per_frame(predicted: torch.Tensor) -> np.ndarray:
+        return ((predicted - reference) ** 2).sum(-1).max(-1).values.numpy()  # [N] m^2: the LVE's terms
+
+    tracked_open = 1000.0 * opening(tracked)  # [N] mm
+    thirds = np.digitize(tracked_open, np.quantile(tracked_open, [1 / 3, 2 / 3]))  # [N] 0 closed .. 2 open
+    speaking = sound.activity.mask(sound.times(test))  # [N] bool
+    mean_face_frames = per_frame(lips(baseline_faces(own_inputs, 1, 1)["mean_face"]))
+    data = voice_data(run, frames, sound, int(run.head.num_expr))
+    dims = int(run.head.num_expr)
+    training_open = 1000.0 * opening(SpokenFace(data.targets[:, :dims].numpy(), data.targets[:, dims:].numpy()))
+    training_speaking = sound.activity.mask(sound.times(sorted(run.info.timesteps["train"],
+                                                                key=lambda t: sound.frame_times.get(t, t))))
+    print(f"lips' opening (mm), mean in speech / silence: training frames {training_open[training_speaking].mean():.2f}"
+          f" / {training_open[~training_speaking].mean():.2f} ({(~training_speaking).mean():.0%} silence), held-out "
+          f"{tracked_open[speaking].mean():.2f} / {tracked_open[~speaking].mean():.2f} ({(~speaking).mean():.0%})")
+
+    def breakdown(label: str, face) -> dict:
+        """The per-frame lip error of `face` (own) by thirds of the tracked opening and by speech / silence."""
+        errors, predicted_open = per_frame(lips(face)), 1000.0 * opening(face)
+        parts = {f"third {k}": thirds == k for k in range(3)} | {"speech": speaking, "silence": ~speaking}
+        out = {name: {"tracked_mm": float(tracked_open[m].mean()), "predicted_mm": float(predicted_open[m].mean()),
+                      "lve_x": float(errors[m].mean() / mean_face_frames[m].mean()),
+                      "share": float(errors[m].sum() / errors.sum())} for name, m in parts.items()}
+        print(f"  {label} (thirds by tracked opening: closed, middle, open): " + "; ".join(
+            f"{name} {v['tracked_mm']:.2f} -> {v['predicted_mm']:.2f} mm, {v['lve_x']:.2f}x, {v['share']:.0%}"
+            for name, v in out.items()), flush=True)
+        return out
+
     def row(label: str, faces: dict) -> dict:
         out = {}
         for way, face in faces.items():
@@ -93,7 +123,7 @@ def main() -> None:
                 out["centred"] = {"lve_x": lve(centred) / mean_face, "r": out[way]["r"]}
         print(f"{label:24s} " + "  ".join(f"{way} {v['lve_x']:.3f}x r {v['r']:.3f}" for way, v in out.items()),
               flush=True)
-        return out
+        return out | {"where": breakdown(label.split(" (")[0], faces["own"])}
 
     results = {"level_db": level_db,
                "linear": row("linear", {"own": baseline_faces(own_inputs, 1, 1)["linear"],
