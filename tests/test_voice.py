@@ -100,6 +100,7 @@ def test_voice_model_file_round_trips_without_pickle(talking, tmp_path):
         assert all(npz[k].dtype != object for k in npz.files)
     back = VoiceModel.load(tmp_path)
     assert len(back.net.members) == 2 and back.gain == pytest.approx(1.3)
+    assert np.array_equal(back.level_slope, voice.level_slope)  # [D] the mean face's slope with the speech level
     from geoavatar.data.sound import read_dataset_sound
 
     sound = read_dataset_sound(data).sound.segment(0.0, 2.0)
@@ -136,11 +137,36 @@ def test_the_live_stream_gives_the_files_faces(talking, learned):
         assert heard >= k / 25.0 + voice.config.ahead - 0.011
 
 
+def test_the_level_slope_is_how_the_mean_face_follows_the_speech_level():
+    """Stretches of sound at known levels whose frames' faces move with the level by a known slope (plus noise that
+    averages out over a stretch): level_slope finds that slope; too little sound gives none."""
+    from geoavatar.sound import FRAME_RATE
+    from geoavatar.voice.train import LEVEL_STRETCH, level_slope
+
+    rng = np.random.default_rng(0)
+    chunk = int(LEVEL_STRETCH * FRAME_RATE) // 2  # the slope's stretches start every half stretch
+    levels = rng.uniform(-0.3, 0.3, 12)  # [12] log10 units: one level per half stretch, 30 s in all
+    mel = torch.from_numpy(np.repeat(levels, chunk)[:, None] + rng.normal(0, 0.05, (12 * chunk, 40))).float()
+    centres = torch.arange(0, 12 * chunk, 4)  # a video frame every 40 ms
+    truth = np.array([0.8, -0.5, 0.0])  # [D] the face's change per log10 unit
+    faces = levels[(centres // chunk).numpy()][:, None] * truth + rng.normal(0, 0.05, (len(centres), 3))
+    slope = level_slope(mel, centres, torch.from_numpy(faces).float())
+    assert np.allclose(slope, truth, atol=0.08), slope
+    short = centres[centres < 2 * chunk]  # one stretch of sound: nothing to fit a slope on
+    assert not level_slope(mel[:2 * chunk], short, torch.from_numpy(faces[:len(short)]).float()).any()
+
+
 def test_the_videos_loudness_lets_a_softer_voice_move_the_mouth_less(talking, learned):
     """own (the default): a sound 12 dB softer gives the same faces, normalised by its own speech; video: by the
-    training sound's, so the softer sound opens the mouth less, and a live stream keeps those statistics."""
+    training sound's, and the mean face follows the speech level, so the softer sound opens the mouth less; a live
+    stream keeps those statistics and follows the level of what it has heard."""
+    from dataclasses import replace
+
     from geoavatar.data.sound import read_dataset_sound
+    from geoavatar.sound.features import power_frames
     from geoavatar.sound.track import Sound
+    from geoavatar.voice.inputs import log_mel_torch
+    from geoavatar.voice.model import LEVEL_LIMIT
     from geoavatar.voice.stream import VoiceStream
 
     data, _ = talking
@@ -150,11 +176,17 @@ def test_the_videos_loudness_lets_a_softer_voice_move_the_mouth_less(talking, le
     times = np.arange(140) / 25.0
     own, own_softer = voice.predict(sound, times), voice.predict(softer, times)
     assert np.abs(own.jaw - own_softer.jaw).max() < 1e-3
-    video = voice.hearing("video")
+    assert voice.level_slope is not None and not voice.level_slope.any()  # 10 s of sound: too little for a slope
+    sloped = replace(voice, level_slope=np.full(len(voice.target_mean), 0.1))  # a slope to follow: louder, wider
+    video = sloped.hearing("video")
     assert voice.loudness == "own" and video.loudness == "video"  # a copy: the loaded voice is unchanged
     loud, soft = video.predict(sound, times), video.predict(softer, times)
-    fixed = voice.predict(softer, times, voice.speech)
-    assert np.array_equal(soft.jaw, fixed.jaw) and np.array_equal(soft.expr, fixed.expr)
+    assert voice.level_of(log_mel_torch(torch.from_numpy(power_frames(softer)))) == 0.0  # own: no level
+    level = video.level_of(log_mel_torch(torch.from_numpy(power_frames(softer))))
+    assert level == -LEVEL_LIMIT  # 12 dB softer: beyond the 6 dB that the face follows
+    flat = voice.predict(softer, times, voice.speech)  # the video's statistics, without the level
+    assert np.allclose(soft.jaw - flat.jaw, level * 0.1, atol=1e-5)
+    assert np.allclose(soft.expr[:, :voice.expr_dims] - flat.expr[:, :voice.expr_dims], level * 0.1, atol=1e-5)
     opened, softly = loud.jaw[:, 0], soft.jaw[:, 0]  # [140] the jaw's opening angle
     assert softly.mean() < opened.mean() - 0.2 * opened.std(), (softly.mean(), opened.mean())
 
@@ -162,9 +194,10 @@ def test_the_videos_loudness_lets_a_softer_voice_move_the_mouth_less(talking, le
     live = []
     for at in range(0, len(softer.samples), 800):
         live += stream.push(softer.samples[at:at + 800])
-    assert stream.fixed and stream.stats is voice.speech
+    assert stream.fixed and stream.stats is voice.speech and stream.level == level
     live_jaw = np.concatenate([face.jaw for _, face, _ in live])[:len(times)]  # [140, 3]
-    assert len(live_jaw) == len(times) and np.abs(live_jaw - soft.jaw).max() < 1e-5
+    # once it has heard 2.5 s (LOUD_SECONDS of loud sound, then an update) the stream follows the clip's level
+    assert len(live_jaw) == len(times) and np.abs(live_jaw[75:] - soft.jaw[75:]).max() < 1e-5
     with pytest.raises(ValueError, match="loudness must be one of own, video"):
         voice.hearing("loud")
 

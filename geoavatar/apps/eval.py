@@ -115,8 +115,8 @@ def eval_runs(
             the picture scores 40 of them spread evenly (--max-frames N: N of them). With --data COPY (track
             --avatar's), the copy's parameters of the held-out frames are the reference and give the head pose.
         loudness: With --speech: how the held-out sound is normalised, as `speak --loudness` does: own (its own
-            speech statistics, as a new recording is) or video (the training sound's, the same recording's loudness):
-            RUN/eval/speech@video-loudness/.
+            speech statistics, as a new recording is) or video (the training sound's, the same recording's loudness,
+            the mean mouth following the segment's level): RUN/eval/speech@video-loudness/.
     """
     mode = _eval_mode(runs, split, out, driver, driver_video, driver_cache, relative, transfer, speech)
     if loudness != "own" and mode != "speech":

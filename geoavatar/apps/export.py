@@ -153,7 +153,8 @@ def export(
         audio: --format web: the avatar says this sound (any sound or video file; the run's voice model, as
             `geoavatar speak --audio`), and the player plays it with its sound in step.
         loudness: With --audio: how the sound is normalised, as `geoavatar speak --loudness`: own (its own speech
-            statistics: any voice, any microphone) or video (the training sound's: a recording made as the video was).
+            statistics: any voice, any microphone) or video (the training sound's, the mean mouth following the
+            sound's level: a recording made as the video was).
         relative: With --driver / --driver-video: the same as --transfer relative.
         transfer: With --driver / --driver-video: how the driver's expression, jaw and eyes become the avatar's,
             as `geoavatar reenact --transfer` (absolute, relative, statistics, subspace; default: reenact's).

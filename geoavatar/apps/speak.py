@@ -165,8 +165,9 @@ def speak(
         serve_forever: --view of a file: keep serving until Ctrl-C (off: start, print the address and stop).
         loudness: How the sound is normalised before the voice hears it: own (by its own speech: any voice, any
             microphone, any level moves the mouth) or video (by the video's speech: for a recording made as the
-            video was, same microphone and distance, where speaking louder or softer opens the mouth more or less;
-            a microphone then keeps the video's statistics instead of following its own).
+            video was, same microphone and distance, where speaking louder or softer opens the mouth more or less,
+            and the mean mouth follows the sound's level against the video's as the person's did, within 6 dB; a
+            microphone then keeps the video's statistics and follows the level of its last 10 s).
     """
     _check_options(audio, text, microphone, live, view, out, fps, max_seconds, loudness)
     check_threads(threads)

@@ -140,6 +140,7 @@ class SpeechInputs:
     test_centres: np.ndarray  # [N']
     expr_dims: int
     expr_width: int
+    test_level: float = 0.0  # the held-out sound's speech level against the training sound's (log10 units)
 
 
 def baseline_faces(inputs: SpeechInputs, past: int, ahead: int) -> dict[str, SpokenFace]:

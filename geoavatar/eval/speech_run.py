@@ -22,15 +22,17 @@ from geoavatar.eval.speech import (SpeechInputs, SpeechResult, baseline_faces, f
 from geoavatar.head.params import HeadParams
 from geoavatar.render import composite_target
 from geoavatar.sound import FRAME_RATE
+from geoavatar.sound.features import power_frames
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run_dataset
 from geoavatar.train.run_frames import RunFrames
 from geoavatar.voice.face import FaceProbe
-from geoavatar.voice.inputs import SpeechStats
+from geoavatar.voice.inputs import SpeechStats, log_mel_torch, normalise, speech_level, speech_stats
 from geoavatar.voice.model import SpokenFace, VoiceModel
 from geoavatar.voice.train import voice_data
 
 NORMALISATION = {"own": "the held-out sound by its own speech statistics (as speak normalises a new recording)",
-                 "video": "the held-out sound by the training sound's speech statistics (speak --loudness video)"}
+                 "video": "the held-out sound by the training sound's speech statistics, the mean face following its "
+                          "speech level (speak --loudness video)"}
 
 
 def _segment_inputs(run: LoadedRun, frames: RunFrames, sound, test: list[int], expr_dims: int,
@@ -41,10 +43,12 @@ def _segment_inputs(run: LoadedRun, frames: RunFrames, sound, test: list[int], e
     times = sound.times(test)  # [N'] seconds
     cut = float(data.power.shape[0] - 1) / FRAME_RATE  # where the training sound ends
     start = min(float(times[0]) - 0.5 / max(data.fps, 1.0), cut)
-    held_out = sound.sound.segment(start, sound.sound.seconds)
+    held_out = log_mel_torch(torch.from_numpy(power_frames(sound.sound.segment(start, sound.sound.seconds))))
+    level = speech_level(speech_stats(held_out)) - speech_level(speech_stats(log_mel_torch(data.power)))
     train_mel = normalised_mel(sound.sound.segment(0.0, cut))
-    inputs = SpeechInputs(data.targets.numpy(), train_mel, data.centres.numpy(), normalised_mel(held_out, stats),
-                          np.round((times - start) * FRAME_RATE).astype(np.int64), expr_dims, data.expr_width)
+    inputs = SpeechInputs(data.targets.numpy(), train_mel, data.centres.numpy(),
+                          normalise(held_out, stats or speech_stats(held_out)),
+                          np.round((times - start) * FRAME_RATE).astype(np.int64), expr_dims, data.expr_width, level)
     rows = [frames.row(t) for t in test]
     tracked = SpokenFace.from_rows(frames.values.expr, frames.values.jaw_pose, rows)
     return inputs, tracked, data.fps
@@ -137,7 +141,8 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
             tracked = _copy_faces(dataset, test, tracked)
     except DatasetError as err:
         raise RunError(f"{root}: {err}") from err
-    faces = {"voice": voice.predict_features(inputs.test_mel, torch.from_numpy(inputs.test_centres))}
+    faces = {"voice": voice.predict_features(inputs.test_mel, torch.from_numpy(inputs.test_centres),
+                                             voice.level_shift(inputs.test_level))}
     faces.update(baseline_faces(inputs, voice.past, voice.ahead))
     probe = FaceProbe(run.head, {k: v.cpu() for k, v in frames.identity().items()})
     # the face scores over the whole segment (a sample of short runs scored french.mp4's r 0.09 lower with the same

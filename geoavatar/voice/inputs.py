@@ -79,6 +79,11 @@ def speech_stats(mel: Tensor) -> SpeechStats:
     return SpeechStats(mean, scale)
 
 
+def speech_level(stats: SpeechStats) -> float:
+    """How loud a recording's speech is: its loud frames' log-mel, the bands' mean (log10 power; x10 for dB)."""
+    return float(stats.mean.mean())
+
+
 def normalise(mel: Tensor, stats: SpeechStats) -> Tensor:
     return ((mel - stats.mean) / stats.scale).clamp(-CLAMP, CLAMP)
 
@@ -128,5 +133,5 @@ class Augmentation:
         return out
 
 
-__all__ = ["Augmentation", "CLAMP", "SpeechStats", "log_mel_torch", "loud_frames", "normalise", "speech_stats",
-           "windows"]
+__all__ = ["Augmentation", "CLAMP", "SpeechStats", "log_mel_torch", "loud_frames", "normalise", "speech_level",
+           "speech_stats", "windows"]

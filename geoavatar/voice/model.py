@@ -24,7 +24,7 @@ from geoavatar.sound import FRAME_RATE, Sound
 from geoavatar.sound.features import power_frames
 from geoavatar.voice.config import VoiceConfig
 from geoavatar.voice.idle import IdleMotion
-from geoavatar.voice.inputs import SpeechStats, log_mel_torch, normalise, speech_stats, windows
+from geoavatar.voice.inputs import SpeechStats, log_mel_torch, normalise, speech_level, speech_stats, windows
 from geoavatar.voice.net import VoiceEnsemble, load_state_arrays, state_arrays
 
 VOICE_DIR = "voice"
@@ -34,9 +34,12 @@ FORMAT = "geoavatar-voice"
 VERSION = 2  # 2: an ensemble of networks (1: one)
 # how a sound is normalised before the networks hear it (VoiceModel.hearing): by its own speech statistics, so that any
 # voice and any microphone move the mouth; or by the video's, for a recording made as the video was, where how loudly
-# the person speaks moves the mouth too (french.mp4's held-out LVE 0.76-0.78x -> 0.64-0.65x the mean face's, r +0.01-
-# 0.04, three seeds: BENCHMARKS.md, Speech)
+# the person speaks moves the mouth too, and the mean face follows the sound's speech level by the level slope
+# (french.mp4's held-out LVE 0.80-0.82x -> 0.55-0.57x the mean face's, r +0.01-0.03, three seeds: BENCHMARKS.md, Speech)
 LOUDNESS = ("own", "video")
+# beyond this many log10 units (6 dB) from the training speech a recording is not one made as the video was: the mean
+# face's shift stops there
+LEVEL_LIMIT = 0.6
 
 
 class VoiceModelError(GeoAvatarError, ValueError):
@@ -75,6 +78,9 @@ class VoiceModel:
     # the networks' standardised output is scaled by this, fitted on the validation frames: averaging what a sound may
     # mean (and three networks' outputs) shrinks the mouth's motion; the least-squares gain restores what it can
     gain: float = 1.0
+    # [D] how the training frames' mean face changes per log10 unit of speech level (train.level_slope); None: a voice
+    # learned before it was kept, whose face does not follow the level
+    level_slope: np.ndarray | None = None
     loudness: str = "own"  # LOUDNESS: the caller's choice (hearing), not saved with the model
 
     def hearing(self, loudness: str) -> "VoiceModel":
@@ -87,6 +93,18 @@ class VoiceModel:
     def fixed_stats(self) -> SpeechStats | None:
         """The statistics every sound is normalised by when the loudness is the video's; None: each sound's own."""
         return self.speech if self.loudness == "video" else None
+
+    def level_of(self, mel: torch.Tensor) -> float:
+        """The level that the face follows for log-mel frames [F, M] (level_shift of their speech level)."""
+        return self.level_shift(speech_level(speech_stats(mel)) - speech_level(self.speech))
+
+    def level_shift(self, level: float) -> float:
+        """What the face follows of a sound whose speech level is `level` log10 units above the training sound's:
+        hearing the video's loudness, that level within +-LEVEL_LIMIT; otherwise 0 (another microphone's level is
+        the microphone's)."""
+        if self.loudness != "video" or self.level_slope is None:
+            return 0.0
+        return float(np.clip(level, -LEVEL_LIMIT, LEVEL_LIMIT))
 
     def stats_of(self, mel: torch.Tensor) -> SpeechStats:
         """The statistics a sound's log-mel frames [F, M] are normalised by (`loudness`)."""
@@ -108,14 +126,17 @@ class VoiceModel:
         return VoiceEnsemble(config.members, N_MELS, frames, outputs, config.width, config.hidden, config.dropout)
 
     @torch.no_grad()
-    def predict_features(self, features: torch.Tensor, centres: torch.Tensor) -> SpokenFace:
-        """Normalised log-mel frames [F, M] and the feature frame of each video frame [N] -> SpokenFace."""
+    def predict_features(self, features: torch.Tensor, centres: torch.Tensor, level: float = 0.0) -> SpokenFace:
+        """Normalised log-mel frames [F, M] and the feature frame of each video frame [N] -> SpokenFace; `level`: the
+        sound's speech level that the mean face follows (level_of)."""
         self.net.eval()
         outputs = []
         for chunk in torch.split(centres, 512):
             outputs.append(self.net.predict(windows(features, chunk, self.past, self.ahead)))
         z = torch.cat(outputs).double().numpy() if outputs else np.zeros((0, len(self.target_mean)))
         values = self.target_mean + self.gain * z * self.target_std  # [N, D]
+        if level and self.level_slope is not None:
+            values = values + level * self.level_slope
         expr = np.zeros((len(values), self.expr_width), np.float32)
         expr[:, :self.expr_dims] = values[:, :self.expr_dims]
         return SpokenFace(expr, values[:, self.expr_dims:].astype(np.float32))
@@ -126,7 +147,7 @@ class VoiceModel:
         mel = log_mel_torch(torch.from_numpy(power_frames(sound)))
         stats = stats or self.stats_of(mel)
         centres = torch.from_numpy(np.round(np.asarray(times) * FRAME_RATE).astype(np.int64))
-        return self.predict_features(normalise(mel, stats), centres)
+        return self.predict_features(normalise(mel, stats), centres, self.level_of(mel))
 
     # --- files ---------------------------------------------------------------------------------------
 
@@ -137,7 +158,8 @@ class VoiceModel:
         arrays = state_arrays(self.net) | self.idle.arrays() | {
             "target_mean": self.target_mean, "target_std": self.target_std,
             "speech.mean": self.speech.mean.numpy(), "speech.scale": self.speech.scale.numpy(),
-            "gain": np.asarray(self.gain, np.float64)}
+            "gain": np.asarray(self.gain, np.float64)} | (
+            {} if self.level_slope is None else {"level_slope": np.asarray(self.level_slope, np.float64)})
         atomic_write_npz(folder / WEIGHTS_FILE, **arrays)
         atomic_write_json(folder / INFO_FILE, {"format": FORMAT, "version": VERSION, "config": self.config.to_dict(),
                                                "expr_dims": self.expr_dims, "expr_width": self.expr_width,
@@ -173,8 +195,9 @@ class VoiceModel:
                                   f"again with `geoavatar voice {run_dir}`") from err
         speech = SpeechStats(torch.from_numpy(arrays["speech.mean"]), torch.from_numpy(arrays["speech.scale"]))
         return VoiceModel(config, net, mean, std, int(info["expr_dims"]), int(info["expr_width"]), speech,
-                          IdleMotion.from_arrays(arrays), info.get("info", {}), float(arrays.get("gain", 1.0)))
+                          IdleMotion.from_arrays(arrays), info.get("info", {}), float(arrays.get("gain", 1.0)),
+                          arrays.get("level_slope"))
 
 
-__all__ = ["FORMAT", "INFO_FILE", "LOUDNESS", "SpokenFace", "VOICE_DIR", "VoiceModel", "VoiceModelError",
+__all__ = ["FORMAT", "INFO_FILE", "LEVEL_LIMIT", "LOUDNESS", "SpokenFace", "VOICE_DIR", "VoiceModel", "VoiceModelError",
            "WEIGHTS_FILE"]

@@ -7,7 +7,8 @@ Frame k (shown at k / fps of the sound) needs the sound up to k / fps + ahead: t
 (0.1 s by default). The features are the same numbers as a whole file's (sound/features.py is chunk-exact), and so are
 the faces when the statistics are fixed (`stats`, or a voice hearing the video's loudness: VoiceModel.hearing); live,
 they start from the training sound's statistics and follow the microphone's: every half second, those of its last
-ADAPT_SECONDS, once it has held LOUD_SECONDS of loud sound.
+ADAPT_SECONDS, once it has held LOUD_SECONDS of loud sound. A voice hearing the video's loudness keeps its statistics
+and follows the speech level of those last seconds instead (VoiceModel.level_of; a file's is that of all its sound).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ class VoiceStream:
         self.power = PowerStream()
         self.mel = torch.zeros(0, voice.speech.mean.shape[0])  # [F, M] raw log-mel of the recent sound
         self.offset = 0  # feature frame number of self.mel[0]
+        self.level = 0.0  # the speech level the face follows (VoiceModel.level_of of the recent sound)
         self.next_frame = 0  # the next video frame to emit
         self._since_update = 0
 
@@ -49,12 +51,15 @@ class VoiceStream:
 
     def _adapt(self, new_frames: int) -> None:
         self._since_update += new_frames
-        if self.fixed or self._since_update < UPDATE_EVERY * FRAME_RATE:
+        if self._since_update < UPDATE_EVERY * FRAME_RATE:
             return
         self._since_update = 0
         recent = self.mel[-int(ADAPT_SECONDS * FRAME_RATE):]
-        if int(loud_frames(recent).sum()) >= LOUD_SECONDS * FRAME_RATE:
+        if int(loud_frames(recent).sum()) < LOUD_SECONDS * FRAME_RATE:
+            return
+        if not self.fixed:
             self.stats = speech_stats(recent)
+        self.level = self.voice.level_of(recent)  # 0 unless the voice hears the video's loudness
 
     def push(self, samples: np.ndarray) -> list[tuple[int, SpokenFace, float]]:
         """The frames whose sound (with the look-ahead) is now complete: (frame index, its face [1, ...], seconds of
@@ -71,7 +76,7 @@ class VoiceStream:
         out = []
         if ready:
             centres = torch.as_tensor([self._centre(k) - self.offset for k in ready])
-            face = self.voice.predict_features(normalise(self.mel, self.stats), centres)
+            face = self.voice.predict_features(normalise(self.mel, self.stats), centres, self.level)
             out = [(k, SpokenFace(face.expr[i:i + 1], face.jaw[i:i + 1]), self.heard) for i, k in enumerate(ready)]
         keep = max(int(ADAPT_SECONDS * FRAME_RATE), self.voice.past + self.voice.ahead + 2)
         if len(self.mel) > 2 * keep:  # drop what no window or statistic needs any more

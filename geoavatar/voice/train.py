@@ -13,6 +13,8 @@ and as smoothly as the tracked one. Every step hears a new recording condition (
 taken from a random stretch of the (augmented) training sound, as a new recording would be normalised. Each member
 of the ensemble holds out its own block of `validation` of the training frames (in time), which chooses the step it
 keeps (checked every `validate_every` steps) and which the others learn from: together they learn every frame.
+Last, the level slope: how the training frames' mean face changes with the speech level over 5-s stretches (a sound
+heard at the video's loudness moves the mean face by it: VoiceModel.level_of).
 """
 
 from __future__ import annotations
@@ -32,10 +34,12 @@ from geoavatar.sound.features import power_frames
 from geoavatar.voice.config import VoiceConfig
 from geoavatar.voice.face import FaceProbe
 from geoavatar.voice.idle import IdleMotion, upper_face_projection
-from geoavatar.voice.inputs import Augmentation, log_mel_torch, loud_frames, normalise, speech_stats, windows
+from geoavatar.voice.inputs import (Augmentation, log_mel_torch, loud_frames, normalise, speech_level, speech_stats,
+                                    windows)
 from geoavatar.voice.model import VoiceModel, VoiceModelError
 
 STATS_SECONDS = (5.0, 20.0)  # the stretch of sound a step's normalisation statistics come from
+LEVEL_STRETCH = 5.0  # seconds: the stretches (every half of it) over which the mean face is fitted to the speech level
 
 
 @dataclass
@@ -112,6 +116,25 @@ def _runs(count: int, config: VoiceConfig, rng: np.random.Generator) -> torch.Te
     runs = max(1, config.batch // config.run_length)
     starts = rng.integers(0, max(1, count - config.run_length + 1), runs)
     return torch.as_tensor(starts[:, None] + np.arange(config.run_length)[None]).clamp_max(count - 1)
+
+
+def level_slope(mel: torch.Tensor, centres: torch.Tensor, targets: torch.Tensor) -> np.ndarray:
+    """[D] how the training frames' mean face (targets [N, D] at feature frames `centres` [N]) changes with the speech
+    level (per log10 unit: voice.inputs.speech_level of the log-mel frames [F, M]), least squares over stretches of
+    LEVEL_STRETCH seconds every half of that. On one microphone a person who speaks louder opens the mouth wider:
+    over french.mp4's 5-s stretches their mean lip opening and speech level go together at r 0.74 (BENCHMARKS.md)."""
+    span = int(LEVEL_STRETCH * FRAME_RATE)
+    levels, faces = [], []
+    for start in range(0, max(1, len(mel) - span + 1), span // 2):
+        inside = (centres >= start) & (centres < start + span)
+        if int(inside.sum()) >= 10:
+            levels.append(speech_level(speech_stats(mel[start:start + span])))
+            faces.append(targets[inside].double().mean(0).numpy())
+    if len(levels) < 3:  # too little sound to tell: the face does not follow the level
+        return np.zeros(targets.shape[1])
+    level = np.asarray(levels) - np.mean(levels)  # [S]
+    face = np.stack(faces) - np.mean(faces, axis=0)  # [S, D]
+    return level @ face / max(float(level @ level), 1e-12)
 
 
 class _Trainer:
@@ -254,9 +277,13 @@ def _fit(run, frames, sound: DatasetSound, config: VoiceConfig, started: float, 
             "steps": history[-1][0], "best_validation_m2": float(np.mean(best)), "gain": round(gain, 4),
             "history": history,
             "seconds": round(time.perf_counter() - started, 1), "source": str(sound.source)}
-    speech = speech_stats(log_mel_torch(data.power))
-    return VoiceModel(config, net, mean.double().numpy(), std.double().numpy(), expr_dims, data.expr_width, speech,
-                      IdleMotion.from_training(idle_params, projection, data.fps), info, gain)
+    mel = log_mel_torch(data.power)
+    slope = level_slope(mel, data.centres, data.targets)
+    faces = torch.stack([mean, mean + 0.1 * torch.from_numpy(slope).float()])  # the mean face, and it 1 dB louder
+    moved = probe.opening(faces[:, :expr_dims], faces[:, expr_dims:])
+    info["opening_mm_per_db"] = round(1000.0 * float(moved[1] - moved[0]), 3)  # how this person's mouth follows level
+    return VoiceModel(config, net, mean.double().numpy(), std.double().numpy(), expr_dims, data.expr_width,
+                      speech_stats(mel), IdleMotion.from_training(idle_params, projection, data.fps), info, gain, slope)
 
 
-__all__ = ["VoiceData", "face_jacobians", "loss_metric", "train_voice", "voice_data"]
+__all__ = ["VoiceData", "face_jacobians", "level_slope", "loss_metric", "train_voice", "voice_data"]
