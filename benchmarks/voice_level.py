@@ -9,7 +9,9 @@ run's own for its seed, others learned here as `geoavatar voice` learns them) an
 prints the held-out LVE (× the mean face's) and the lips' opening r three ways:
 
     own        the held-out sound by its own statistics (eval --speech, speak)
-    video      by the training sound's statistics (`speak --loudness video`, `eval --speech --loudness video`)
+    video      by the training sound's statistics, the mean face following the sound's speech level (`speak
+               --loudness video`, `eval --speech --loudness video`)
+    video-flat the same without the level's shift (the product before the level slope)
     centred    own, with the predicted lips moved by their mean error over the segment (an oracle: what is left when
                the segment's mean mouth is given)
 
@@ -97,14 +99,16 @@ def main() -> None:
     training_open = 1000.0 * opening(SpokenFace(data.targets[:, :dims].numpy(), data.targets[:, dims:].numpy()))
     training_speaking = sound.activity.mask(sound.times(sorted(run.info.timesteps["train"],
                                                                 key=lambda t: sound.frame_times.get(t, t))))
-    print(f"lips' opening (mm), mean in speech / silence: training frames {training_open[training_speaking].mean():.2f}"
-          f" / {training_open[~training_speaking].mean():.2f} ({(~training_speaking).mean():.0%} silence), held-out "
-          f"{tracked_open[speaking].mean():.2f} / {tracked_open[~speaking].mean():.2f} ({(~speaking).mean():.0%})")
+    mean_mm = lambda values, where: f"{values[where].mean():.2f}" if where.any() else "-"  # noqa: E731
+    print(f"lips' opening (mm), mean in speech / silence: training frames {mean_mm(training_open, training_speaking)}"
+          f" / {mean_mm(training_open, ~training_speaking)} ({(~training_speaking).mean():.0%} silence), held-out "
+          f"{mean_mm(tracked_open, speaking)} / {mean_mm(tracked_open, ~speaking)} ({(~speaking).mean():.0%})")
 
     def breakdown(label: str, face) -> dict:
         """The per-frame lip error of `face` (own) by thirds of the tracked opening and by speech / silence."""
         errors, predicted_open = per_frame(lips(face)), 1000.0 * opening(face)
-        parts = {f"third {k}": thirds == k for k in range(3)} | {"speech": speaking, "silence": ~speaking}
+        parts = {name: m for name, m in ({f"third {k}": thirds == k for k in range(3)}
+                                          | {"speech": speaking, "silence": ~speaking}).items() if m.any()}
         out = {name: {"tracked_mm": float(tracked_open[m].mean()), "predicted_mm": float(predicted_open[m].mean()),
                       "lve_x": float(errors[m].mean() / mean_face_frames[m].mean()),
                       "share": float(errors[m].sum() / errors.sum())} for name, m in parts.items()}
@@ -131,15 +135,18 @@ def main() -> None:
     saved = VoiceModel.load(run.info.run_dir) if VoiceModel.exists(run.info.run_dir) else None
     for seed in (int(s) for s in args.seeds.split(",")):
         started = time.perf_counter()
-        if saved is not None and saved.config.seed == seed and not args.stats_seconds:
+        if saved is not None and saved.config.seed == seed and saved.level_slope is not None and not args.stats_seconds:
             voice = saved
         else:
             config = VoiceConfig(**{**saved.config.to_dict(), "seed": seed}) if saved else VoiceConfig(seed=seed)
             with num_threads(config.threads):
                 voice = _fit(run, frames, sound, config, started, lambda _: None)
         centres = torch.from_numpy(own_inputs.test_centres)
+        video = voice.hearing("video")
         faces = {"own": voice.predict_features(own_inputs.test_mel, centres),
-                 "video": voice.predict_features(video_inputs.test_mel, centres)}
+                 "video": video.predict_features(video_inputs.test_mel, centres,
+                                                 video.level_shift(video_inputs.test_level)),
+                 "video-flat": voice.predict_features(video_inputs.test_mel, centres)}
         results[f"voice seed {seed}"] = row(f"voice seed {seed} ({time.perf_counter() - started:.0f} s)", faces)
     print(json.dumps(results))
 
