@@ -45,7 +45,6 @@ def main() -> None:
     from geoavatar.data.sound import read_dataset_sound
     from geoavatar.eval.speech import baseline_faces, lip_vertex_error, pearson
     from geoavatar.eval.speech_run import _segment_inputs
-    from geoavatar.sound.features import power_frames
     from geoavatar.train.checkpoint import open_run
     from geoavatar.train.run_frames import RunFrames
     from geoavatar.voice import SpokenFace, VoiceConfig, VoiceModel
@@ -61,7 +60,8 @@ def main() -> None:
     frames = RunFrames(run)
     sound = read_dataset_sound(run.info.data_root)
     test = sorted(run.info.timesteps["test"], key=lambda t: sound.frame_times.get(t, t))
-    own_inputs, tracked, fps = _segment_inputs(run, frames, sound, test, int(run.head.num_expr))
+    dims = int(run.head.num_expr)
+    own_inputs, tracked, fps = _segment_inputs(run, frames, sound, test, dims)
     probe = FaceProbe(run.head, {k: v.cpu() for k, v in frames.identity().items()})
     as_tensor = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
 
@@ -75,15 +75,14 @@ def main() -> None:
 
     reference = lips(tracked)
     lve = lambda predicted: lip_vertex_error(predicted, reference)  # noqa: E731
-    mean_face = lve(lips(baseline_faces(own_inputs, 1, 1)["mean_face"]))
+    mean_face_lips = lips(baseline_faces(own_inputs, 1, 1)["mean_face"])
+    mean_face = lve(mean_face_lips)
 
     # the held-out sound normalised by the training sound's statistics (what the voice model keeps: speak --loudness
     # video), for the voice and the baselines alike
-    training = speech_stats(log_mel_torch(voice_data(run, frames, sound, int(run.head.num_expr)).power))
-    video_inputs, _, _ = _segment_inputs(run, frames, sound, test, int(run.head.num_expr), training)
-    start = float(sound.times(test)[0]) - 0.5 / fps
-    held_out = log_mel_torch(torch.from_numpy(power_frames(sound.sound.segment(start, sound.sound.seconds).samples)))
-    level_db = 10.0 * float((speech_stats(held_out).mean - training.mean).mean())
+    data = voice_data(run, frames, sound, dims)
+    video_inputs, _, _ = _segment_inputs(run, frames, sound, test, dims, speech_stats(log_mel_torch(data.power)))
+    level_db = 10.0 * own_inputs.test_level
     print(f"{args.run}: held-out speech {level_db:+.1f} dB against the training speech; mean face LVE "
           f"{mean_face:.3e} m2", flush=True)
 
@@ -93,9 +92,7 @@ def main() -> None:
     tracked_open = 1000.0 * opening(tracked)  # [N] mm
     thirds = np.digitize(tracked_open, np.quantile(tracked_open, [1 / 3, 2 / 3]))  # [N] 0 closed .. 2 open
     speaking = sound.activity.mask(sound.times(test))  # [N] bool
-    mean_face_frames = per_frame(lips(baseline_faces(own_inputs, 1, 1)["mean_face"]))
-    data = voice_data(run, frames, sound, int(run.head.num_expr))
-    dims = int(run.head.num_expr)
+    mean_face_frames = per_frame(mean_face_lips)
     training_open = 1000.0 * opening(SpokenFace(data.targets[:, :dims].numpy(), data.targets[:, dims:].numpy()))
     training_speaking = sound.activity.mask(sound.times(sorted(run.info.timesteps["train"],
                                                                 key=lambda t: sound.frame_times.get(t, t))))

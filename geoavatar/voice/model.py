@@ -94,17 +94,22 @@ class VoiceModel:
         """The statistics every sound is normalised by when the loudness is the video's; None: each sound's own."""
         return self.speech if self.loudness == "video" else None
 
+    @property
+    def follows_level(self) -> bool:
+        """Whether the mean face follows a sound's speech level: hearing the video's loudness, with a level slope
+        (another microphone's level is the microphone's)."""
+        return self.loudness == "video" and self.level_slope is not None
+
     def level_of(self, mel: torch.Tensor) -> float:
         """The level that the face follows for log-mel frames [F, M] (level_shift of their speech level)."""
+        if not self.follows_level:  # spare the statistics (the live stream asks every half second)
+            return 0.0
         return self.level_shift(speech_level(speech_stats(mel)) - speech_level(self.speech))
 
     def level_shift(self, level: float) -> float:
         """What the face follows of a sound whose speech level is `level` log10 units above the training sound's:
-        hearing the video's loudness, that level within +-LEVEL_LIMIT; otherwise 0 (another microphone's level is
-        the microphone's)."""
-        if self.loudness != "video" or self.level_slope is None:
-            return 0.0
-        return float(np.clip(level, -LEVEL_LIMIT, LEVEL_LIMIT))
+        that level within +-LEVEL_LIMIT when follows_level, otherwise 0."""
+        return float(np.clip(level, -LEVEL_LIMIT, LEVEL_LIMIT)) if self.follows_level else 0.0
 
     def stats_of(self, mel: torch.Tensor) -> SpeechStats:
         """The statistics a sound's log-mel frames [F, M] are normalised by (`loudness`)."""
