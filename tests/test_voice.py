@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import shutil
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -264,8 +265,9 @@ def test_a_dataset_without_speech_says_how_to_get_a_voice(tmp_path):
 
 
 def test_speech_scores_have_known_values_and_follow_a_copys_parameters(talking, learned, tmp_path):
-    from geoavatar.eval.speech import best_lag, face_scores
+    from geoavatar.eval.speech import best_lag, face_scores, speech_dir
     from geoavatar.eval.speech_run import evaluate_speech
+    from geoavatar.train.checkpoint import open_run
     from geoavatar.train.run_frames import RunFrames
     from geoavatar.voice.face import FaceProbe
     from geoavatar.voice.model import SpokenFace
@@ -303,3 +305,17 @@ def test_speech_scores_have_known_values_and_follow_a_copys_parameters(talking, 
         np.savez(path, **arrays)
     closed = evaluate_speech(run, voice, data=copy, render=False).scores
     assert closed["mean_face"]["lip_vertex_error"] < closed["voice"]["lip_vertex_error"]
+
+    # the run's own dataset given again is no copy: the held-out fit's rows (here a jaw opened beyond the dataset's)
+    # stay the reference, and each report has its own folder
+    fitted = open_run(run.info.run_dir, "cpu")
+    test = fitted.info.timesteps["test"]
+    rows = [fitted.info.timesteps["all"].index(t) for t in test]
+    fitted.info.frame_params["jaw_pose"][rows, 0] += 0.2
+    fitted.info.held_out, fitted.info.held_out_scored = list(test), list(test)
+    own = evaluate_speech(fitted, voice, render=False).scores
+    assert own["voice"]["lip_vertex_error"] != scores["voice"]["lip_vertex_error"]
+    assert evaluate_speech(fitted, voice, data=data, render=False).scores == own
+    reports = Path("RUN") / "eval"
+    assert speech_dir("RUN", "video", "copy") == reports / "speech@copy@video-loudness"
+    assert speech_dir("RUN") == reports / "speech"

@@ -113,7 +113,8 @@ def eval_runs(
             training) against its tracked parameters, beside the mean-face, nearest and linear baselines:
             RUN/eval/speech/metrics.json and metrics.md (docs/speech.md). The face scores use every held-out frame,
             the picture scores 40 of them spread evenly (--max-frames N: N of them). With --data COPY (track
-            --avatar's), the copy's parameters of the held-out frames are the reference and give the head pose.
+            --avatar's), the copy's parameters of the held-out frames are the reference and give the head pose:
+            RUN/eval/speech@COPY/.
         loudness: With --speech: how the held-out sound is normalised, as `speak --loudness` does: own (its own
             speech statistics, as a new recording is) or video (the training sound's, the same recording's loudness,
             the mean mouth following the segment's level): RUN/eval/speech@video-loudness/.
@@ -260,6 +261,7 @@ def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path |
     from geoavatar.eval.speech_run import PICTURE_FRAMES, evaluate_speech
     from geoavatar.runtime import resolve_device
     from geoavatar.train.checkpoint import load_run
+    from geoavatar.train.run_frames import is_own_dataset
     from geoavatar.voice import VoiceModel
 
     if max_frames is not None and max_frames < 1:
@@ -271,7 +273,8 @@ def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path |
     run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
     voice = VoiceModel.load(run.info.run_dir).hearing(loudness)
     result = evaluate_speech(run, voice, data, max_frames or PICTURE_FRAMES, backend, progress=progress)
-    written = write_speech_report(result, speech_dir(run.info.run_dir, loudness))
+    copy = None if data is None or is_own_dataset(run.info.data_root, data) else Path(data).resolve().name
+    written = write_speech_report(result, speech_dir(run.info.run_dir, loudness, copy))
     print(speech_table(result.scores), end="")
     print(f"{result.label}: {result.frames} held-out frames driven by their own sound in {result.seconds:.1f} s -> "
           f"{written['json']}")

@@ -180,9 +180,11 @@ class SpeechResult:
     seconds: float = 0.0
 
 
-def speech_dir(run_dir: str | Path, loudness: str = "own") -> Path:
-    """RUN/eval/speech, or RUN/eval/speech@video-loudness for a voice hearing the video's loudness."""
-    return Path(run_dir) / "eval" / ("speech" if loudness == "own" else f"speech@{loudness}-loudness")
+def speech_dir(run_dir: str | Path, loudness: str = "own", copy: str | None = None) -> Path:
+    """RUN/eval/speech; RUN/eval/speech@COPY against a copy COPY of the dataset (eval --data), and @video-loudness
+    after it for a voice hearing the video's loudness, so no report overwrites another's."""
+    name = "speech" + (f"@{copy}" if copy else "") + ("" if loudness == "own" else f"@{loudness}-loudness")
+    return Path(run_dir) / "eval" / name
 
 
 def _cell(value, key: str) -> str:

@@ -134,10 +134,11 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     test = sorted(run.info.timesteps.get("test", []), key=lambda t: sound.frame_times.get(t, t))
     if len(test) < 3:
         raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
-    dataset, index_of = _test_items(run, data) if render or data is not None else (None, {})
+    copy = data is not None and not frames.is_own_dataset(root)  # the run's own folder given again is no copy
+    dataset, index_of = _test_items(run, data) if render or copy else (None, {})
     try:
         inputs, tracked, fps = _segment_inputs(run, frames, sound, test, voice.expr_dims, voice.fixed_stats)
-        if data is not None:  # a copy's parameters (track --avatar's) are the reference, as for plain eval --data
+        if copy:  # a copy's parameters (track --avatar's) are the reference, as for plain eval --data
             tracked = _copy_faces(dataset, test, tracked)
     except DatasetError as err:
         raise RunError(f"{root}: {err}") from err
