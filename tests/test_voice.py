@@ -108,9 +108,18 @@ def test_voice_model_file_round_trips_without_pickle(talking, tmp_path):
     times = np.arange(50) / 25.0
     a, b = voice.predict(sound, times), back.predict(sound, times)
     assert np.allclose(a.expr, b.expr, atol=1e-6) and np.allclose(a.jaw, b.jaw, atol=1e-6)
-    (tmp_path / VOICE_DIR / "voice.npz").write_bytes(b"damaged")
-    with pytest.raises(VoiceModelError, match="cannot be read"):
-        VoiceModel.load(tmp_path)
+    weights, info = tmp_path / VOICE_DIR / "voice.npz", tmp_path / VOICE_DIR / "voice.json"
+    whole, described = weights.read_bytes(), info.read_text()
+    with np.load(weights) as npz:
+        slope = {k: npz[k] for k in npz.files} | {"level_slope": np.zeros(5)}
+    # damaged files give one line, whatever the damage: bytes, a file cut short, a json list, an array's shape
+    for damage in (lambda: weights.write_bytes(b"damaged"), lambda: weights.write_bytes(whole[:len(whole) // 2]),
+                   lambda: info.write_text("[]"), lambda: np.savez(weights, **slope)):
+        weights.write_bytes(whole), info.write_text(described)
+        damage()
+        with pytest.raises(VoiceModelError, match="cannot be read"):
+            VoiceModel.load(tmp_path)
+    assert not list((tmp_path / VOICE_DIR).glob(".*"))  # saving left no staged file behind
 
 
 def test_the_live_stream_gives_the_files_faces(talking, learned):

@@ -12,6 +12,7 @@ The expression has the run's width (a head model with fewer modes uses the leadi
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -159,13 +160,14 @@ class VoiceModel:
     def save(self, run_dir: str | Path) -> Path:
         folder = Path(run_dir) / VOICE_DIR
         folder.mkdir(parents=True, exist_ok=True)
-        (folder / INFO_FILE).unlink(missing_ok=True)  # the json goes last: with it, the model is complete
         arrays = state_arrays(self.net) | self.idle.arrays() | {
             "target_mean": self.target_mean, "target_std": self.target_std,
             "speech.mean": self.speech.mean.numpy(), "speech.scale": self.speech.scale.numpy(),
             "gain": np.asarray(self.gain, np.float64)} | (
             {} if self.level_slope is None else {"level_slope": np.asarray(self.level_slope, np.float64)})
-        atomic_write_npz(folder / WEIGHTS_FILE, **arrays)
+        staged = atomic_write_npz(folder / f".{WEIGHTS_FILE}.new", **arrays)  # a voice learned before stays whole
+        (folder / INFO_FILE).unlink(missing_ok=True)  # until here; the json goes last: with it, the model is complete
+        staged.replace(folder / WEIGHTS_FILE)
         atomic_write_json(folder / INFO_FILE, {"format": FORMAT, "version": VERSION, "config": self.config.to_dict(),
                                                "expr_dims": self.expr_dims, "expr_width": self.expr_width,
                                                "info": self.info})
@@ -185,19 +187,27 @@ class VoiceModel:
                 f"speech: prepare a video in which you talk, then `geoavatar train`, or `geoavatar voice {run_dir}` "
                 "for a run trained on such a dataset")
         try:
-            info = json.loads((folder / INFO_FILE).read_text())
-            if info.get("format") != FORMAT or info.get("version") != VERSION:
-                raise ValueError(f"format {info.get('format')} version {info.get('version')}, "
-                                 f"expected {FORMAT} {VERSION}")
-            config = VoiceConfig(**info["config"])
-            with np.load(folder / WEIGHTS_FILE, allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-            mean, std = arrays["target_mean"], arrays["target_std"]
-            net = VoiceModel.build_net(config, len(mean))
-            load_state_arrays(net, arrays)
-        except (OSError, ValueError, KeyError, TypeError, RuntimeError) as err:
+            return VoiceModel._read(folder)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, RuntimeError, zipfile.BadZipFile) as err:
             raise VoiceModelError(f"{folder}: the voice model cannot be read ({type(err).__name__}: {err}); learn it "
                                   f"again with `geoavatar voice {run_dir}`") from err
+
+    @staticmethod
+    def _read(folder: Path) -> "VoiceModel":
+        info = json.loads((folder / INFO_FILE).read_text())
+        if not isinstance(info, dict) or info.get("format") != FORMAT or info.get("version") != VERSION:
+            found = (info.get("format"), info.get("version")) if isinstance(info, dict) else type(info).__name__
+            raise ValueError(f"{INFO_FILE} is {found}, expected {FORMAT} {VERSION}")
+        config = VoiceConfig(**info["config"])
+        with np.load(folder / WEIGHTS_FILE, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        mean, std = arrays["target_mean"], arrays["target_std"]  # [D]
+        outputs = int(info["expr_dims"]) + 3  # D: the expression's leading coefficients and the jaw
+        for name in ("target_mean", "target_std", "level_slope"):
+            if name in arrays and arrays[name].shape != (outputs,):
+                raise ValueError(f"{WEIGHTS_FILE}'s {name} has shape {arrays[name].shape}, expected ({outputs},)")
+        net = VoiceModel.build_net(config, len(mean))
+        load_state_arrays(net, arrays)
         speech = SpeechStats(torch.from_numpy(arrays["speech.mean"]), torch.from_numpy(arrays["speech.scale"]))
         return VoiceModel(config, net, mean, std, int(info["expr_dims"]), int(info["expr_width"]), speech,
                           IdleMotion.from_arrays(arrays), info.get("info", {}), float(arrays.get("gain", 1.0)),
