@@ -7,9 +7,10 @@ Each frame is posed once (PosedFrame: the Gaussians when a sink rasterizes) and 
 sinks are entered before the first frame and left after the last one (a file appears complete, or not at all when
 anything fails); the source is closed at the end either way.
 
-A live source (`source.live`: drive's tracker) is drive's output stage: its frames come as its threads deliver them;
-each shown frame is counted into the source's DriveStats (frames and FPS from the first online frame's end, its stage
-times, the latency from the moment the frame was available) and the status line is shown (stats.LiveStatus).
+A live source (`source.live`: drive's tracker, speak's voice) is drive's output stage: its frames come as its threads
+deliver them; each shown frame is counted into the source's DriveStats (frames and FPS from the first online frame's
+end, its stage times, the latency from the moment the frame was available) and the status line is shown
+(stats.LiveStatus). Ctrl-C ends a live source as the end of its input does, so the frames made so far are kept.
 """
 
 from __future__ import annotations
@@ -81,11 +82,16 @@ def play(run: LoadedRun, source: FrameSource, sinks: Sequence[FrameSink], progre
         with contextlib.ExitStack() as entered:
             for sink in sinks:
                 entered.enter_context(sink)
-            for frame in _frames(source, progress, desc):
-                _show(run, frame, sinks, rasterize)
-                played += 1
-                if count is not None:
-                    count(frame)
+            try:
+                for frame in _frames(source, progress, desc):
+                    _show(run, frame, sinks, rasterize)
+                    played += 1
+                    if count is not None:
+                        count(frame)
+            except KeyboardInterrupt:
+                if not source.live:
+                    raise
+                # Ctrl-C ends a live source, while it renders as while it waits: what was made is kept
     finally:
         source.close()
         if count is not None:

@@ -144,7 +144,8 @@ def speak(
         audio: A sound or video file to say (wav, mp3, m4a, mp4, ...).
         text: Words to say, spoken first by an offline speech synthesiser (--tts).
         microphone: Speak live into the browser's microphone (needs --view; the page asks for it).
-        out: The mp4 to write (the avatar with the sound; default RUN/videos/speak_<name>.mp4 unless --view).
+        out: The mp4 to write (the avatar with the sound; default RUN/videos/speak_<name>.mp4 unless --view,
+            speak_<name>@video-loudness.mp4 with --loudness video).
         view: Show it in the browser player: the clip with its sound, or live.
         live: Play --audio as a live source in real time (the microphone's path, for a machine without one).
         tts: The speech synthesiser for --text: auto (espeak-ng if installed, else flite), espeak-ng or flite.
@@ -178,7 +179,8 @@ def speak(
         return _speak_live(loaded, voice, audio, microphone, out, view, fps, seed, resolution, max_seconds, host,
                            port, data, backend, status)
     sound, playback, name = spoken_sound(audio, text, tts, tts_voice)
-    target = out if out is not None or view else default_output(loaded, VIDEO_DIR, f"speak_{name}.mp4")
+    heard = "" if loudness == "own" else f"@{loudness}-loudness"  # beside the clip of the sound at its own level
+    target = out if out is not None or view else default_output(loaded, VIDEO_DIR, f"speak_{name}{heard}.mp4")
     count, clip = speak_clip(loaded, voice, sound, playback, target, name if view else None, fps, seed, resolution,
                              data, backend, progress, threads)
     if target is not None:
@@ -207,7 +209,9 @@ def _speak_live(run, voice, audio, microphone, out, view, fps, seed, resolution,
                                                         if microphone else ""), flush=True)
     try:
         source = speak_live(run, voice, sound_input, fps, seed, viewer, out, resolution, data, backend, max_seconds,
-                            status, None if microphone else sound_input.sound)
+                            status, None if microphone else read_sound(audio, PLAYBACK_RATE, what="--audio"))
+    except KeyboardInterrupt:  # before the first frame (play keeps what a live source made once it began)
+        return 0
     finally:
         if viewer is not None:
             viewer.stop()

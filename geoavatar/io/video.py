@@ -23,8 +23,12 @@ from typing import Iterable
 
 import numpy as np
 
-from geoavatar.errors import OptionError
+from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.io.atomic import atomic_file
+
+
+class EmptyVideoError(GeoAvatarError, ValueError):
+    """An mp4 ended before its first frame (a live source stopped at once): no file is written."""
 
 
 def pad_to_even(frame: np.ndarray) -> np.ndarray:
@@ -119,8 +123,8 @@ class Mp4Writer:
         try:
             try:
                 if exc_type is None:
-                    if self.frames == 0:
-                        raise ValueError(f"{self.path}: no frames to write")
+                    if self.frames == 0:  # nothing is written, and nothing that was there is replaced
+                        raise EmptyVideoError(f"{self.path}: not written: no frame came to write")
                     for packet in self._stream.encode():  # flush the encoder
                         self._container.mux(packet)
                     if self._audio_stream is not None:  # the sound ends with the last frame: flush its encoder
@@ -146,4 +150,4 @@ def write_mp4(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float 
     return Path(path)
 
 
-__all__ = ["Mp4Writer", "pad_to_even", "write_mp4"]
+__all__ = ["EmptyVideoError", "Mp4Writer", "pad_to_even", "write_mp4"]

@@ -2,10 +2,12 @@
 
     stream = VoiceStream(voice, fps=25)
     for index, face, heard in stream.push(chunk): ...     # frame index, SpokenFace of one frame, seconds of sound heard
+    for index, face, heard in stream.finish(samples): ... # the sound ended: the last frames, as a file has them
 
 Frame k (shown at k / fps of the sound) needs the sound up to k / fps + ahead: that is the model's latency floor
 (0.1 s by default). The features are the same numbers as a whole file's (sound/features.py is chunk-exact), and so are
-the faces when the statistics are fixed (`stats`, or a voice hearing the video's loudness: VoiceModel.hearing); live,
+the faces when the statistics are fixed and no level is followed (`stats`, or a voice hearing the video's loudness
+without a level slope: VoiceModel.hearing); live,
 they start from the training sound's statistics and follow the microphone's: every half second, those of its last
 ADAPT_SECONDS, once it has held LOUD_SECONDS of loud sound. A voice hearing the video's loudness keeps its statistics
 and follows the speech level of those last seconds instead (VoiceModel.level_of; a file's is that of all its sound).
@@ -13,10 +15,12 @@ and follows the speech level of those last seconds instead (VoiceModel.level_of;
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
-from geoavatar.sound import FRAME_RATE
+from geoavatar.sound import FRAME_RATE, RATE
 from geoavatar.sound.features import PowerStream
 from geoavatar.voice.inputs import SpeechStats, log_mel_torch, loud_frames, normalise, speech_stats
 from geoavatar.voice.model import SpokenFace, VoiceModel
@@ -73,16 +77,30 @@ class VoiceStream:
         while self._centre(self.next_frame) + self.voice.ahead < self.offset + len(self.mel):
             ready.append(self.next_frame)
             self.next_frame += 1
-        out = []
-        if ready:
-            centres = torch.as_tensor([self._centre(k) - self.offset for k in ready])
-            face = self.voice.predict_features(normalise(self.mel, self.stats), centres, self.level)
-            out = [(k, SpokenFace(face.expr[i:i + 1], face.jaw[i:i + 1]), self.heard) for i, k in enumerate(ready)]
+        out = self._faces(ready)
         keep = max(int(ADAPT_SECONDS * FRAME_RATE), self.voice.past + self.voice.ahead + 2)
         if len(self.mel) > 2 * keep:  # drop what no window or statistic needs any more
             drop = len(self.mel) - keep
             self.mel, self.offset = self.mel[drop:], self.offset + drop
         return out
+
+    def finish(self, samples: int) -> list[tuple[int, SpokenFace, float]]:
+        """The sound ended after `samples` samples: the frames still owed, up to a file's ceil(seconds x fps), their
+        look-ahead past the end heard as a file's is (the windows padded beyond the last feature frame)."""
+        power = self.power.finish()
+        if len(power):
+            self.mel = torch.cat([self.mel, log_mel_torch(torch.from_numpy(power))])
+        last = max(1, math.ceil(samples / RATE * self.fps - 1e-9))
+        ready = list(range(self.next_frame, last))
+        self.next_frame = max(self.next_frame, last)
+        return self._faces(ready)
+
+    def _faces(self, ready: list[int]) -> list[tuple[int, SpokenFace, float]]:
+        if not ready:
+            return []
+        centres = torch.as_tensor([self._centre(k) - self.offset for k in ready])
+        face = self.voice.predict_features(normalise(self.mel, self.stats), centres, self.level)
+        return [(k, SpokenFace(face.expr[i:i + 1], face.jaw[i:i + 1]), self.heard) for i, k in enumerate(ready)]
 
 
 __all__ = ["VoiceStream"]

@@ -4,7 +4,7 @@ background, with the frame's picture (the driver's frame or face crop) scaled to
 by io/video.py's Mp4Writer (atomic; with a sound track when `audio` is given).
 
 A skipped frame index (a live source dropped the frame) repeats the last picture, so the video keeps the source's
-clock. Without a file (`out` None) the frames are still rendered and timed: drive's measurements.
+clock; with a sound, frames dropped before the first one shown repeat that one, so sound and picture start together. Without a file (`out` None) the frames are still rendered and timed: drive's measurements.
 """
 
 from __future__ import annotations
@@ -76,9 +76,12 @@ class Mp4Sink:
             return
         if self.show_picture and frame.picture is not None:
             picture = side_by_side(fit_height(frame.picture, picture.shape[0]), picture)
-        repeats = frame.index - self.last_index - 1 if self.last_picture is not None else 0
-        for _ in range(repeats):  # frames a live source dropped: the last picture again, the video keeps real time
-            self.writer.write(self.last_picture)
+        if self.last_picture is not None:  # frames a live source dropped: the last picture again (real time)
+            repeats, held = frame.index - self.last_index - 1, self.last_picture
+        else:  # with a sound, frame k shows time k / fps of it: frames dropped before the first show the first
+            repeats, held = (frame.index if self.writer.audio is not None else 0), picture
+        for _ in range(repeats):
+            self.writer.write(held)
         self.writer.write(picture)
         self.last_index, self.last_picture = frame.index, picture
 

@@ -182,7 +182,10 @@ class LiveSpeech:
         started = time.perf_counter()
         ready = self.stream.push(chunk)
         self._samples += len(chunk)
-        end = self._samples / RATE  # the chunk's end on the sound's clock, captured at `captured`
+        self._deliver(ready, captured, started)
+
+    def _deliver(self, ready: list, captured: float, started: float) -> None:
+        end = self._samples / RATE  # the sound's end so far on its own clock, captured at `captured`
         for index, face, _ in ready:
             idle = {k: v[None] for k, v in self.idle.next().items()}
             params = HeadParams.from_npz(speaking_params(face, idle, self.identity, self.device))
@@ -200,6 +203,11 @@ class LiveSpeech:
                 self._frames_of(chunk, captured)
                 if self.max_seconds is not None and self.stream.heard >= self.max_seconds:
                     break
+            else:
+                if not self._stop.is_set():  # the sound ended by itself: its last frames, as a file gives them,
+                    self._frames.set_lossless(True)  # each one shown (no sound is left to keep pace with)
+                    now = time.perf_counter()
+                    self._deliver(self.stream.finish(self._samples), now, now)
         except BaseException as err:  # handed to the output stage, which raises it
             error = err
         finally:
