@@ -34,6 +34,11 @@ class OptionError(GeoAvatarError, ValueError):
     """A command-line option (or the argument that carries it) has a bad value; the message names it."""
 
 
+class OutputPathError(GeoAvatarError, OSError):
+    """A file cannot be written where it was asked (the path is a folder, a folder on its way is a file, or the
+    folder is not writable); the message names the path."""
+
+
 class DiskFullError(GeoAvatarError, OSError):
     """Writing a file failed because the disk (or the user's quota) is full; the message names the file.
 
@@ -64,5 +69,5 @@ def disk_full_error(path, err: OSError, what: str = "") -> DiskFullError:
     return DiskFullError(message + (f"; {what}" if what else ""), err.errno, str(path))
 
 
-__all__ = ["DISK_FULL_ERRNOS", "DiskFullError", "GeoAvatarError", "GeoAvatarWarning", "OptionError", "disk_full_error",
-           "is_disk_full", "one_line"]
+__all__ = ["DISK_FULL_ERRNOS", "DiskFullError", "GeoAvatarError", "GeoAvatarWarning", "OptionError", "OutputPathError",
+           "disk_full_error", "is_disk_full", "one_line"]

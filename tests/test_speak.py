@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shutil
 import threading
 import time
 import warnings
@@ -104,7 +105,8 @@ def test_speech_moves_the_mouth_and_the_head(speaker, clip):
 
 
 @pytest.mark.parametrize("case", ["no voice model", "no sound track", "not a sound", "missing", "no source",
-                                  "microphone without view", "video loudness of a text"])
+                                  "microphone without view", "video loudness of a text", "out is a folder",
+                                  "text says nothing", "not a flite voice", "eval option not with speech"])
 def test_bad_input_is_one_line(speaker, clip, tmp_path, capsys, case):
     from apps_fixtures import make_subject, make_untrained_run
 
@@ -128,6 +130,18 @@ def test_bad_input_is_one_line(speaker, clip, tmp_path, capsys, case):
         argv, expected = ["speak", run], "give one thing to say"
     elif case == "microphone without view":
         argv, expected = ["speak", run, "--microphone"], "--microphone needs --view"
+    elif case == "out is a folder":
+        (tmp_path / "talk.mp4").mkdir()
+        argv, expected = ["speak", run, "--audio", str(clip), "--out", str(tmp_path / "talk.mp4")], "is a folder"
+    elif case in ("text says nothing", "not a flite voice"):
+        engine = "espeak-ng" if case == "text says nothing" else "flite"
+        if not shutil.which(engine):
+            pytest.skip(f"{engine} is not installed")
+        argv, expected = (["speak", run, "--text", "...", "--tts", engine], "espeak-ng said nothing for '...'") if (
+            engine == "espeak-ng") else (["speak", run, "--text", "bonjour", "--tts", "flite", "--tts-voice", "fr"],
+                                         "--tts-voice fr: not one of flite's voices")
+    elif case == "eval option not with speech":
+        argv, expected = ["eval", run, "--speech", "--lpips-net", "alex"], "--lpips-net: not with --speech"
     else:
         argv, expected = ["speak", run, "--text", "hello", "--loudness", "video"], "--loudness video is for a recording"
     assert main(argv) == 2
@@ -153,6 +167,13 @@ def test_a_tenth_of_a_second_and_an_8_bit_48khz_file_still_speak(speaker, tmp_pa
         out.writeframes(np.round(127 * 0.5 * np.sin(2 * np.pi * 220 * t) + 128).astype(np.uint8).tobytes())
     assert speak(speaker[1], audio=path, out=tmp_path / "short.mp4", progress=False) == 0
     assert _streams(tmp_path / "short.mp4")[0] == math.ceil(0.1 * FPS)
+    # played as a live source, shorter than the look-ahead: the same frames once the sound ends, the sound at 24 kHz
+    assert speak(speaker[1], audio=path, live=True, out=tmp_path / "live.mp4", fps=FPS, status=False) == 0
+    assert _streams(tmp_path / "live.mp4")[0] == math.ceil(0.1 * FPS)
+    import av
+
+    with av.open(str(tmp_path / "live.mp4")) as container:
+        assert container.streams.audio[0].codec_context.sample_rate == 24000
 
 
 @browser

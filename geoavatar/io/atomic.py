@@ -28,7 +28,7 @@ import threading
 from pathlib import Path
 from typing import Any, Iterator
 
-from geoavatar.errors import DiskFullError, disk_full_error, is_disk_full
+from geoavatar.errors import DiskFullError, OutputPathError, disk_full_error, is_disk_full
 
 _UMASK_LOCK = threading.Lock()
 
@@ -81,10 +81,15 @@ def atomic_file(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
     temporary file is removed and `path` is left as it was."""
     path = Path(path)
     tmp: Path | None = None
+    if path.is_dir():  # found now, not after the work that the file holds
+        raise OutputPathError(f"{path} is a folder: give a file name")
     try:
         with disk_full_as_error(path):
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+            except (FileExistsError, NotADirectoryError, PermissionError) as err:
+                raise OutputPathError(f"cannot write {path}: {err.strerror} ({err.filename})") from err
             os.close(fd)
             tmp = Path(name)
             yield tmp

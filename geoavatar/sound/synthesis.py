@@ -3,9 +3,9 @@
     sound = speak_text("Hello there", engine="auto", voice=None)      # Sound at 16 kHz; SoundError when none works
 
 Engines (neither is a Python dependency: each is a program the user installs, run with subprocess):
-    espeak-ng   GPL-3 (run as a separate process, never linked), ~130 languages: `--voice fr`, `de`, `en-us`, ...;
+    espeak-ng   GPL-3 (run as a separate process, never linked), ~130 languages: `--tts-voice fr`, `de`, `en-us`, ...;
                 Debian / Ubuntu: `apt-get install espeak-ng`, macOS: `brew install espeak-ng`
-    flite       BSD-like (CMU), English voices built in (`--voice slt`, `kal`, `awb`, `rms`);
+    flite       BSD-like (CMU), English voices built in (`--tts-voice slt`, `kal`, `awb`, `rms`);
                 `apt-get install flite`
 `auto` takes espeak-ng when it is installed, else flite.
 """
@@ -35,6 +35,18 @@ def find_engine(engine: str = "auto") -> str:
     raise SoundError(f"{missing}; {INSTALL}")
 
 
+def _check_flite_voice(voice: str) -> None:
+    """flite speaks in its default voice when it does not know the one asked (and exits 0): say so instead. A voice
+    file (.flitevox) is flite's to read."""
+    if voice.endswith(".flitevox") or Path(voice).is_file():
+        return
+    listed = subprocess.run(["flite", "-lv"], capture_output=True, text=True, timeout=TIMEOUT_SECONDS).stdout
+    names = listed.split(":", 1)[-1].split()
+    if names and voice not in names:
+        raise SoundError(f"--tts-voice {voice}: not one of flite's voices ({', '.join(names)}); espeak-ng speaks "
+                         "other languages (--tts espeak-ng)")
+
+
 def _command(engine: str, text_file: Path, out: Path, voice: str | None) -> list[str]:
     if engine == "espeak-ng":
         return ["espeak-ng", "-w", str(out), "-f", str(text_file)] + (["-v", voice] if voice else [])
@@ -47,6 +59,8 @@ def speak_text(text: str, engine: str = "auto", voice: str | None = None, rate: 
     if not text.strip():
         raise SoundError("--text is empty: give the words to say")
     program = find_engine(engine)
+    if program == "flite" and voice:
+        _check_flite_voice(voice)
     with tempfile.TemporaryDirectory(prefix="geoavatar-tts-") as folder:
         text_file, out = Path(folder) / "text.txt", Path(folder) / "speech.wav"
         text_file.write_text(text, encoding="utf-8")
@@ -57,9 +71,12 @@ def speak_text(text: str, engine: str = "auto", voice: str | None = None, rate: 
             raise SoundError(f"--text: {program} took longer than {TIMEOUT_SECONDS} s") from err
         if done.returncode != 0 or not out.is_file():
             detail = " ".join((done.stderr or done.stdout or "no message").split())[:200]
-            raise SoundError(f"--text: {program} failed ({detail})" + (f"; is --voice {voice} one of its voices?"
+            raise SoundError(f"--text: {program} failed ({detail})" + (f"; is --tts-voice {voice} one of its voices?"
                                                                         if voice else ""))
-        return read_sound(out, rate, what=f"{program}'s speech")
+        spoken = read_sound(out, rate, what=f"{program}'s speech")
+    if not spoken.samples.any():
+        raise SoundError(f"--text: {program} said nothing for {text.strip()[:40]!r}: give words it can speak")
+    return spoken
 
 
 __all__ = ["ENGINES", "find_engine", "speak_text"]
