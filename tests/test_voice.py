@@ -102,6 +102,12 @@ def test_voice_model_file_round_trips_without_pickle(talking, tmp_path):
     back = VoiceModel.load(tmp_path)
     assert len(back.net.members) == 2 and back.gain == pytest.approx(1.3)
     assert np.array_equal(back.level_slope, voice.level_slope)  # [D] the mean face's slope with the speech level
+    from dataclasses import replace
+
+    from geoavatar.errors import GeoAvatarWarning
+
+    with pytest.warns(GeoAvatarWarning, match="learned before the level slope"):  # a voice saved before it: said
+        assert not replace(back, level_slope=None).hearing("video").follows_level
     from geoavatar.data.sound import read_dataset_sound
 
     sound = read_dataset_sound(data).sound.segment(0.0, 2.0)
@@ -140,11 +146,15 @@ def test_the_live_stream_gives_the_files_faces(talking, learned):
         at += size
     assert [k for k, _, _ in frames] == list(range(len(frames)))
     assert len(frames) >= 3.0 * 25 - 4  # all but the last look-ahead
+    for k, _, heard in frames:  # a frame is made once its instant and the look-ahead have been heard
+        assert heard >= k / 25.0 + voice.config.ahead - 0.011
+    frames += stream.finish(len(sound.samples))  # the sound ended: the frames within its look-ahead of the end
+    assert [k for k, _, _ in frames] == list(range(75)) and stream.finish(len(sound.samples)) == []  # as a file's
     offline = voice.predict(sound, np.arange(len(frames)) / 25.0, stats)
     live_jaw = np.concatenate([face.jaw for _, face, _ in frames])
     assert np.abs(live_jaw - offline.jaw).max() < 1e-5
-    for k, _, heard in frames:  # a frame is made once its instant and the look-ahead have been heard
-        assert heard >= k / 25.0 + voice.config.ahead - 0.011
+    short = VoiceStream(voice, 25.0, stats=stats)  # a sound shorter than the look-ahead still gives its frames
+    assert len(short.push(sound.samples[:800]) + short.finish(800)) == 2
 
 
 def test_the_level_slope_is_how_the_mean_face_follows_the_speech_level():

@@ -123,6 +123,12 @@ def eval_runs(
     if loudness != "own" and mode != "speech":
         raise OptionError("--loudness goes with --speech")
     if mode == "speech":
+        given = {"--lpips-net": lpips_net != "vgg", "--lpips-unit-inputs": lpips_unit_inputs,
+                 "--test-params": test_params != "fitted", "--save-images": save_images,
+                 "--driver-cache": driver_cache is not None, "--relative": relative, "--transfer": bool(transfer)}
+        if any(given.values()):  # said, not dropped: each would change what the scores mean
+            raise OptionError(f"{', '.join(k for k, v in given.items() if v)}: not with --speech (it scores with VGG "
+                              "LPIPS against the run's held-out parameters, or --data COPY's)")
         return eval_speech(runs[0], max_frames, device, data, checkpoint, backend, flame_dir, progress, loudness)
     if mode == "cross":
         return eval_cross(runs[0], driver, driver_video, driver_cache, relative, transfer, max_frames, device, data,

@@ -68,8 +68,11 @@ def has_dataset_sound(root: Path) -> bool:
 
 
 def read_dataset_sound(root: Path) -> DatasetSound | None:
-    """The dataset's sound, or None when it has none; DatasetError naming the file when it is damaged."""
+    """The dataset's sound, or None when it has none; DatasetError naming the file when it is damaged, or the folder
+    when it is not there (a run's dataset that moved is not one without sound)."""
     root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: the dataset folder is not found (if it moved, give its new place with --data)")
     info_path = root / SOUND_INFO
     if not info_path.is_file():
         return None

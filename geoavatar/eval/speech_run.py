@@ -32,7 +32,9 @@ from geoavatar.voice.train import voice_data
 
 NORMALISATION = {"own": "the held-out sound by its own speech statistics (as speak normalises a new recording)",
                  "video": "the held-out sound by the training sound's speech statistics, the mean face following its "
-                          "speech level (speak --loudness video)"}
+                          "speech level (speak --loudness video)",
+                 "video, no level slope": "the held-out sound by the training sound's speech statistics (speak "
+                                          "--loudness video; this voice has no level slope: learned before it)"}
 
 
 def _segment_inputs(run: LoadedRun, frames: RunFrames, sound, test: list[int], expr_dims: int,
@@ -159,8 +161,10 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
         for name, values in pictures.items():
             scores[name].update(values)
     settings = {"voice": {k: voice.config.to_dict()[k] for k in ("past", "ahead", "members")},
-                "held_out_frames": len(test), "picture_frames": len(rows),
-                "normalisation": NORMALISATION[voice.loudness], "render": render,
+                "held_out_frames": len(test), "picture_frames": len(rows) if render else 0,
+                "normalisation": NORMALISATION[voice.loudness if voice.follows_level or voice.loudness == "own"
+                                               else "video, no level slope"],
+                "level_db": round(10.0 * inputs.test_level, 2), "render": render,
                 "head_pose": "tracked (rotation, neck, translation, eyes); T = 0", "metrics": metrics.__name__,
                 "test_params": test_params_source(run, root),
                 "face_scores_reference": ("every held-out frame's row: fitted in the held-out fit's runs, between "

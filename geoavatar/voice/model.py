@@ -12,6 +12,7 @@ The expression has the run's width (a head model with fewer modes uses the leadi
 from __future__ import annotations
 
 import json
+import warnings
 import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geoavatar.errors import GeoAvatarError
+from geoavatar.errors import GeoAvatarError, GeoAvatarWarning
 from geoavatar.io.atomic import atomic_write_json, atomic_write_npz
 from geoavatar.sound import FRAME_RATE, Sound
 from geoavatar.sound.features import power_frames
@@ -88,6 +89,11 @@ class VoiceModel:
         """This voice, normalising what it hears by `loudness` (LOUDNESS)."""
         if loudness not in LOUDNESS:
             raise ValueError(f"loudness must be one of {', '.join(LOUDNESS)}, got {loudness!r}")
+        if loudness == "video" and self.level_slope is None:
+            warnings.warn(GeoAvatarWarning(
+                "this voice model was learned before the level slope: with --loudness video the sound is heard at "
+                "the video's loudness, but the mean mouth does not follow its level; `geoavatar voice RUN` learns "
+                "the voice again with it"), stacklevel=2)
         return replace(self, loudness=loudness)
 
     @property
