@@ -286,7 +286,7 @@ def test_a_dataset_without_speech_says_how_to_get_a_voice(tmp_path):
 def test_speech_scores_have_known_values_and_follow_a_copys_parameters(talking, learned, tmp_path):
     from geoavatar.eval.speech import best_lag, face_scores, speech_dir
     from geoavatar.eval.speech_run import evaluate_speech
-    from geoavatar.train.checkpoint import open_run
+    from geoavatar.train.checkpoint import RunError, open_run
     from geoavatar.train.run_frames import RunFrames
     from geoavatar.voice.face import FaceProbe
     from geoavatar.voice.model import SpokenFace
@@ -335,6 +335,10 @@ def test_speech_scores_have_known_values_and_follow_a_copys_parameters(talking, 
     own = evaluate_speech(fitted, voice, render=False).scores
     assert own["voice"]["lip_vertex_error"] != scores["voice"]["lip_vertex_error"]
     assert evaluate_speech(fitted, voice, data=data, render=False).scores == own
+    mixed = open_run(run.info.run_dir, "cpu")  # held-out frames among the training ones: their sound was heard
+    mixed.info.timesteps["test"] = mixed.info.timesteps["train"][10:20]
+    with pytest.raises(RunError, match="lie among its training frames"):
+        evaluate_speech(mixed, voice, render=False)
     reports = Path("RUN") / "eval"
     assert speech_dir("RUN", "video", "copy") == reports / "speech@copy@video-loudness"
     assert speech_dir("RUN") == reports / "speech"

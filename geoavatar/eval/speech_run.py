@@ -136,6 +136,10 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     test = sorted(run.info.timesteps.get("test", []), key=lambda t: sound.frame_times.get(t, t))
     if len(test) < 3:
         raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
+    trained = [t for t in run.info.timesteps.get("train", []) if t in sound.frame_times]
+    if trained and min(sound.times(test)) < max(sound.times(trained)):  # the voice heard all sound before its last
+        raise RunError(f"{run.info.run_dir}: its held-out frames lie among its training frames (a dataset's own "
+                       "split files), so the voice heard their sound; --speech scores held-out frames after them")
     copy = data is not None and not frames.is_own_dataset(root)  # the run's own folder given again is no copy
     dataset, index_of = _test_items(run, data) if render or copy else (None, {})
     try:
