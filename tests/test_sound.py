@@ -78,6 +78,32 @@ def test_bad_sound_files_are_one_line_errors(tmp_path):
         assert "\n" not in str(error)
 
 
+def test_a_gap_in_the_sound_track_keeps_what_follows_at_its_time(tmp_path):
+    """Packets missing from a track (a dropped stretch of a recording): the sound after them stays at its own time,
+    the gap silent, rather than moving earlier by the gap."""
+    import fractions
+
+    import av
+
+    samples = np.zeros(2 * RATE, np.float32)
+    samples[RATE:RATE + 800] = _tone(0.05, RATE, 1000.0)  # a click at 1.0 s
+    path = tmp_path / "gap.m4a"
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("aac", rate=RATE, layout="mono")
+        for k, first in enumerate(range(0, len(samples), 1024)):
+            if 4 <= k < 9:  # 0.32 s of packets never written
+                continue
+            frame = av.AudioFrame.from_ndarray(samples[None, first:first + 1024], format="fltp", layout="mono")
+            frame.sample_rate, frame.pts, frame.time_base = RATE, first, fractions.Fraction(1, RATE)
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    sound = read_sound(path)
+    click = sound.start + np.flatnonzero(np.abs(sound.samples) > 0.1)[0] / RATE
+    assert click == pytest.approx(1.0, abs=0.005) and sound.seconds == pytest.approx(2.048, abs=0.01)
+
+
 def test_log_mel_is_the_same_whatever_the_chunks():
     rng = np.random.default_rng(0)
     samples = (0.1 * rng.standard_normal(RATE)).astype(np.float32)

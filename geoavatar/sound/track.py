@@ -22,6 +22,7 @@ from geoavatar.errors import GeoAvatarError
 from geoavatar.io.atomic import atomic_file
 
 RATE = 16000  # samples per second of every sound GeoAvatar works with (speech: 8 kHz of bandwidth is plenty)
+GAP_SECONDS = 0.005  # a decoded frame starting this much after the previous one's end follows missing packets
 
 
 class SoundError(GeoAvatarError, ValueError):
@@ -92,9 +93,15 @@ def read_sound(path: str | os.PathLike, rate: int = RATE, what: str = "sound") -
         stream = container.streams.audio[0]
         resampler = av.AudioResampler(format="s16", layout="mono", rate=rate)
         try:
+            expected = None  # the time at which the next decoded frame should start
             for frame in container.decode(stream):
-                if start is None and frame.time is not None:
-                    start = float(frame.time)
+                if frame.time is not None:
+                    start = float(frame.time) if start is None else start
+                    if expected is not None and frame.time - expected > GAP_SECONDS:  # packets missing: silence,
+                        gap = _silence_like(frame, frame.time - expected)  # so what follows keeps its own time
+                        heard += gap.samples / float(frame.sample_rate)
+                        parts.extend(out.to_ndarray().reshape(-1) for out in resampler.resample(gap))
+                    expected = float(frame.time) + frame.samples / float(frame.sample_rate)
                 heard += frame.samples / float(frame.sample_rate)
                 parts.extend(out.to_ndarray().reshape(-1) for out in resampler.resample(frame))
             parts.extend(out.to_ndarray().reshape(-1) for out in resampler.resample(None))
@@ -111,6 +118,18 @@ def read_sound(path: str | os.PathLike, rate: int = RATE, what: str = "sound") -
     if len(samples) == 0:
         raise SoundError(f"{what} {path}: the sound track holds no samples")
     return Sound(samples, rate, start or 0.0)
+
+
+def _silence_like(frame, seconds: float):
+    """A silent audio frame of `seconds` in `frame`'s format, layout and rate (to fill a gap in a track)."""
+    import av
+
+    silence = av.AudioFrame(format=frame.format.name, layout=frame.layout.name,
+                            samples=int(round(seconds * frame.sample_rate)))
+    for plane in silence.planes:
+        plane.update(bytes(plane.buffer_size))
+    silence.sample_rate = frame.sample_rate
+    return silence
 
 
 def resample(sound: Sound, rate: int) -> Sound:
