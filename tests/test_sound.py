@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import wave
 from pathlib import Path
 
@@ -151,6 +152,52 @@ def test_mp4_sound_track_plays_with_its_frames(tmp_path):
         heard = np.pad(back.samples, (0, max(0, len(samples) - len(back.samples))))
         score = [float(np.dot(samples[400:-400], heard[400 + k:len(samples) - 400 + k])) for k in lags]
         assert abs(int(lags[int(np.argmax(score))])) <= 16  # within 1 ms
+
+
+def _prepare_sound(tmp_path: Path, video: Path, count: int, capsys) -> tuple[dict, str]:
+    """prepare's sound stage on `video` (its first `count` frames kept): report.json's "sound", and what it said."""
+    from geoavatar.io.atomic import atomic_write_npz
+    from geoavatar.prep.pipeline import PrepareConfig, stage_sound
+
+    out, work = tmp_path / video.stem, tmp_path / video.stem / ".prepare"
+    work.mkdir(parents=True)
+    (out / "dataset").mkdir()
+    (out / "report.json").write_text("{}")
+    atomic_write_npz(work / "frames.npz", source_index=np.arange(count), fps=np.array(25.0))
+    atomic_write_npz(work / "landmarks.npz", keep=np.arange(count))
+    stage_sound(PrepareConfig(video=video, out=out), work, None)
+    return json.loads((out / "report.json").read_text())["sound"], capsys.readouterr().out
+
+
+def test_prepare_keeps_the_sound_under_the_frames_and_says_what_it_lacks(tmp_path, capsys):
+    """A sound track shorter than the picture: the frames after it are counted (report.json, one line) and the
+    voice's data leaves them out; a sound track with no samples: the dataset is prepared without sound, in one line."""
+    import av
+
+    from geoavatar.data.sound import read_dataset_sound
+    from geoavatar.io.video import Mp4Writer
+
+    short = tmp_path / "short.mp4"  # 2 s of picture, 1 s of sound
+    with Mp4Writer(short, fps=25.0, audio=Sound(_tone(1.0, RATE), RATE)) as video:
+        for _ in range(50):
+            video.write(np.zeros((32, 32, 3), np.uint8))
+    info, said = _prepare_sound(tmp_path, short, 50, capsys)
+    assert info["track"] and 20 <= info["frames_without_sound"] <= 26, info
+    assert "frames lie before or after the sound track" in said
+    assert read_dataset_sound(tmp_path / "short" / "dataset").sound.seconds < 1.1
+
+    empty = tmp_path / "empty.mkv"  # an audio stream that holds no packet
+    with av.open(str(empty), "w") as container:
+        picture = container.add_stream("libx264", rate=25)
+        picture.width = picture.height = 32
+        container.add_stream("pcm_s16le", rate=RATE, layout="mono")
+        for _ in range(5):
+            for packet in picture.encode(av.VideoFrame.from_ndarray(np.zeros((32, 32, 3), np.uint8))):
+                container.mux(packet)
+        for packet in picture.encode():
+            container.mux(packet)
+    info, said = _prepare_sound(tmp_path, empty, 5, capsys)
+    assert info == {"track": False} and "the sound track cannot be used" in said
 
 
 def test_speech_activity_finds_speech_and_silence():

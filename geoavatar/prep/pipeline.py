@@ -671,31 +671,22 @@ def stage_sound(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     """The video's sound into the dataset (audio.wav, audio.json: each timestep's time on it, the speech segments)
     and report.json's "sound"; one line for the user either way."""
     from geoavatar.data.sound import remove_dataset_sound, write_dataset_sound
-    from geoavatar.prep.video import frame_times
-    from geoavatar.sound import SoundError, has_sound_track, read_sound
     from geoavatar.sound.activity import ADVISED_SPEECH_SECONDS, speech_activity
 
     dataset = Path(config.out) / "dataset"
     remove_dataset_sound(dataset)
-    if not has_sound_track(config.video):
+    sound, times, silent = _sound_under_frames(config, work)
+    if sound is None:
         info = {"track": False}
-        config.log("prepare: the video has no sound track (an avatar learns to speak only from a video with speech)")
     else:
-        try:
-            sound = read_sound(config.video, what="video")
-        except SoundError as err:
-            raise PrepareError(str(err)) from err
-        frames = np.load(work / "frames.npz")
-        source = frames["source_index"][np.load(work / "landmarks.npz")["keep"]]  # [T] source frame of each timestep
-        times = frame_times(config.video)
-        times = times[np.minimum(source, len(times) - 1)] - sound.start  # [T] seconds on the sound
-        # the sound under the frames kept (--max-frames, a video cut short): up to the last one's end
-        sound = sound.segment(0.0, float(times[-1]) + 1.0 / float(frames["fps"]))
         activity = speech_activity(sound)
         write_dataset_sound(dataset, sound, {t: float(s) for t, s in enumerate(times)}, activity,
                             source=Path(config.video).name)
         info = {"track": True, "seconds": round(sound.seconds, 3), "speech_seconds": round(activity.speech_seconds, 3),
-                "has_speech": activity.has_speech, "rate": sound.rate}
+                "has_speech": activity.has_speech, "rate": sound.rate, "frames_without_sound": silent}
+        if silent:
+            config.log(f"prepare: {silent} of the {len(times)} frames lie before or after the sound track (the voice "
+                       "learns from the others)")
         if activity.has_speech:
             advice = ("" if activity.speech_seconds >= ADVISED_SPEECH_SECONDS else
                       "; a minute or more of talking makes the mouth follow the sound closer")
@@ -707,6 +698,32 @@ def stage_sound(config: PrepareConfig, work: Path, pool: WorkerPool) -> dict:
     report_path = Path(config.out) / "report.json"
     atomic_write_json(report_path, {**json.loads(report_path.read_text()), "sound": info})
     return info
+
+
+def _sound_under_frames(config: PrepareConfig, work: Path):
+    """(the video's sound under the frames kept, each timestep's time on it [T], how many of them lie outside it),
+    or (None, None, 0) after one line for the user when there is no sound to keep."""
+    from geoavatar.prep.video import frame_times
+    from geoavatar.sound import SoundError, has_sound_track, read_sound
+
+    if not has_sound_track(config.video):
+        config.log("prepare: the video has no sound track (an avatar learns to speak only from a video with speech)")
+        return None, None, 0
+    try:
+        sound = read_sound(config.video, what="video")
+    except SoundError as err:  # a track with no samples, or one that does not decode: the frames still stand
+        config.log(f"prepare: the sound track cannot be used ({err}); the dataset has no sound")
+        return None, None, 0
+    frames = np.load(work / "frames.npz")
+    source = frames["source_index"][np.load(work / "landmarks.npz")["keep"]]  # [T] source frame of each timestep
+    times = frame_times(config.video)
+    times = times[np.minimum(source, len(times) - 1)] - sound.start  # [T] seconds on the sound
+    silent = int(np.sum((times < 0) | (times >= sound.seconds)))  # frames shown before or after the sound
+    if silent == len(times):
+        config.log("prepare: the sound track lies before or after all the frames kept; the dataset has no sound")
+        return None, None, 0
+    # the sound under the frames kept (--max-frames, a video cut short): up to the last one's end
+    return sound.segment(0.0, float(times[-1]) + 1.0 / float(frames["fps"])), times, silent
 
 
 def write_capture_check(config: PrepareConfig, params: dict[str, np.ndarray], viewmat: np.ndarray, train: int,

@@ -68,14 +68,14 @@ def speech_activity(sound: Sound) -> SpeechActivity:
     """The speech segments of a sound at RATE (Silero VAD with its default thresholds, 30 ms of padding)."""
     import torch
 
-    from silero_vad import get_speech_timestamps
-
     if sound.rate != RATE:
         raise ValueError(f"speech_activity: sound must be at {RATE} Hz, got {sound.rate}")
     if len(sound.samples) < 512:  # shorter than one of the model's windows
         return SpeechActivity([])
     threads = torch.get_num_threads()
     try:
+        from silero_vad import get_speech_timestamps  # its first import sets torch's thread count to 1
+
         with torch.no_grad():
             stamps = get_speech_timestamps(torch.from_numpy(np.ascontiguousarray(sound.samples)), _silero(),
                                            sampling_rate=RATE)
