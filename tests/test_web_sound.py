@@ -157,8 +157,8 @@ def test_a_refused_autoplay_waits_on_frame_0_with_a_status_line(folder):
 
 def test_the_server_takes_one_pages_sound_in_order():
     """Without a browser: kind-2 chunks from a websocket reach on_audio in order, as float32 at 16 kHz with their
-    capture times; malformed ones and a second page's are dropped and counted; the error message reaches
-    on_microphone_error; a mesh with a capture time travels as kind 3."""
+    capture times; malformed ones and a second page's are dropped and counted; the microphone page's error message
+    reaches on_microphone_error, a second page's does not; a mesh with a capture time travels as kind 3."""
     from websockets.sync.client import connect
 
     assets, vertices = small_player(1, live="speak")
@@ -173,6 +173,7 @@ def test_the_server_takes_one_pages_sound_in_order():
             second.send(audio_message(tone[:320], 0, 1000.5))  # not the microphone: dropped
             first.send(audio_message(tone[:3], 1, 1000.52)[:-1])  # odd length: dropped
             first.send(audio_message(tone[320:], 2, 1000.54))
+            second.send(json.dumps({"type": "microphone", "error": "NotAllowedError: another tab"}))  # not the mic
             first.send(json.dumps({"type": "microphone", "error": "NotAllowedError: Permission denied"}))
             deadline = time.monotonic() + 10
             while (len(got) < 2 or not errors) and time.monotonic() < deadline:
@@ -260,8 +261,10 @@ def test_a_page_without_a_microphone_says_so(speaker):
             deadline = time.monotonic() + 60
             while not errors and time.monotonic() < deadline:
                 time.sleep(0.05)
-            status = page.inner_text("#live-status")
             stats = page.evaluate("window.geoavatar.stats")
+            server.stop()  # the command ends on the error: the page's line stays once its socket closes
+            page.wait_for_function("window.geoavatar.player.live.socket.readyState === 3", timeout=10_000)
+            status = page.inner_text("#live-status")
     finally:
         server.stop()
     assert len(errors) == 1 and errors[0].startswith("microphone: ") and "\n" not in errors[0], errors
@@ -295,11 +298,12 @@ process.stdout.write(JSON.stringify({ samples: sent.flatMap((m) => Array.from(ne
 @pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed (Node 20: the page's resampler)")
 @pytest.mark.parametrize("rate", [48000, 44100])
 def test_the_worklet_resamples_to_16_khz_without_aliasing(rate):
-    """The AudioWorklet's resampler (web/src/microphone.js) in node: a 440 Hz tone keeps its amplitude, 12 kHz (which
-    16 kHz would alias to 4 kHz) and 9.5 kHz (to 6.5 kHz) are gone, 20 ms chunks carry the context time of their
-    last sample."""
+    """The AudioWorklet's resampler (web/src/microphone.js) in node: 440 Hz and 7 kHz tones keep their amplitude,
+    12 kHz (which 16 kHz would alias to 4 kHz) and 9.5 kHz (to 6.5 kHz) are gone, 20 ms chunks carry the context time
+    of their last sample."""
     t = np.arange(rate) / rate  # 1 s
-    signal = 0.4 * np.sin(2 * np.pi * 440 * t) + 0.3 * (np.sin(2 * np.pi * 12000 * t) + np.sin(2 * np.pi * 9500 * t))
+    signal = (0.4 * np.sin(2 * np.pi * 440 * t) + 0.3 * (np.sin(2 * np.pi * 12000 * t) + np.sin(2 * np.pi * 9500 * t))
+              + 0.1 * np.sin(2 * np.pi * 7000 * t))
     script = NODE_SCRIPT % json.dumps(MICROPHONE_JS.as_uri())
     done = subprocess.run(["node", "--input-type=module", "-e", script], input=json.dumps({"rate": rate,
                           "input": signal.tolist()}), capture_output=True, text=True, timeout=60, check=True)
@@ -312,6 +316,7 @@ def test_the_worklet_resamples_to_16_khz_without_aliasing(rate):
         return 2 * abs(np.mean(y[k] * np.exp(-2j * np.pi * frequency * k / 16000)))
 
     assert amplitude(440) == pytest.approx(0.4, rel=0.01)
+    assert amplitude(7000) == pytest.approx(0.1, rel=0.06)  # flat to the features' top band (7.6 kHz), as a file's
     assert amplitude(4000) < 0.001 and amplitude(6500) < 0.003  # the aliases, below -40 dB
     expected = (np.arange(1, len(out["times"]) + 1) * 320 - 1) / 16000  # the chunk's last sample
     np.testing.assert_allclose(out["times"], expected, atol=1e-6)

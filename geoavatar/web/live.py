@@ -204,7 +204,7 @@ class LiveServer:
         try:
             async for message in socket:
                 if isinstance(message, str):
-                    self._text(message)
+                    self._text(client, message)
                 else:
                     self._sound(client, message)
         except Exception:  # a browser that went away
@@ -215,13 +215,14 @@ class LiveServer:
                 self._microphone = None
             writer.cancel()
 
-    def _text(self, message: str) -> None:
+    def _text(self, client: _Client, message: str) -> None:
         try:
             request = json.loads(message)
         except ValueError:
             return  # not ours: ignored
         if isinstance(request, dict) and request.get("type") == "microphone":
-            if self.on_microphone_error is not None:
+            # one page is the microphone: another page's refusal (a second tab) does not end it
+            if self.on_microphone_error is not None and self._microphone in (None, client):
                 self._loop.run_in_executor(self._audio, self._call, self.on_microphone_error,
                                            str(request.get("error", "")))
         elif self.on_edit is not None:

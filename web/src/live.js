@@ -41,7 +41,7 @@ export class LiveLink {
     this.socket.onmessage = (event) => this.receive(event.data);
     this.socket.onclose = () => {
       this.microphone?.stop();
-      this.player.setStatus("live stream closed");
+      this.player.setStatus(this.stats.microphoneError ?? "live stream closed"); // the page's one line stays
     };
     this.editing = false;
     if (microphone) {

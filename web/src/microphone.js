@@ -3,7 +3,9 @@
 // getUserMedia (no echo cancellation, noise suppression or gain control: the voice model hears what the microphone
 // hears), then an AudioWorklet (WORKLET_SOURCE, loaded from a blob: the bundle stays one file) mixes to mono,
 // resamples the context's rate (44.1 or 48 kHz, whatever the device runs at) to 16 kHz with a windowed-sinc
-// low-pass (cut-off 0.45 x 16 kHz, +-8 output samples wide), and posts 320-sample (20 ms) int16 chunks with the
+// low-pass (cut-off at 8 kHz, +-32 output samples wide: flat to the features' 7.6 kHz as a file's resampling is,
+// what would alias below it under -40 dB; its taps computed once per phase), and posts 320-sample (20 ms) int16
+// chunks with the
 // audio-context time of each chunk's last sample. The page maps that time onto its own clock (the smallest
 // receipt-minus-context-time offset of the last 5 s: the audio thread's messages arrive late, never early) and
 // sends the chunk over the websocket (live.js: kind 2, capture time = performance.timeOrigin + that time).
@@ -20,9 +22,11 @@ class GeoavatarMicrophone extends AudioWorkletProcessor {
     const opts = (options && options.processorOptions) || {};
     this.outRate = opts.outRate || ${OUT_RATE};
     this.chunk = opts.chunk || ${CHUNK_SAMPLES};
-    this.ratio = sampleRate / this.outRate; // input samples per output sample
-    this.cutoff = Math.min(0.5, 0.45 / this.ratio); // cycles per input sample
-    this.half = Math.ceil(8 * Math.max(1, this.ratio)); // kernel half-width in input samples
+    this.inRate = Math.round(sampleRate);
+    this.ratio = this.inRate / this.outRate; // input samples per output sample
+    this.cutoff = Math.min(0.5, 0.5 / this.ratio); // cycles per input sample
+    this.half = Math.ceil(32 * Math.max(1, this.ratio)); // kernel half-width in input samples
+    this.taps = new Map(); // phase -> the kernel at the input samples around an output sample of that phase
     this.buffer = new Float32Array(4096); // input samples from absolute index this.start
     this.start = 0;
     this.length = 0;
@@ -36,6 +40,18 @@ class GeoavatarMicrophone extends AudioWorkletProcessor {
     const x = 2 * this.cutoff * d;
     const sinc = x === 0 ? 1 : Math.sin(Math.PI * x) / (Math.PI * x);
     return sinc * (0.5 + 0.5 * Math.cos(Math.PI * d / this.half));
+  }
+
+  tapsAt(phase) { // output sample at input position q + phase / outRate: the kernel over input samples base, ...
+    let taps = this.taps.get(phase);
+    if (!taps) {
+      taps = [];
+      const offset = this.half - (phase > 0 ? 1 : 0) + phase / this.outRate; // centre - base
+      for (let d = offset; d > -this.half; d--) taps.push(this.kernel(d));
+      taps = Float32Array.from(taps);
+      this.taps.set(phase, taps);
+    }
+    return taps;
   }
 
   append(samples) {
@@ -57,16 +73,18 @@ class GeoavatarMicrophone extends AudioWorkletProcessor {
     this.append(mono);
     const end = this.start + this.length; // absolute index after the newest input sample
     for (;;) {
-      const centre = this.produced * this.ratio;
+      const exact = this.produced * this.inRate; // the centre times outRate, in integers: its phase is exact
+      const whole = Math.floor(exact / this.outRate);
+      const phase = exact - whole * this.outRate;
+      const centre = whole + phase / this.outRate;
       if (centre + this.half >= end) break;
       let sum = 0;
       let weights = 0;
-      const first = Math.max(Math.ceil(centre - this.half), this.start);
-      const last = Math.floor(centre + this.half);
-      for (let i = first; i <= last; i++) {
-        const weight = this.kernel(centre - i);
-        sum += this.buffer[i - this.start] * weight;
-        weights += weight;
+      const base = whole - this.half + (phase > 0 ? 1 : 0); // ceil(centre - half)
+      const taps = this.tapsAt(phase);
+      for (let k = Math.max(0, this.start - base); k < taps.length; k++) {
+        sum += this.buffer[base + k - this.start] * taps[k];
+        weights += taps[k];
       }
       const value = Math.max(-1, Math.min(1, weights > 0 ? sum / weights : 0)); // unit gain at 0 Hz
       this.out[this.filled++] = Math.round(value * 32767);
@@ -103,6 +121,7 @@ export class Microphone {
     this.onStatus = onStatus;
     this.offsets = []; // receipt time - context time (ms), the last OFFSET_WINDOW chunks
     this.chunks = 0;
+    this.stopped = false; // stop() came: a start() still waiting (the permission prompt) must not open it after
   }
 
   async start() {
@@ -118,11 +137,13 @@ export class Microphone {
       this.onError(`microphone: ${describe(error)}`);
       return false;
     }
+    if (this.stopped) return this.release(stream);
     try {
       this.context = new AudioContext({ latencyHint: "interactive" });
       const url = URL.createObjectURL(new Blob([WORKLET_SOURCE], { type: "text/javascript" }));
       await this.context.audioWorklet.addModule(url);
       URL.revokeObjectURL(url);
+      if (this.stopped) return this.release(stream);
       this.node = new AudioWorkletNode(this.context, "geoavatar-microphone", {
         numberOfInputs: 1, numberOfOutputs: 1, outputChannelCount: [1], channelCount: 1,
         channelCountMode: "explicit", channelInterpretation: "speakers",
@@ -141,17 +162,27 @@ export class Microphone {
       track.onended = () => this.onError("microphone: the microphone stopped");
     }
     this.stream = stream;
-    if (this.context.state !== "running") await this.context.resume().catch(() => {});
-    if (this.context.state !== "running") {
-      // no click yet on this page: the browser holds the audio context until one
+    if (this.context.state === "running") {
+      this.onStatus("microphone on");
+    } else {
+      // the browser may hold the audio context until a click on this page; resume() then waits for one (never
+      // awaited here: the page would hang before asking for the click)
       this.onStatus("click the page to start the microphone");
-      const resume = () => this.context.resume().then(() => this.onStatus("microphone on"));
+      this.context.onstatechange = () => {
+        if (this.context?.state === "running") this.onStatus("microphone on");
+      };
+      const resume = () => this.context?.resume().catch(() => {});
       window.addEventListener("pointerdown", resume, { once: true });
       window.addEventListener("keydown", resume, { once: true });
-    } else {
-      this.onStatus("microphone on");
+      resume();
     }
     return true;
+  }
+
+  release(stream) { // stop() came while start() waited: nothing is left open
+    for (const track of stream.getTracks()) track.stop();
+    this.stop();
+    return false;
   }
 
   received({ samples, time }) {
@@ -165,10 +196,13 @@ export class Microphone {
   }
 
   stop() {
+    this.stopped = true;
     for (const track of this.stream?.getTracks() ?? []) {
       track.onended = null;
       track.stop();
     }
-    this.context?.close();
+    const context = this.context;
+    this.context = null; // a second stop() (the track ended, then the socket closed) has nothing to close
+    context?.close().catch(() => {});
   }
 }

@@ -108,6 +108,9 @@ class Player {
       this.sound.element.addEventListener("pause", () => { // paused from outside the page (media keys, ...)
         if (this.playing) this.setPlaying(false);
       });
+      this.sound.element.addEventListener("play", () => { // and played from outside: the picture follows it
+        if (!this.playing) this.setPlaying(true);
+      });
     }
     this.needsDraw = true;
     this.dirtyFrame = true;
