@@ -20,8 +20,8 @@ The wire format is web/src/live.js's (all little-endian):
                                             float32 vertices [V * 3], then float32 head pose code [6] when the avatar's
                                             hair follows the head's turn (web/pack.py)
     server -> page, kind 3, a mesh posed    uint32 3, uint32 sequence, float64 send time, float64 capture time (Unix
-      from sound:                           seconds, the page's clock: the capture time of the newest sound chunk the
-                                            mesh used, echoed back), then the vertices and code as kind 1; the page
+      from sound:                           seconds, the page's clock: when the mesh's own instant of sound was
+                                            captured), then the vertices and code as kind 1; the page
                                             records drawn time - capture time (stats.soundToPicture)
     page -> server, kind 2, ~20 ms of the   uint32 2, uint32 sequence (0, 1, ... per page), float64 capture time (Unix
       microphone (live "speak"):            seconds by the page's clock, performance.timeOrigin + now: when the
@@ -78,7 +78,8 @@ def _float32_bytes(values) -> bytes:
 
 def vertex_message(vertices, sequence: int, code=None, capture_time: float | None = None) -> bytes:
     """The wire message of one posed mesh [V, 3] with its head pose code [6] when the hair follows the head: kind 1,
-    or kind 3 carrying `capture_time` (the newest sound chunk's, Unix seconds) when given (module docstring)."""
+    or kind 3 carrying `capture_time` (when the mesh's own instant of sound was captured, Unix seconds) when given
+    (module docstring)."""
     body = _float32_bytes(vertices) + (b"" if code is None else _float32_bytes(code))
     if capture_time is None:
         return HEADER.pack(KIND_VERTICES, sequence & 0xFFFFFFFF, time.time()) + body
@@ -271,9 +272,9 @@ class LiveServer:
     def send_vertices(self, vertices, read_time: float | None = None, code=None,
                       capture_time: float | None = None) -> None:
         """Send a posed mesh [V, 3] (and its head pose code [6] when the avatar's hair follows the head) to every
-        connected browser (thread-safe; the newest PENDING wait per browser). capture_time: the capture time of the
-        newest microphone chunk the mesh was posed from (on_audio's), which the page turns into its
-        sound-to-picture latency."""
+        connected browser (thread-safe; the newest PENDING wait per browser). capture_time: when the mesh's own
+        instant of sound was captured (on on_audio's clock), which the page turns into its sound-to-picture
+        latency."""
         if self._loop is None or self._loop.is_closed():
             return
         self.sequence += 1
