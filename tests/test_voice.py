@@ -342,3 +342,22 @@ def test_speech_scores_have_known_values_and_follow_a_copys_parameters(talking, 
     reports = Path("RUN") / "eval"
     assert speech_dir("RUN", "video", "copy") == reports / "speech@copy@video-loudness"
     assert speech_dir("RUN") == reports / "speech"
+
+
+def test_a_resumed_finished_run_keeps_the_voice_learned_after_it(learned, tmp_path):
+    """train --resume of a finished run learns the voice only when the run has none readable, or an older one than
+    its avatar: a voice learned after it (`geoavatar voice RUN --steps ...`) is kept."""
+    import os
+
+    from geoavatar.apps.train import _voice_is_newer
+
+    run, voice = learned
+    copy = tmp_path / "run"
+    shutil.copytree(run.info.run_dir, copy)
+    final = shutil.copy(copy / "checkpoints" / "last.pt", copy / "checkpoints" / "final.pt")
+    assert not _voice_is_newer(copy)  # no voice yet
+    voice.save(copy)
+    assert _voice_is_newer(copy)
+    later = os.stat(copy / "voice" / "voice.json").st_mtime + 10
+    os.utime(final, (later, later))  # the avatar trained again after the voice
+    assert not _voice_is_newer(copy)

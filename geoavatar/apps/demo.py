@@ -238,24 +238,40 @@ class DemoPlan:
         from geoavatar.apps.speak import speak
         from geoavatar.apps.voice import learn_voice
         from geoavatar.train.checkpoint import open_run
-        from geoavatar.voice import VoiceConfig, VoiceModel
+        from geoavatar.voice import VoiceConfig
+        from geoavatar.voice.model import INFO_FILE, VOICE_DIR
 
         px, s = self.settings.picture_resolution, self.settings
+        learned = Path(self.run) / VOICE_DIR / INFO_FILE
+
+        def after_the_voice(path: Path) -> bool:  # made from the voice there now (not one learned before it)
+            return path.is_file() and path.stat().st_mtime >= learned.stat().st_mtime
+
         # a subject too short to learn a voice from: these stages are skipped (the report says so)
         return [
-            ("learn the voice", lambda: VoiceModel.exists(self.run) or self.mute,
+            ("learn the voice", lambda: self._voice_loads() or self.mute,
              # the generated sound is a known function of the mouth: a few seconds teach it, no advice to film more
              lambda: learn_voice(open_run(self.run, "cpu"), config=VoiceConfig(steps=s.voice_steps, seed=s.seed),
                                  advise=False)),
-            ("evaluate the voice (held-out sound)", lambda: self.speech_metrics.is_file() or self.mute,
+            ("evaluate the voice (held-out sound)", lambda: self.mute or after_the_voice(self.speech_metrics),
              lambda: _checked(eval_runs([self.run], speech=True, max_frames=s.speech_pictures,
                                         device=self.device, backend=self.backend, progress=self.progress),
                               "eval --speech")),
-            ("speak a clip it never heard", lambda: self.videos["speak"].is_file() or self.mute,
+            ("speak a clip it never heard", lambda: self.mute or after_the_voice(self.videos["speak"]),
              lambda: _checked(speak(self.run, audio=self._new_speech(), out=self.videos["speak"], resolution=px,
                                     seed=s.seed, device=self.device, backend=self.backend, progress=self.progress),
                               "speak")),
         ]
+
+    def _voice_loads(self) -> bool:
+        """Whether the run holds a voice model this code reads (one of an older format is learned again)."""
+        from geoavatar.voice import VoiceModel, VoiceModelError
+
+        try:
+            VoiceModel.load(self.run)
+        except VoiceModelError:
+            return False
+        return True
 
     @functools.cached_property
     def mute(self) -> bool:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal, Optional, Sequence
 
 import tyro
@@ -209,6 +210,10 @@ def _learn_voice(run_dir, options: RunOptions) -> None:
     from geoavatar.data.sound import read_dataset_sound
     from geoavatar.train.checkpoint import open_run
 
+    if _voice_is_newer(run_dir):  # a --resume of a finished run: keep the voice it has (maybe `voice --steps`'s)
+        print(f"voice: already learned after this avatar ({run_dir}/voice/); `geoavatar voice {run_dir}` learns it "
+              "again")
+        return
     run = open_run(run_dir, "cpu", options.flame_dir)
     sound = read_dataset_sound(run.info.data_root)
     if sound is None or not sound.activity.has_speech:
@@ -216,6 +221,22 @@ def _learn_voice(run_dir, options: RunOptions) -> None:
               "give it one")
         return
     learn_voice(run)
+
+
+def _voice_is_newer(run_dir) -> bool:
+    """Whether the run holds a readable voice model written after its final checkpoint."""
+    from geoavatar.train.checkpoint import CHECKPOINT_DIR, FINAL_CHECKPOINT
+    from geoavatar.voice import VoiceModel, VoiceModelError
+    from geoavatar.voice.model import INFO_FILE, VOICE_DIR
+
+    final, voice = Path(run_dir) / CHECKPOINT_DIR / FINAL_CHECKPOINT, Path(run_dir) / VOICE_DIR / INFO_FILE
+    if not (final.is_file() and voice.is_file()) or voice.stat().st_mtime < final.stat().st_mtime:
+        return False
+    try:
+        VoiceModel.load(run_dir)
+    except VoiceModelError:
+        return False
+    return True
 
 
 train.parse_argv = parse_args  # geoavatar.cli parses the words with it (not from train's signature)

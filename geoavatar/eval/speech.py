@@ -227,8 +227,8 @@ def write_speech_report(result: SpeechResult, folder: Path) -> dict[str, Path]:
                 + str(result.settings.get("test_params", "the dataset"))
                 + (f"; the face scores against {reference}" if reference else "")
                 + ". Baselines: mean_face, nearest, linear (geoavatar/eval/speech.py).\n")
-    return {"json": atomic_write_json(folder / "metrics.json", payload),
-            "markdown": atomic_write_text(folder / "metrics.md", markdown)}
+    markdown_path = atomic_write_text(folder / "metrics.md", markdown)  # the json last: with it, the report is whole
+    return {"json": atomic_write_json(folder / "metrics.json", payload), "markdown": markdown_path}
 
 
 __all__ = ["FACE_KEYS", "PICTURE_KEYS", "SpeechInputs", "SpeechResult", "baseline_faces", "best_lag", "face_scores",

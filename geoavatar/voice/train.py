@@ -30,6 +30,7 @@ import torch
 from geoavatar.data.sound import DatasetSound, read_dataset_sound
 from geoavatar.runtime import num_threads
 from geoavatar.sound import FRAME_RATE
+from geoavatar.sound.activity import MIN_SPEECH_SECONDS
 from geoavatar.sound.features import power_frames
 from geoavatar.voice.config import VoiceConfig
 from geoavatar.voice.face import FaceProbe
@@ -245,6 +246,10 @@ def train_voice(run, config: VoiceConfig | None = None, data_root: Path | None =
 def _fit(run, frames, sound: DatasetSound, config: VoiceConfig, started: float, log) -> VoiceModel:
     expr_dims = int(run.head.num_expr)
     data = voice_data(run, frames, sound, expr_dims)
+    if data.speech_seconds < MIN_SPEECH_SECONDS:  # the video's speech may all lie in the held-out frames
+        raise VoiceModelError(f"the training frames hold {data.speech_seconds:.1f} s of speech (the video's "
+                              f"{sound.activity.speech_seconds:.1f} s lie mostly in its held-out frames); a voice is "
+                              "learned from a video in which the person talks")
     mean, std = data.targets.mean(0), data.targets.std(0).clamp_min(1e-4)
     probe = FaceProbe(run.head, {k: v.cpu() for k, v in frames.identity().items()})
     lips, upper = face_jacobians(probe, data.targets, expr_dims)
