@@ -4,7 +4,7 @@
     activity.mask(times)                       # [T] bool: which of these times (seconds from sample 0) are speech
 
 prepare's report says how many seconds of a video are speech (a video with none prepares as before, and its avatar
-learns no voice); the voice model's training weights its frames by it.
+learns no voice); the voice is learned only when its training frames hold MIN_SPEECH_SECONDS of it.
 """
 
 from __future__ import annotations
