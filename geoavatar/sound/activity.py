@@ -4,7 +4,7 @@
     activity.mask(times)                       # [T] bool: which of these times (seconds from sample 0) are speech
 
 prepare's report says how many seconds of a video are speech (a video with none prepares as before, and its avatar
-learns no voice); the voice is learned only when its training frames hold MIN_SPEECH_SECONDS of it.
+learns no voice); a voice is learned only from training frames that hold some of it (voice/train.py).
 """
 
 from __future__ import annotations

@@ -30,7 +30,6 @@ import torch
 from geoavatar.data.sound import DatasetSound, read_dataset_sound
 from geoavatar.runtime import num_threads
 from geoavatar.sound import FRAME_RATE
-from geoavatar.sound.activity import MIN_SPEECH_SECONDS
 from geoavatar.sound.features import power_frames
 from geoavatar.voice.config import VoiceConfig
 from geoavatar.voice.face import FaceProbe
@@ -79,6 +78,8 @@ def voice_data(run, frames, sound: DatasetSound, expr_dims: int) -> VoiceData:
     return VoiceData(power, torch.from_numpy(np.round(times * FRAME_RATE).astype(np.int64)), targets,
                      {k: v.numpy() for k, v in values.items()}, fps, int(values["expr"].shape[1]), float(speech))
 
+
+MIN_TRAINING_SPEECH = 0.5  # seconds of speech in the training frames below which there is no word to learn from
 
 JACOBIAN_STEP = 1e-3  # central differences: expression coefficients are O(1), jaw angles O(0.1) rad
 
@@ -246,7 +247,7 @@ def train_voice(run, config: VoiceConfig | None = None, data_root: Path | None =
 def _fit(run, frames, sound: DatasetSound, config: VoiceConfig, started: float, log) -> VoiceModel:
     expr_dims = int(run.head.num_expr)
     data = voice_data(run, frames, sound, expr_dims)
-    if data.speech_seconds < MIN_SPEECH_SECONDS:  # the video's speech may all lie in the held-out frames
+    if data.speech_seconds < MIN_TRAINING_SPEECH:  # the video's speech may all lie in the held-out frames
         raise VoiceModelError(f"the training frames hold {data.speech_seconds:.1f} s of speech (the video's "
                               f"{sound.activity.speech_seconds:.1f} s lie mostly in its held-out frames); a voice is "
                               "learned from a video in which the person talks")
