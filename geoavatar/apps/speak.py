@@ -75,8 +75,9 @@ def speak_clip(run: LoadedRun, voice: VoiceModel, sound: Sound, playback: Sound,
     source = SpeechFrames(run, voice, sound, fps, playback, seed)
     mp4 = (Mp4Sink(run, out, fps, avatar_camera(run, data, resolution), backend=backend, audio=source.audio)
            if out is not None else None)
-    clip = (WebClip(run, source.fps, f"speech {clip_name}", [run.info.timesteps["all"][0]], data, audio=source.audio)
-            if clip_name is not None else None)
+    heard = "" if voice.loudness == "own" else f" ({voice.loudness} loudness)"  # as export names it
+    clip = (WebClip(run, source.fps, f"speech {clip_name}{heard}", [run.info.timesteps["all"][0]], data,
+                    audio=source.audio) if clip_name is not None else None)
     with torch_threads(threads):
         play(run, source, [sink for sink in (mp4, clip) if sink is not None], progress=progress, desc="speak")
     return (mp4.frames if mp4 is not None else 0), clip
