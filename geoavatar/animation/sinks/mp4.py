@@ -4,7 +4,8 @@ background, with the frame's picture (the driver's frame or face crop) scaled to
 by io/video.py's Mp4Writer (atomic; with a sound track when `audio` is given).
 
 A skipped frame index (a live source dropped the frame) repeats the last picture, so the video keeps the source's
-clock; with a sound, frames dropped before the first one shown repeat that one, so sound and picture start together. Without a file (`out` None) the frames are still rendered and timed: drive's measurements.
+clock; with a sound, frames dropped before the first one shown repeat that one, so sound and picture start together.
+Without a file (`out` None) the frames are still rendered and timed: drive's measurements.
 """
 
 from __future__ import annotations
