@@ -59,8 +59,9 @@ def voice_data(run, frames, sound: DatasetSound, expr_dims: int) -> VoiceData:
     """The run's training frames in time order, their targets, and the sound cut between the last training frame and
     the first frame after it."""
     train = sorted(run.info.timesteps["train"], key=lambda t: sound.frame_times[t] if t in sound.frame_times else t)
-    seconds = sound.sound.seconds  # frames shown before or after the sound (a track shorter than the video) are not
-    train = [t for t in train if not (t in sound.frame_times and not 0.0 <= sound.frame_times[t] < seconds)]  # silent
+    # frames shown before or after the sound track (one shorter than the picture) are left out: they hear nothing
+    seconds = sound.sound.seconds
+    train = [t for t in train if not (t in sound.frame_times and not 0.0 <= sound.frame_times[t] < seconds)]
     if not train:
         raise VoiceModelError("none of the training frames lies on the dataset's sound track (audio.json)")
     times = sound.times(train)  # [N] seconds
