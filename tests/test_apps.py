@@ -201,6 +201,13 @@ def test_export_sequence_folder_and_npz(run, run_dir, tmp_path):
         export_app.export(run_dir, out=folder, sequence=True, split="test", progress=False)
     assert export_app.export(run_dir, out=folder, sequence=True, split="test", overwrite=True, progress=False) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
+    with pytest.raises(OptionError, match="would delete the run"):  # --overwrite never replaces its inputs
+        export_app.export(run_dir, out=Path(run_dir).parent, sequence=True, overwrite=True, progress=False)
+    assert (Path(run_dir) / "checkpoints").is_dir()
+    with pytest.raises(OptionError, match="--split and --format npz go with --sequence"):  # said, not dropped
+        export_app.export(run_dir, out=tmp_path / "one.ply", split="test", progress=False)
+    with pytest.raises(OptionError, match="is a folder"):  # before posing every frame
+        export_app.export(run_dir, out=folder, sequence=True, format="npz", split="test", progress=False)
 
     npz_path = tmp_path / "seq.npz"
     assert export_app.export(run_dir, out=npz_path, sequence=True, format="npz", split="test", progress=False) == 0

@@ -258,6 +258,7 @@ def test_crops_and_appearance_sets(head):
 
 def test_track_writes_a_copy_with_fitted_parameters(tmp_path, capsys):
     from geoavatar.apps.track import TrackError, track
+    from geoavatar.errors import OptionError
     from geoavatar.data.dataset import open_subject
     from geoavatar.data.synth.generate import SynthConfig, generate_dataset
 
@@ -273,6 +274,9 @@ def test_track_writes_a_copy_with_fitted_parameters(tmp_path, capsys):
     assert len(report["photometric_residual"]["per_frame"]) == 4
     with pytest.raises(TrackError, match="exists"):
         track(data, out, progress=False)
+    with pytest.raises(OptionError, match="would delete the dataset"):  # --overwrite never replaces its input
+        track(data, tmp_path, overwrite=True, progress=False)
+    assert (data / "flame_param").is_dir()
 
 
 def test_prepare_and_track_share_the_fit_defaults():

@@ -119,6 +119,14 @@ def split_timesteps(run: LoadedRun, split: str) -> list[int]:
     return list(run.info.timesteps[split])
 
 
+def clip_timesteps(run: LoadedRun, split: str) -> list[int]:
+    """The timesteps of a split, at least one (OptionError naming --split otherwise)."""
+    timesteps = split_timesteps(run, split)
+    if not timesteps:
+        raise OptionError(f"--split {split}: the run has no {split} frames")
+    return timesteps
+
+
 # --- images ------------------------------------------------------------------------------------------
 
 
@@ -156,6 +164,16 @@ def default_output(run: LoadedRun, folder: str, name: str) -> Path:
     return Path(run.info.run_dir) / folder / name
 
 
+def check_replaceable(out: Path, **kept: Path | None) -> None:
+    """OptionError when replacing the folder --out would remove one of `kept` (name=folder: a run, a dataset): --out
+    is that folder or holds it. --overwrite replaces what a command wrote before, never its inputs."""
+    target = Path(out).resolve()
+    for name, folder in kept.items():
+        if folder is not None and Path(folder).exists() and Path(folder).resolve().is_relative_to(target):
+            raise OptionError(f"--out {out} is or holds the {name} ({folder}); replacing it would delete the {name}: "
+                              "give another folder")
+
+
 def progress(iterable: Iterable, total: int | None = None, enabled: bool = True, desc: str | None = None):
     """A tqdm bar over `iterable` (silent when not enabled)."""
     from tqdm.auto import tqdm
@@ -181,7 +199,7 @@ class Timer:
 
 
 __all__ = [
-    "EXPORT_DIR", "check_threads", "RunPath", "Timer", "VIDEO_DIR", "browser_pose_code", "colormap_lut",
+    "EXPORT_DIR", "check_replaceable", "check_threads", "clip_timesteps", "RunPath", "Timer", "VIDEO_DIR", "browser_pose_code", "colormap_lut",
     "default_output", "error_map", "head_centre", "pose_gaussians", "posed_head_vertices", "progress", "record_camera",
     "render_params",
     "RENDER_THREADS", "run_background", "side_by_side", "split_timesteps", "synchronize",

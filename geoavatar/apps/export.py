@@ -28,7 +28,8 @@ import torch
 
 from geoavatar.animation.expression_transfer import TransferMode, resolve_transfer
 from geoavatar.animation.posing import pose_gaussians
-from geoavatar.apps.common import EXPORT_DIR, RunPath, default_output, progress, split_timesteps
+from geoavatar.apps.common import (EXPORT_DIR, RunPath, check_replaceable, clip_timesteps, default_output, progress,
+                                   split_timesteps)
 from geoavatar.avatar import GlobalGaussians
 from geoavatar.avatar.model import rgb_to_sh_dc
 from geoavatar.errors import OptionError
@@ -68,9 +69,12 @@ def export_frame(run: LoadedRun, out: Path, timestep: int | None = None) -> Path
     return write_gaussian_ply(out, to_ply_gaussians(run, frame_gaussians(run, frames, frames.resolve(timestep))))
 
 
-def check_folder_target(out: Path, overwrite: bool) -> Path:
-    """--out as a folder to (re)write: OptionError when it exists and --overwrite is not given, or is a file."""
+def check_folder_target(out: Path, overwrite: bool, run: LoadedRun | None = None) -> Path:
+    """--out as a folder to (re)write: OptionError when it exists and --overwrite is not given, or is a file, or when
+    replacing it would remove `run`'s folder or its dataset."""
     out = Path(out)
+    if run is not None:
+        check_replaceable(out, run=run.info.run_dir, dataset=run.info.data_root)
     if out.exists() and not overwrite:
         raise OptionError(f"--out {out} already exists; pass --overwrite to replace it")
     if out.exists() and not out.is_dir():
@@ -81,10 +85,11 @@ def check_folder_target(out: Path, overwrite: bool) -> Path:
 def export_sequence_ply(run: LoadedRun, out: Path, split: str = "all", overwrite: bool = False,
                         show_progress: bool = True) -> Path:
     """One PLY per frame into the folder `out`, which appears complete or not at all."""
-    out = check_folder_target(out, overwrite)
+    out = check_folder_target(out, overwrite, run)
     frames = RunFrames(run)
+    timesteps = clip_timesteps(run, split)  # OptionError for a split with no frames
     with atomic_folder(out) as folder:
-        for t in progress(split_timesteps(run, split), enabled=show_progress, desc="export"):
+        for t in progress(timesteps, enabled=show_progress, desc="export"):
             gaussians = to_ply_gaussians(run, frame_gaussians(run, frames, t))
             write_gaussian_ply(folder / FRAME_FILE.format(t), gaussians)
     return out
@@ -93,7 +98,7 @@ def export_sequence_ply(run: LoadedRun, out: Path, split: str = "all", overwrite
 def export_sequence_npz(run: LoadedRun, out: Path, split: str = "all", show_progress: bool = True) -> Path:
     """Per-frame Gaussian parameters of a split in one npz (see the module docstring for the keys)."""
     frames = RunFrames(run)
-    timesteps = split_timesteps(run, split)
+    timesteps = clip_timesteps(run, split)  # OptionError for a split with no frames
     means, quats, log_scales, colours = [], [], [], []
     for t in progress(timesteps, enabled=show_progress, desc="export"):
         g = to_ply_gaussians(run, frame_gaussians(run, frames, t))
@@ -174,6 +179,10 @@ def export(
                           "--format web")
     if frame is not None and sequence:
         raise OptionError("--frame and --sequence exclude each other (--sequence exports every frame of --split)")
+    if not sequence and (split is not None or format == "npz"):  # said, not dropped
+        raise OptionError("--split and --format npz go with --sequence (without it, one frame is written as .ply)")
+    if out is not None and sequence and format == "npz" and out.is_dir():  # found now, not after every frame
+        raise OptionError(f"--out {out} is a folder: --format npz writes one .npz file")
     if out is not None and not sequence and out.suffix.lower() != ".ply":
         raise OptionError(f"--out {out}: a single frame is written as a .ply file")
     if out is not None and sequence and format == "npz" and out.suffix.lower() != ".npz":
@@ -215,7 +224,7 @@ def _export_web(run, out, frame, split, driver, driver_video, audio, loudness, r
     loaded = open_run(run, device, flame_dir)
     named = driver_video or driver or audio
     clip = Path(named).stem if named is not None else (split or "test")
-    target = check_folder_target(out or default_output(loaded, EXPORT_DIR, f"web_{clip}"), overwrite)
+    target = check_folder_target(out or default_output(loaded, EXPORT_DIR, f"web_{clip}"), overwrite, loaded)
     export_web(loaded, target, split or "test", driver, driver_video, mode, fps, data, flame_dir, progress, audio,
                loudness)
     print(f"wrote {target}/ ({folder_size(target) / 1e6:.1f} MB): serve it with any static file server, e.g.\n"

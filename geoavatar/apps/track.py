@@ -239,12 +239,13 @@ def track(
     """
     import time
 
-    from geoavatar.apps.common import check_threads, torch_threads
+    from geoavatar.apps.common import check_replaceable, check_threads, torch_threads
     from geoavatar.data.dataset import open_subject
     from geoavatar.prep.photometric import residual_report
 
     if Path(out).resolve() == Path(dataset).resolve():
         raise OptionError("--out must differ from DATASET (the dataset is copied, never changed in place)")
+    check_replaceable(out, dataset=dataset, run=avatar)
     if Path(out).exists() and not overwrite:
         raise TrackError(f"{out} exists; pass --overwrite to replace it")
     if avatar is not None and fit_shape:

@@ -25,20 +25,12 @@ from geoavatar.animation.sinks.web import PosedClip, WebClip, web_assets  # noqa
 from geoavatar.animation.sources.driver import DriverMotion
 from geoavatar.animation.sources.driver_video import track_driver
 from geoavatar.animation.sources.split import SplitFrames
-from geoavatar.apps.common import split_timesteps
+from geoavatar.apps.common import clip_timesteps
 from geoavatar.errors import OptionError
 from geoavatar.train.checkpoint import LoadedRun
 from geoavatar.train.run_frames import RunFrames
 
 DEFAULT_FPS = 25.0
-
-
-def clip_timesteps(run: LoadedRun, split: str) -> list[int]:
-    """The timesteps of a split, at least one (OptionError naming --split otherwise)."""
-    timesteps = split_timesteps(run, split)
-    if not timesteps:
-        raise OptionError(f"--split {split}: the run has no {split} frames")
-    return timesteps
 
 
 def split_clip(run: LoadedRun, frames: RunFrames, timesteps: list[int], show_progress: bool) -> PosedClip:
@@ -93,4 +85,4 @@ def folder_size(folder: Path) -> int:
     return sum(f.stat().st_size for f in Path(folder).iterdir() if f.is_file())
 
 
-__all__ = ["clip_timesteps", "export_web", "folder_size", "split_clip"]
+__all__ = ["export_web", "folder_size", "split_clip"]
