@@ -330,6 +330,19 @@ def test_orbit_video(run_dir, tmp_path):
     frames = decode(out)  # yaw 0, +60, 0, -60
     assert len(frames) == 4 and frames[0].shape == (SIZE, SIZE, 3)
     assert np.abs(frames[0].astype(float) - frames[1]).mean() > 0.1  # the view changes
+    with pytest.raises(OptionError, match="--stills .*png"):  # before the sweep: PNG bytes in a .jpg before
+        orbit_app.orbit(run_dir, out=out, frames=4, stills=tmp_path / "st.jpg", device="cpu", progress=False)
+
+
+def test_reenact_checks_its_video_options_before_tracking_a_driver(run_dir, tmp_path):
+    talk = tmp_path / "talk.mp4"
+    talk.write_bytes(b"the user's video")  # never read: every check comes first
+    for options, expected in (({"out": tmp_path / "x.avi"}, "must end in .mp4"), ({"out": talk}, "the input video"),
+                              ({"fps": 0.0}, "--fps must be positive"), ({"crf": 99}, "--crf"),
+                              ({"max_frames": 0}, "--max-frames must be positive")):
+        with pytest.raises(OptionError, match=expected):
+            reenact_app.reenact(run_dir, driver_video=talk, device="cpu", progress=False, **options)
+    assert talk.read_bytes() == b"the user's video"
 
 
 def test_video_loops_run_on_threads_asked_and_restore_the_process_count(run_dir, driver, tmp_path, monkeypatch):

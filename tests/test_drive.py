@@ -185,12 +185,13 @@ def test_view_mode_streams_every_online_frame_to_the_browser(run, clip):
         viewer.stop()
 
 
-def test_a_source_too_short_for_the_identity_stage_is_an_error(run):
+def test_a_source_too_short_for_the_identity_stage_is_an_error(run, tmp_path):
     from geoavatar.animation.sources.capture import DriveError
 
-    blank = Source("--video blank", 25.0, lambda: iter([np.zeros((64, 64, 3), np.uint8)] * 3), live=False)
-    with pytest.raises(DriveError, match="identity stage"):
-        drive_avatar(run, blank, None, size=32, status=False, lossless=True)
+    for out in (None, tmp_path / "o.mp4"):  # with an mp4 too: its "no frame" does not hide why
+        blank = Source("--video blank", 25.0, lambda: iter([np.zeros((64, 64, 3), np.uint8)] * 3), live=False)
+        with pytest.raises(DriveError, match="identity stage"):
+            drive_avatar(run, blank, out, size=32, status=False, lossless=True)
 
 
 def _one_line_error(capsys, argv: list[str], *needles: str) -> None:
@@ -221,3 +222,9 @@ def test_options_are_checked(run_dir, tmp_path, capsys):
     _one_line_error(capsys, ["drive", str(run_dir), "--out", str(tmp_path / "o.mp4")], "--camera N or --video FILE")
     _one_line_error(capsys, ["drive", str(run_dir), "--camera", "0", "--video", "x.mp4", "--out", "o.mp4"], "one driving source")
     _one_line_error(capsys, ["drive", str(run_dir), "--camera", "0"], "--out", "--view")
+    talk = tmp_path / "talk.mp4"
+    talk.write_bytes(b"the user's video")
+    _one_line_error(capsys, ["drive", str(run_dir), "--video", str(talk), "--out", str(talk)], "is the input video")
+    assert talk.read_bytes() == b"the user's video"
+    _one_line_error(capsys, ["drive", str(run_dir), "--video", str(talk), "--out", str(tmp_path / "o.mp4"),
+                             "--max-frames", "0"], "--max-frames must be positive")

@@ -238,6 +238,8 @@ def test_unreadable_file_is_a_clear_error(tmp_path):
     assert not out.exists()
     with pytest.raises(PrepareError, match="file not found"):
         run_prepare(_config(tmp_path / "missing.mp4", out))
+    with pytest.raises(PrepareError, match="cannot make the output folder"):  # --out under a file
+        run_prepare(_config(bad, bad / "out"))
 
 
 def test_video_without_a_face_is_a_clear_error(tmp_path):

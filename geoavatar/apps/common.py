@@ -164,6 +164,24 @@ def default_output(run: LoadedRun, folder: str, name: str) -> Path:
     return Path(run.info.run_dir) / folder / name
 
 
+def check_video_options(out: Path | None, fps: float | None = None, crf: int = 18, max_frames: int | None = None,
+                        inputs: tuple[Path | None, ...] = ()) -> None:
+    """OptionError for an mp4 --out, --fps, --crf or --max-frames that the writer or the source would refuse only
+    after the work (a driver tracked, a clip posed), or an --out that would replace one of the `inputs`."""
+    if out is not None:
+        if Path(out).suffix.lower() != ".mp4":
+            raise OptionError(f"--out {out}: the video file name must end in .mp4")
+        for given in inputs:
+            if given is not None and Path(given).exists() and Path(out).resolve() == Path(given).resolve():
+                raise OptionError(f"--out {out} is the input video: give another file name")
+    if fps is not None and fps <= 0:
+        raise OptionError(f"--fps must be positive, got {fps}")
+    if not 0 <= crf <= 51:
+        raise OptionError(f"--crf must be in [0, 51], got {crf}")
+    if max_frames is not None and max_frames < 1:
+        raise OptionError(f"--max-frames must be positive, got {max_frames}")
+
+
 def check_replaceable(out: Path, **kept: Path | None) -> None:
     """OptionError when replacing the folder --out would remove one of `kept` (name=folder: a run, a dataset): --out
     is that folder or holds it. --overwrite replaces what a command wrote before, never its inputs."""
@@ -199,7 +217,7 @@ class Timer:
 
 
 __all__ = [
-    "EXPORT_DIR", "check_replaceable", "check_threads", "clip_timesteps", "RunPath", "Timer", "VIDEO_DIR", "browser_pose_code", "colormap_lut",
+    "EXPORT_DIR", "check_replaceable", "check_threads", "check_video_options", "clip_timesteps", "RunPath", "Timer", "VIDEO_DIR", "browser_pose_code", "colormap_lut",
     "default_output", "error_map", "head_centre", "pose_gaussians", "posed_head_vertices", "progress", "record_camera",
     "render_params",
     "RENDER_THREADS", "run_background", "side_by_side", "split_timesteps", "synchronize",

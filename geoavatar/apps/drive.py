@@ -37,9 +37,10 @@ from geoavatar.animation.sinks.mp4 import Mp4Sink
 from geoavatar.animation.sources.capture import VideoInput, open_camera, open_video
 from geoavatar.animation.sources.live import LiveDriver
 from geoavatar.animation.stats import DriveStats
-from geoavatar.apps.common import RunPath, record_camera
+from geoavatar.apps.common import RunPath, check_video_options, record_camera
 from geoavatar.data import DatasetError, open_subject
 from geoavatar.errors import GeoAvatarError, OptionError
+from geoavatar.io.video import EmptyVideoError
 from geoavatar.render.camera import Camera
 from geoavatar.runtime import show_native_logs
 from geoavatar.train.checkpoint import LoadedRun, RunError, open_run
@@ -102,7 +103,11 @@ def drive_avatar(
                       init_steps, threads)
     if viewer is not None:  # the browser first: its mesh goes out before the render
         sinks.insert(0, LiveStream(viewer, run, live))
-    play(run, live, sinks, status=status)
+    try:
+        play(run, live, sinks, status=status)
+    except EmptyVideoError:  # no frame came: say why (the source ended within the identity stage) when that is it
+        live.check_identity_stage()
+        raise
     live.check_identity_stage()
     return live.stats
 
@@ -170,6 +175,7 @@ def drive(
         raise OptionError("give one driving source: --camera N or --video FILE")
     if out is None and not view:
         raise OptionError("nothing to show: pass --out FILE.mp4 and/or --view")
+    check_video_options(out, max_frames=max_frames, inputs=(video,))
     mode = resolve_transfer(transfer, relative)
     source = open_video(video) if video is not None else open_camera(camera)
     loaded = open_run(run, device, flame_dir)

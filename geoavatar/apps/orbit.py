@@ -160,6 +160,8 @@ def orbit(
             for each other); more may pay on a quiet machine.
     """
     check_resolution(resolution)
+    if stills is not None and Path(stills).suffix.lower() != ".png":  # before the sweep, not after it
+        raise OptionError(f"--stills {stills}: the stills are written as a .png file")
     loaded = open_run(run, device, flame_dir)
     timestep = RunFrames(loaded).resolve(frame)
     target = out or default_output(loaded, VIDEO_DIR, f"orbit_{timestep:05d}.mp4")

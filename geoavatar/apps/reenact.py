@@ -39,8 +39,8 @@ from geoavatar.animation.sinks.mp4 import Mp4Sink
 # DrivenAvatar, DrivingOptions and driver_picture are also imported from here by benchmarks/cross_reenactment.py
 from geoavatar.animation.sources.driver import DrivenAvatar, DrivingOptions, driver_picture  # noqa: F401
 from geoavatar.animation.sources.driver_video import track_driver
-from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, check_resolution, check_threads, default_output,
-                                   torch_threads)
+from geoavatar.apps.common import (RENDER_THREADS, VIDEO_DIR, RunPath, check_resolution, check_threads,
+                                   check_video_options, default_output, torch_threads)
 from geoavatar.errors import OptionError
 from geoavatar.train.checkpoint import LoadedRun, open_run
 
@@ -147,14 +147,15 @@ def reenact(
     check_driver_options(driver, driver_video, driver_cache, driver_size, photometric, "reenact")
     check_threads(threads)  # before a --driver-video is tracked
     check_resolution(resolution)
+    check_video_options(out, fps, crf, max_frames, (driver_video,))
     loaded = open_run(run, device, flame_dir)
     driver, video_fps, driver_name = track_driver(loaded, driver, driver_video, driver_cache, driver_size, photometric,
                                                   flame_dir, progress)
     name = f"reenact_{driver_name}{'' if mode == DEFAULT_TRANSFER else '_' + mode}.mp4"
     target = out or default_output(loaded, VIDEO_DIR, name)
     options = DrivingOptions(mode, driver_neutral, avatar_neutral, camera, driver_split, data, backend, resolution)
-    count = reenact_video(loaded, driver, target, options, max_frames, fps or video_fps or 25.0, crf, side_by_side,
-                          progress, threads)
+    fps = fps if fps is not None else (video_fps or 25.0)
+    count = reenact_video(loaded, driver, target, options, max_frames, fps, crf, side_by_side, progress, threads)
     shown = "driver | avatar" if side_by_side else "avatar"
     print(f"wrote {target} ({count} frames: {shown}, {mode} transfer)")
     return 0

@@ -847,7 +847,10 @@ def run_prepare(config: PrepareConfig) -> Path:
         raise PrepareError(f"--workers must be at least 1, got {config.workers}")
     created = not out.exists()
     work = out / WORK
-    work.mkdir(parents=True, exist_ok=True)
+    try:
+        work.mkdir(parents=True, exist_ok=True)
+    except OSError as err:  # --out is a file, or lies under one, or in a folder that cannot be written
+        raise PrepareError(f"{out}: cannot make the output folder ({err.strerror}: {err.filename})") from err
     stages = _Stages(work, _stage_keys(config))
     timings: dict[str, float] = {}
     completed_any = False

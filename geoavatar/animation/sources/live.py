@@ -167,6 +167,8 @@ class LiveDriver:
             try:
                 while (item := self._frames.get()) is not None:
                     fit_one(*item)
+            except DriveError as err:  # the driver's own trouble (no face in it): named by the source
+                error = DriveError(f"{self.capture.name}: {err}")
             except BaseException as err:  # handed to the output stage, which raises it
                 error = err
             finally:
