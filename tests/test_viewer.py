@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from apps_fixtures import make_subject, make_untrained_run
+from web_fixtures import small_player
 from geoavatar import cli
 from geoavatar.animation.posing import head_centre, posed_head_vertices
 from geoavatar.animation.sinks.browser import edited_params
@@ -24,7 +25,7 @@ from geoavatar.geometry import axis_angle_to_matrix
 from geoavatar.train.checkpoint import open_run
 from geoavatar.train.run_frames import RunFrames
 from geoavatar.web.browser import browser_missing, chromium_page
-from geoavatar.web.live import KIND_VERTICES, LiveServerError, vertex_message
+from geoavatar.web.live import KIND_VERTICES, LiveServer, LiveServerError, vertex_message
 
 
 @pytest.fixture(scope="module")
@@ -122,6 +123,13 @@ def test_a_port_in_use_is_one_line(run, capsys):
         assert cli.main(["view", str(run.info.run_dir), "--port", str(port), "--device", "cpu"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("geoavatar view: ") and "already in use" in err
+    with pytest.raises(LiveServerError, match="--host x..y"):  # a host name that cannot be encoded: one line, no hang
+        view_app.start_viewer(run, host="x..y", port=0)
+    server = LiveServer(small_player(1)[0], host="::1", port=0).start()  # IPv6: the address in brackets
+    try:
+        assert server.url.startswith("http://[::1]:")
+    finally:
+        server.stop()
 
 
 def test_the_server_keeps_the_two_newest_meshes_per_browser(run):

@@ -26,8 +26,9 @@ from geoavatar.animation.sinks.web import WebClip
 from geoavatar.animation.sources.split import SplitFrames
 from geoavatar.apps.common import RunPath, serve_until_interrupted
 from geoavatar.errors import OptionError
-from geoavatar.train.checkpoint import LoadedRun, open_run
+from geoavatar.train.checkpoint import LoadedRun, open_run, open_run_dataset
 from geoavatar.train.run_frames import RunFrames
+from geoavatar.web.live import check_address
 
 
 def start_viewer(run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr_sliders: int = 10,
@@ -41,6 +42,8 @@ def start_viewer(run: LoadedRun, host: str = "127.0.0.1", port: int = 8080, expr
         raise OptionError(f"--expr-sliders must be >= 0, got {expr_sliders}")
     if fps <= 0:
         raise OptionError(f"--fps must be positive, got {fps}")
+    open_run_dataset(run, "all", data)  # the page's camera comes from it: RunError now, not after the posing
+    check_address(host, port)
     frames = RunFrames(run)
     timesteps = frames.timesteps[:1] if live else list(frames.timesteps)  # live: the page's first view only
     clip = WebClip(run, fps, "live" if live else "split all", data=data)

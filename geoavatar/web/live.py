@@ -42,6 +42,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import json
+import socket
 import struct
 import threading
 import time
@@ -64,6 +65,24 @@ AUDIO_RATE = 16000  # Hz of the page's microphone chunks
 HEADER = struct.Struct("<IId")  # kind, sequence, a time in Unix seconds (kinds 1, 2; kind 3 adds a float64)
 CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                  ".json": "application/json", ".bin": "application/octet-stream", ".wav": "audio/wav"}
+
+
+def check_address(host: str, port: int) -> None:
+    """LiveServerError (one line, naming --host / --port) when `host`:`port` cannot be listened on: probed with a
+    plain socket, so a command finds out before it poses anything (port 0: any free port, always fine)."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)[0]
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds
+            probe.bind(address)
+    except OSError as err:
+        if getattr(err, "errno", None) == errno.EADDRINUSE:
+            raise LiveServerError(f"--port {port}: already in use on {host}; pass another --port (0: any free port)"
+                                  ) from err
+        raise LiveServerError(f"--host {host} --port {port}: cannot listen there ({err})") from err
+    except (UnicodeError, ValueError) as err:  # a host name that cannot be encoded
+        raise LiveServerError(f"--host {host}: not a host name ({err})") from err
 
 
 class LiveServerError(GeoAvatarError, OSError):
@@ -141,14 +160,15 @@ class LiveServer:
 
     @property
     def url(self) -> str:
-        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
-        return f"http://{host}:{self.port}/"
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else "::1" if self.host == "::" else self.host
+        return f"http://[{host}]:{self.port}/" if ":" in host else f"http://{host}:{self.port}/"  # IPv6 in brackets
 
     @property
     def clients(self) -> int:
         return len(self._clients)
 
     def start(self) -> "LiveServer":
+        check_address(self.host, self.port)
         ready = threading.Event()
         failure: list[BaseException] = []
 
@@ -156,11 +176,11 @@ class LiveServer:
             self._loop = asyncio.new_event_loop()
             try:
                 self._server = self._loop.run_until_complete(self._listen())
-            except OSError as err:
+            except Exception as err:  # OSError, or a host name that cannot be encoded (UnicodeError, ValueError)
                 failure.append(err)
-                ready.set()
                 return
-            ready.set()
+            finally:
+                ready.set()  # whatever happened: start() must not wait for ever
             self._loop.run_until_complete(self._server.wait_closed())
 
         self._thread = threading.Thread(target=run, name="geoavatar-live", daemon=True)
@@ -298,4 +318,4 @@ class LiveServer:
 
 
 __all__ = ["AUDIO_RATE", "KIND_AUDIO", "KIND_SOUND_VERTICES", "KIND_VERTICES", "LiveServer", "LiveServerError",
-           "audio_message", "read_audio_message", "vertex_message"]
+           "audio_message", "check_address", "read_audio_message", "vertex_message"]
