@@ -222,3 +222,19 @@ def test_comparison_labels_tell_runs_of_one_preset_and_dataset_apart():
     labels = [r.label for r in distinct_labels(results)]
     assert labels == ["E · s0 (runs/old/E)", "E · s0 (runs/new/E)", "E · s0 (E_long)", "A · s0"]
     assert len(set(labels)) == len(labels)
+
+
+def test_which_folder_is_the_runs_own_dataset_and_where_a_copys_report_goes(tmp_path):
+    """The recorded folder is the run's own; once it is gone any folder is (a moved dataset) but a tracked copy,
+    which holds its track.json; a copy's report is named by the copy, by OUT for prepare's OUT/dataset."""
+    from geoavatar.apps.eval import report_dir
+    from geoavatar.train.run_frames import is_own_dataset
+
+    recorded, moved, copy = tmp_path / "talk" / "dataset", tmp_path / "moved", tmp_path / "tracked"
+    for folder in (recorded, moved, copy):
+        folder.mkdir(parents=True)
+    (copy / "track.json").write_text("{}")
+    assert is_own_dataset(recorded, recorded) and not is_own_dataset(recorded, moved)
+    assert report_dir(tmp_path / "run", "test", moved, recorded).name == "test@talk"  # not test@dataset
+    recorded.rmdir()
+    assert is_own_dataset(recorded, moved) and not is_own_dataset(recorded, copy)

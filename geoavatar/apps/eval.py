@@ -84,7 +84,8 @@ def eval_runs(
         device: auto (CUDA when available, else CPU), cpu, cuda or cuda:N.
         data: Dataset folder, when it moved since training (default: the one the run recorded), or another copy of
             it, e.g. `geoavatar track --avatar`'s: while the recorded folder exists, the report of a copy goes to
-            RUN/eval/SPLIT@COPY (COPY: the copy's folder name), so the run's own report is kept.
+            RUN/eval/SPLIT@COPY (COPY: the copy's folder name, or OUT's for prepare's OUT/dataset), so the run's own
+            report is kept.
         test_params: The parameters of the held-out frames: fitted (those `train` fitted against the finished
             avatar, its last stage) or dataset (the tracker's, as the dataset holds them: the GaussianAvatars
             protocol, nothing fitted at test time; reported in RUN/eval/SPLIT@dataset_params). A run trained with
@@ -263,6 +264,7 @@ def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, dr
 def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path | None, checkpoint: str, backend: str,
                 flame_dir: Path | None, progress: bool, loudness: str = "own") -> int:
     """`geoavatar eval RUN --speech`: RUN/eval/speech/metrics.{json,md} (eval/speech.py; speech_dir for --loudness)."""
+    from geoavatar.animation.sources.driver_video import dataset_name
     from geoavatar.eval.speech import speech_dir, speech_table, write_speech_report
     from geoavatar.eval.speech_run import PICTURE_FRAMES, evaluate_speech
     from geoavatar.runtime import resolve_device
@@ -279,7 +281,7 @@ def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path |
     run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
     voice = VoiceModel.load(run.info.run_dir).hearing(loudness)
     result = evaluate_speech(run, voice, data, max_frames or PICTURE_FRAMES, backend, progress=progress)
-    copy = None if data is None or is_own_dataset(run.info.data_root, data) else Path(data).resolve().name
+    copy = None if data is None or is_own_dataset(run.info.data_root, data) else dataset_name(data)
     written = write_speech_report(result, speech_dir(run.info.run_dir, loudness, copy))
     print(speech_table(result.scores), end="")
     print(f"{result.label}: {result.frames} held-out frames driven by their own sound in {result.seconds:.1f} s -> "
@@ -319,13 +321,14 @@ def evaluate_cross(run, driven, modes: Sequence[str], driver: str, max_frames: i
 
 def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> Path:
     """RUN/eval/SPLIT, or RUN/eval/SPLIT@NAME for a copy NAME of the dataset given while the recorded one exists."""
+    from geoavatar.animation.sources.driver_video import dataset_name
     from geoavatar.eval.report import eval_dir
     from geoavatar.train.run_frames import is_own_dataset
 
     folder = eval_dir(run_dir, split)
     if data is None or is_own_dataset(recorded, data):
         return folder
-    return folder.with_name(f"{split}@{Path(data).resolve().name}")
+    return folder.with_name(f"{split}@{dataset_name(data)}")  # prepare's OUT/dataset: OUT's name
 
 
 __all__ = ["eval_cross", "eval_runs", "eval_speech", "evaluate_cross", "report_dir"]

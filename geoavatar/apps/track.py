@@ -33,12 +33,13 @@ from geoavatar.head.params import FRAME_KEYS, HeadParams
 from geoavatar.prep.photometric import PhotometricConfig
 from geoavatar.train.avatar_tracking import AvatarTrackingConfig
 from geoavatar.train.held_out_fit import HeldOutFitConfig
+from geoavatar.train.run_frames import TRACKED_COPY_REPORT
 
 _DEFAULTS = PhotometricConfig()  # the command's defaults are the fit's own (and prepare's photometric stage's)
 _AVATAR_DEFAULTS = HeldOutFitConfig()  # train's last stage: its steps, each frame from its neighbour's correction
 
 DatasetPath = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATASET")]
-REPORT_FILE = "track.json"
+REPORT_FILE = TRACKED_COPY_REPORT  # track.json: it also tells eval that a folder is a copy
 
 
 class TrackError(GeoAvatarError):

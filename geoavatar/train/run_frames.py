@@ -29,6 +29,9 @@ from geoavatar.head.params import SUBJECT_KEYS, HeadParams
 from geoavatar.train.checkpoint import LoadedRun, RunError
 
 
+TRACKED_COPY_REPORT = "track.json"  # what `geoavatar track` writes into a copy of a dataset (apps/track.py)
+
+
 class RunFrames:
     """The per-timestep head parameters of a run (refined for training frames) and the T rule."""
 
@@ -81,8 +84,11 @@ class RunFrames:
 
 def is_own_dataset(recorded, root) -> bool:
     """Whether the dataset folder `root` is a run's own, whose recorded folder is `recorded`: that folder, or any
-    folder once that one is gone (a moved dataset); else another copy (e.g. `geoavatar track --avatar`'s)."""
-    return not Path(recorded).is_dir() or Path(root).resolve() == Path(recorded).resolve()
+    folder but a tracked copy once that one is gone (a moved dataset); else another copy (e.g. `geoavatar track
+    --avatar`'s, which holds its track.json)."""
+    if Path(root).resolve() == Path(recorded).resolve():
+        return True
+    return not Path(recorded).is_dir() and not (Path(root) / TRACKED_COPY_REPORT).is_file()
 
 
-__all__ = ["RunFrames", "is_own_dataset"]
+__all__ = ["RunFrames", "TRACKED_COPY_REPORT", "is_own_dataset"]
