@@ -201,6 +201,8 @@ def test_eval_out_never_overwrites_a_run_report(run_e, tmp_path, capsys):
     with pytest.raises(OptionError, match="--out"):  # the mistake: --out taken for an output folder's file
         eval_runs([run_e], out=report / "metrics", max_frames=1, lpips_net="alex", progress=False, device="cpu")
     assert (report / "metrics.json").read_bytes() == before
+    with pytest.raises(OptionError, match="is a folder"):  # the table would land beside it
+        eval_runs([run_e], out=tmp_path, max_frames=1, lpips_net="alex", progress=False, device="cpu")
     table = tmp_path / "one"  # with --out, one run gets its comparison too; a second call replaces it
     for _ in range(2):
         assert eval_runs([run_e], out=table, max_frames=1, lpips_net="alex", progress=False, device="cpu") == 0

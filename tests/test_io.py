@@ -58,6 +58,10 @@ def test_an_error_leaves_the_old_file_and_folder(tmp_path):
         (folder / "new.txt").write_text("new")
     assert [p.name for p in (tmp_path / "seq").iterdir()] == ["new.txt"]
     assert _no_temporaries(tmp_path) == []
+    (tmp_path / "was_a_file").write_text("old")
+    with atomic_folder(tmp_path / "was_a_file") as folder:  # replacing a file: nothing of it left behind
+        (folder / "new.txt").write_text("new")
+    assert (tmp_path / "was_a_file" / "new.txt").is_file() and _no_temporaries(tmp_path) == []
 
 
 @pytest.fixture

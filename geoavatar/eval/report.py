@@ -292,6 +292,8 @@ def comparison_paths(path: str | Path) -> tuple[Path, Path]:
 def check_comparison_target(path: str | Path) -> None:
     """OptionError unless writing the comparison at `path` replaces nothing but an earlier comparison: `--out
     RUN/eval/test/metrics` would otherwise overwrite that run's own report."""
+    if Path(path).is_dir():  # the table would land beside the folder, as FOLDER.md and FOLDER.json
+        raise OptionError(f"--out {path} is a folder; --out names the comparison file (e.g. {Path(path) / 'table.md'})")
     markdown, summary = comparison_paths(path)
     if not (markdown.exists() or summary.exists()):
         return

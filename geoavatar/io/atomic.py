@@ -171,7 +171,10 @@ def replace_folder(new: str | os.PathLike, target: str | os.PathLike) -> Path:
     except BaseException:
         os.replace(old, target)
         raise
-    shutil.rmtree(old, ignore_errors=True)
+    if old.is_dir():
+        shutil.rmtree(old, ignore_errors=True)
+    else:  # a file stood where the folder goes: rmtree would leave it behind, hidden
+        old.unlink(missing_ok=True)
     return target
 
 
