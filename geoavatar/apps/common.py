@@ -217,7 +217,8 @@ class Timer:
 
 
 __all__ = [
-    "EXPORT_DIR", "check_replaceable", "check_threads", "check_video_options", "clip_timesteps", "RunPath", "Timer", "VIDEO_DIR", "browser_pose_code", "colormap_lut",
+    "EXPORT_DIR", "check_replaceable", "check_threads", "check_video_options", "clip_timesteps", "RunPath", "Timer",
+    "VIDEO_DIR", "browser_pose_code", "colormap_lut",
     "default_output", "error_map", "head_centre", "pose_gaussians", "posed_head_vertices", "progress", "record_camera",
     "render_params",
     "RENDER_THREADS", "run_background", "side_by_side", "split_timesteps", "synchronize",
