@@ -7,7 +7,8 @@ features the voice model hears (the same numbers for a file and a live stream) a
 """
 
 from geoavatar.sound.features import FRAME_RATE, HOP, LogMelStream, N_MELS, N_MFCC, frame_energy, log_mel, mfcc
-from geoavatar.sound.track import RATE, Sound, SoundError, has_sound_track, read_sound, to_pcm16, write_wav
+from geoavatar.sound.track import (RATE, Sound, SoundError, has_sound_track, read_sound, to_pcm16, video_frames,
+                                   write_wav)
 
 __all__ = ["FRAME_RATE", "HOP", "LogMelStream", "N_MELS", "N_MFCC", "RATE", "Sound", "SoundError", "frame_energy",
-           "has_sound_track", "log_mel", "mfcc", "read_sound", "to_pcm16", "write_wav"]
+           "has_sound_track", "log_mel", "mfcc", "read_sound", "to_pcm16", "video_frames", "write_wav"]

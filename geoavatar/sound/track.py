@@ -11,6 +11,7 @@ same features as the same sound at 16 kHz.
 
 from __future__ import annotations
 
+import math
 import os
 import wave
 from dataclasses import dataclass
@@ -67,6 +68,12 @@ def _open(path: Path, what: str):
         container.close()
         raise SoundError(f"{what} {path}: the file has no sound track")
     return container
+
+
+def video_frames(seconds: float, fps: float) -> int:
+    """The frames that show a sound of `seconds` at `fps` (frame k at k / fps of it): ceil(seconds x fps), at least
+    one, so sound and picture end together and cannot drift over minutes."""
+    return max(1, math.ceil(seconds * fps - 1e-9))
 
 
 def has_sound_track(path: str | os.PathLike) -> bool:
@@ -160,4 +167,5 @@ def write_wav(path: str | os.PathLike, sound: Sound) -> Path:
     return Path(path)
 
 
-__all__ = ["RATE", "Sound", "SoundError", "has_sound_track", "read_sound", "resample", "to_pcm16", "write_wav"]
+__all__ = ["RATE", "Sound", "SoundError", "has_sound_track", "read_sound", "resample", "to_pcm16", "video_frames",
+           "write_wav"]

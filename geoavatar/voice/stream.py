@@ -15,12 +15,10 @@ and follows the speech level of those last seconds instead (VoiceModel.level_of;
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
-from geoavatar.sound import FRAME_RATE, RATE
+from geoavatar.sound import FRAME_RATE, RATE, video_frames
 from geoavatar.sound.features import PowerStream
 from geoavatar.voice.inputs import SpeechStats, log_mel_torch, loud_frames, normalise, speech_stats
 from geoavatar.voice.model import SpokenFace, VoiceModel
@@ -90,7 +88,7 @@ class VoiceStream:
         power = self.power.finish()
         if len(power):
             self.mel = torch.cat([self.mel, log_mel_torch(torch.from_numpy(power))])
-        last = max(1, math.ceil(samples / RATE * self.fps - 1e-9))
+        last = video_frames(samples / RATE, self.fps)
         ready = list(range(self.next_frame, last))
         self.next_frame = max(self.next_frame, last)
         return self._faces(ready)

@@ -20,7 +20,6 @@ which measures it up to the drawn picture.
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 import time
@@ -37,7 +36,7 @@ from geoavatar.data import DatasetError, open_subject
 from geoavatar.errors import GeoAvatarError
 from geoavatar.head.params import HeadParams
 from geoavatar.render.camera import Camera
-from geoavatar.sound import RATE, Sound
+from geoavatar.sound import RATE, Sound, video_frames
 from geoavatar.train.checkpoint import LoadedRun, RunError
 from geoavatar.train.run_frames import RunFrames
 from geoavatar.voice import VoiceModel, speaking_params
@@ -70,7 +69,7 @@ class SpeechFrames:
             raise ValueError(f"SpeechFrames: fps must be positive, got {fps}")
         self.run, self.voice, self.sound, self.fps = run, voice, sound, float(fps)
         self.audio = playback if playback is not None else sound
-        count = max(1, math.ceil(sound.seconds * self.fps - 1e-9))
+        count = video_frames(sound.seconds, self.fps)
         face = voice.predict(sound, np.arange(count) / self.fps)
         idle = voice.idle.player(self.fps, seed).take(count)
         frames = RunFrames(run)
