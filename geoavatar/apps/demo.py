@@ -238,7 +238,7 @@ class DemoPlan:
         from geoavatar.apps.speak import speak
         from geoavatar.apps.voice import learn_voice
         from geoavatar.train.checkpoint import open_run
-        from geoavatar.voice import VoiceConfig
+        from geoavatar.voice import VoiceConfig, VoiceModel
         from geoavatar.voice.model import INFO_FILE, VOICE_DIR
 
         px, s = self.settings.picture_resolution, self.settings
@@ -249,7 +249,7 @@ class DemoPlan:
 
         # a subject too short to learn a voice from: these stages are skipped (the report says so)
         return [
-            ("learn the voice", lambda: self._voice_loads() or self.mute,
+            ("learn the voice", lambda: VoiceModel.readable(self.run) or self.mute,  # an older one: learned again
              # the generated sound is a known function of the mouth: a few seconds teach it, no advice to film more
              lambda: learn_voice(open_run(self.run, "cpu"), config=VoiceConfig(steps=s.voice_steps, seed=s.seed),
                                  advise=False)),
@@ -262,16 +262,6 @@ class DemoPlan:
                                     seed=s.seed, device=self.device, backend=self.backend, progress=self.progress),
                               "speak")),
         ]
-
-    def _voice_loads(self) -> bool:
-        """Whether the run holds a voice model this code reads (one of an older format is learned again)."""
-        from geoavatar.voice import VoiceModel, VoiceModelError
-
-        try:
-            VoiceModel.load(self.run)
-        except VoiceModelError:
-            return False
-        return True
 
     @functools.cached_property
     def mute(self) -> bool:

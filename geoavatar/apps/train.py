@@ -226,17 +226,13 @@ def _learn_voice(run_dir, options: RunOptions) -> None:
 def _voice_is_newer(run_dir) -> bool:
     """Whether the run holds a readable voice model written after its final checkpoint."""
     from geoavatar.train.checkpoint import CHECKPOINT_DIR, FINAL_CHECKPOINT
-    from geoavatar.voice import VoiceModel, VoiceModelError
+    from geoavatar.voice import VoiceModel
     from geoavatar.voice.model import INFO_FILE, VOICE_DIR
 
     final, voice = Path(run_dir) / CHECKPOINT_DIR / FINAL_CHECKPOINT, Path(run_dir) / VOICE_DIR / INFO_FILE
     if not (final.is_file() and voice.is_file()) or voice.stat().st_mtime < final.stat().st_mtime:
         return False
-    try:
-        VoiceModel.load(run_dir)
-    except VoiceModelError:
-        return False
-    return True
+    return VoiceModel.readable(run_dir)
 
 
 train.parse_argv = parse_args  # geoavatar.cli parses the words with it (not from train's signature)

@@ -29,6 +29,7 @@ from geoavatar.apps.common import clip_timesteps
 from geoavatar.errors import OptionError
 from geoavatar.train.checkpoint import LoadedRun
 from geoavatar.train.run_frames import RunFrames
+from geoavatar.voice.model import loudness_tag
 
 DEFAULT_FPS = 25.0
 
@@ -54,8 +55,8 @@ def export_web(run: LoadedRun, out: Path, split: str = "test", driver: Path | No
         fps = fps or video_fps
     if audio is not None:
         source = speech_frames(run, audio, fps or DEFAULT_FPS, loudness)
-        heard = "" if loudness == "own" else f" ({loudness} loudness)"
-        name, camera_timesteps = f"speech {Path(audio).name}{heard}", [frames.timesteps[0]]  # the avatar's camera
+        name = f"speech {Path(audio).name}{loudness_tag(loudness, label=True)}"
+        camera_timesteps = [frames.timesteps[0]]  # the avatar's camera
     elif driver is not None:
         mode = transfer_mode(transfer)
         source = DriverMotion(run, Path(driver), mode, fps or DEFAULT_FPS, frames)

@@ -37,7 +37,7 @@ from geoavatar.io.atomic import atomic_write_json, atomic_write_text
 from geoavatar.sound.features import mfcc, power_frames
 from geoavatar.voice.face import FaceProbe
 from geoavatar.voice.inputs import SpeechStats, log_mel_torch, normalise, speech_stats, windows
-from geoavatar.voice.model import SpokenFace
+from geoavatar.voice.model import SpokenFace, loudness_tag
 
 REPORT_FORMAT = "geoavatar-eval-speech"
 LAG_MS = 300.0
@@ -183,7 +183,7 @@ class SpeechResult:
 def speech_dir(run_dir: str | Path, loudness: str = "own", copy: str | None = None) -> Path:
     """RUN/eval/speech; RUN/eval/speech@COPY against a copy COPY of the dataset (eval --data), and @video-loudness
     after it for a voice hearing the video's loudness, so no report overwrites another's."""
-    name = "speech" + (f"@{copy}" if copy else "") + ("" if loudness == "own" else f"@{loudness}-loudness")
+    name = "speech" + (f"@{copy}" if copy else "") + loudness_tag(loudness)
     return Path(run_dir) / "eval" / name
 
 

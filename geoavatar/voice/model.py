@@ -44,6 +44,14 @@ LOUDNESS = ("own", "video")
 LEVEL_LIMIT = 0.6
 
 
+def loudness_tag(loudness: str, label: bool = False) -> str:
+    """How an output names the loudness a sound was heard at, so that no output replaces another's: "" for own,
+    "@video-loudness" in a file or folder name, " (video loudness)" in a label."""
+    if loudness == "own":
+        return ""
+    return f" ({loudness} loudness)" if label else f"@{loudness}-loudness"
+
+
 class VoiceModelError(GeoAvatarError, ValueError):
     """A run has no voice model, or its files cannot be read; the message says what to do."""
 
@@ -184,6 +192,15 @@ class VoiceModel:
         return (Path(run_dir) / VOICE_DIR / INFO_FILE).is_file()
 
     @staticmethod
+    def readable(run_dir: str | Path) -> bool:
+        """Whether the run holds a voice model this code reads (not one damaged, or of an older format)."""
+        try:
+            VoiceModel.load(run_dir)
+        except VoiceModelError:
+            return False
+        return True
+
+    @staticmethod
     def load(run_dir: str | Path) -> "VoiceModel":
         """The run's voice model; VoiceModelError saying how to get one when it has none."""
         folder = Path(run_dir) / VOICE_DIR
@@ -221,4 +238,4 @@ class VoiceModel:
 
 
 __all__ = ["FORMAT", "INFO_FILE", "LEVEL_LIMIT", "LOUDNESS", "SpokenFace", "VOICE_DIR", "VoiceModel", "VoiceModelError",
-           "WEIGHTS_FILE"]
+           "WEIGHTS_FILE", "loudness_tag"]
