@@ -43,6 +43,7 @@ from geoavatar.animation.posing import (browser_pose_code, head_centre, pose_gau
                                         record_camera, render_params, run_background)
 from geoavatar.animation.sinks.mp4 import side_by_side
 from geoavatar.errors import OptionError
+from geoavatar.io.video import check_mp4_options
 from geoavatar.runtime import num_threads
 from geoavatar.train.checkpoint import LoadedRun
 
@@ -168,16 +169,10 @@ def check_video_options(out: Path | None, fps: float | None = None, crf: int = 1
                         inputs: tuple[Path | None, ...] = ()) -> None:
     """OptionError for an mp4 --out, --fps, --crf or --max-frames that the writer or the source would refuse only
     after the work (a driver tracked, a clip posed), or an --out that would replace one of the `inputs`."""
-    if out is not None:
-        if Path(out).suffix.lower() != ".mp4":
-            raise OptionError(f"--out {out}: the video file name must end in .mp4")
-        for given in inputs:
-            if given is not None and Path(given).exists() and Path(out).resolve() == Path(given).resolve():
-                raise OptionError(f"--out {out} is the input video: give another file name")
-    if fps is not None and fps <= 0:
-        raise OptionError(f"--fps must be positive, got {fps}")
-    if not 0 <= crf <= 51:
-        raise OptionError(f"--crf must be in [0, 51], got {crf}")
+    check_mp4_options(out, fps, crf)
+    inputs = [Path(given).resolve() for given in inputs if given is not None and Path(given).exists()]
+    if out is not None and Path(out).resolve() in inputs:
+        raise OptionError(f"--out {out} is the input video: give another file name")
     if max_frames is not None and max_frames < 1:
         raise OptionError(f"--max-frames must be positive, got {max_frames}")
 

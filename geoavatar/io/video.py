@@ -37,6 +37,16 @@ def pad_to_even(frame: np.ndarray) -> np.ndarray:
     return np.pad(frame, pad, mode="edge") if pad[0][1] or pad[1][1] else frame
 
 
+def check_mp4_options(path: str | os.PathLike | None, fps: float | None = None, crf: int = 18) -> None:
+    """OptionError for what Mp4Writer cannot write (None: not given yet); commands call it before their work."""
+    if fps is not None and fps <= 0:
+        raise OptionError(f"--fps must be positive, got {fps}")
+    if not 0 <= crf <= 51:
+        raise OptionError(f"--crf must be in [0, 51], got {crf}")
+    if path is not None and Path(path).suffix.lower() != ".mp4":
+        raise OptionError(f"{path}: the video file name must end in .mp4")
+
+
 class Mp4Writer:
     """Frames -> H.264 mp4 (PyAV, libx264, yuv420p), written atomically (geoavatar.io.atomic_file).
 
@@ -46,13 +56,8 @@ class Mp4Writer:
 
     def __init__(self, path: str | os.PathLike, fps: float = 25.0, crf: int = 18, preset: str = "medium",
                  audio=None, audio_bitrate: int = 96000):
-        if fps <= 0:
-            raise OptionError(f"--fps must be positive, got {fps}")
-        if not 0 <= crf <= 51:
-            raise OptionError(f"--crf must be in [0, 51], got {crf}")
+        check_mp4_options(path, fps, crf)
         self.path = Path(path)
-        if self.path.suffix.lower() != ".mp4":
-            raise OptionError(f"{self.path}: the video file name must end in .mp4")
         self.fps, self.crf, self.preset = fps, crf, preset
         self.audio, self.audio_bitrate = audio, audio_bitrate  # a Sound (samples [n] float32, rate) or None
         self._audio_stream = None
@@ -150,4 +155,4 @@ def write_mp4(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float 
     return Path(path)
 
 
-__all__ = ["EmptyVideoError", "Mp4Writer", "pad_to_even", "write_mp4"]
+__all__ = ["EmptyVideoError", "Mp4Writer", "check_mp4_options", "pad_to_even", "write_mp4"]
