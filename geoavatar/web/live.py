@@ -76,13 +76,15 @@ def check_address(host: str, port: int) -> None:
         with socket.socket(family, kind, proto) as probe:
             probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds
             probe.bind(address)
-    except OSError as err:
-        if getattr(err, "errno", None) == errno.EADDRINUSE:
-            raise LiveServerError(f"--port {port}: already in use on {host}; pass another --port (0: any free port)"
-                                  ) from err
-        raise LiveServerError(f"--host {host} --port {port}: cannot listen there ({err})") from err
-    except (UnicodeError, ValueError) as err:  # a host name that cannot be encoded
-        raise LiveServerError(f"--host {host}: not a host name ({err})") from err
+    except (OSError, ValueError) as err:  # ValueError (UnicodeError): a host name that cannot be encoded
+        raise _address_error(host, port, err) from err
+
+
+def _address_error(host: str, port: int, err: BaseException) -> "LiveServerError":
+    """The one line for an address that cannot be served."""
+    if getattr(err, "errno", None) == errno.EADDRINUSE:
+        return LiveServerError(f"--port {port}: already in use on {host}; pass another --port (0: any free port)")
+    return LiveServerError(f"--host {host} --port {port}: cannot listen there ({err})")
 
 
 class LiveServerError(GeoAvatarError, OSError):
@@ -168,7 +170,6 @@ class LiveServer:
         return len(self._clients)
 
     def start(self) -> "LiveServer":
-        check_address(self.host, self.port)
         ready = threading.Event()
         failure: list[BaseException] = []
 
@@ -187,11 +188,7 @@ class LiveServer:
         self._thread.start()
         ready.wait()
         if failure:
-            err = failure[0]
-            if getattr(err, "errno", None) == errno.EADDRINUSE:
-                raise LiveServerError(f"--port {self.port}: already in use on {self.host}; pass another --port "
-                                      "(0: any free port)") from err
-            raise LiveServerError(f"--host {self.host} --port {self.port}: cannot listen there ({err})") from err
+            raise _address_error(self.host, self.port, failure[0]) from failure[0]
         return self
 
     async def _listen(self):
