@@ -264,12 +264,10 @@ def eval_cross(run_dir: Path, driver: Path | None, driver_video: Path | None, dr
 def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path | None, checkpoint: str, backend: str,
                 flame_dir: Path | None, progress: bool, loudness: str = "own") -> int:
     """`geoavatar eval RUN --speech`: RUN/eval/speech/metrics.{json,md} (eval/speech.py; speech_dir for --loudness)."""
-    from geoavatar.animation.sources.driver_video import dataset_name
     from geoavatar.eval.speech import speech_dir, speech_table, write_speech_report
     from geoavatar.eval.speech_run import PICTURE_FRAMES, evaluate_speech
     from geoavatar.runtime import resolve_device
     from geoavatar.train.checkpoint import load_run
-    from geoavatar.train.run_frames import is_own_dataset
     from geoavatar.voice import VoiceModel
 
     if max_frames is not None and max_frames < 1:
@@ -281,8 +279,7 @@ def eval_speech(run_dir: Path, max_frames: int | None, device: str, data: Path |
     run = load_run(run_dir, device=torch_device, checkpoint=checkpoint, flame_dir=flame_dir)
     voice = VoiceModel.load(run.info.run_dir).hearing(loudness)
     result = evaluate_speech(run, voice, data, max_frames or PICTURE_FRAMES, backend, progress=progress)
-    copy = None if data is None or is_own_dataset(run.info.data_root, data) else dataset_name(data)
-    written = write_speech_report(result, speech_dir(run.info.run_dir, loudness, copy))
+    written = write_speech_report(result, speech_dir(run.info.run_dir, loudness, copy_name(run.info.data_root, data)))
     print(speech_table(result.scores), end="")
     print(f"{result.label}: {result.frames} held-out frames driven by their own sound in {result.seconds:.1f} s -> "
           f"{written['json']}")
@@ -321,14 +318,19 @@ def evaluate_cross(run, driven, modes: Sequence[str], driver: str, max_frames: i
 
 def report_dir(run_dir: Path, split: str, recorded: Path, data: Path | None) -> Path:
     """RUN/eval/SPLIT, or RUN/eval/SPLIT@NAME for a copy NAME of the dataset given while the recorded one exists."""
-    from geoavatar.animation.sources.driver_video import dataset_name
     from geoavatar.eval.report import eval_dir
+
+    folder, copy = eval_dir(run_dir, split), copy_name(recorded, data)
+    return folder if copy is None else folder.with_name(f"{split}@{copy}")
+
+
+def copy_name(recorded: Path, data: Path | None) -> str | None:
+    """The name a copy of a run's dataset (--data) gives its reports (prepare's OUT/dataset: OUT's); None for the
+    run's own dataset (the folder it recorded, or the moved one)."""
+    from geoavatar.animation.sources.driver_video import dataset_name
     from geoavatar.train.run_frames import is_own_dataset
 
-    folder = eval_dir(run_dir, split)
-    if data is None or is_own_dataset(recorded, data):
-        return folder
-    return folder.with_name(f"{split}@{dataset_name(data)}")  # prepare's OUT/dataset: OUT's name
+    return None if data is None or is_own_dataset(recorded, data) else dataset_name(data)
 
 
 __all__ = ["eval_cross", "eval_runs", "eval_speech", "evaluate_cross", "report_dir"]

@@ -29,6 +29,7 @@ from geoavatar.errors import GeoAvatarError, OptionError
 from geoavatar.sound import RATE, Sound, read_sound
 from geoavatar.train.checkpoint import LoadedRun, open_run
 from geoavatar.voice import VoiceModel
+from geoavatar.voice.model import loudness_tag
 
 PLAYBACK_RATE = 24000  # the sound the mp4 and the player carry: speech at full quality, half of CD's size
 
@@ -75,9 +76,8 @@ def speak_clip(run: LoadedRun, voice: VoiceModel, sound: Sound, playback: Sound,
     source = SpeechFrames(run, voice, sound, fps, playback, seed)
     mp4 = (Mp4Sink(run, out, fps, avatar_camera(run, data, resolution), backend=backend, audio=source.audio)
            if out is not None else None)
-    heard = "" if voice.loudness == "own" else f" ({voice.loudness} loudness)"  # as export names it
-    clip = (WebClip(run, source.fps, f"speech {clip_name}{heard}", [run.info.timesteps["all"][0]], data,
-                    audio=source.audio) if clip_name is not None else None)
+    clip = (WebClip(run, source.fps, f"speech {clip_name}{loudness_tag(voice.loudness, label=True)}",
+                    [run.info.timesteps["all"][0]], data, audio=source.audio) if clip_name is not None else None)
     with torch_threads(threads):
         play(run, source, [sink for sink in (mp4, clip) if sink is not None], progress=progress, desc="speak")
     return (mp4.frames if mp4 is not None else 0), clip
@@ -180,8 +180,8 @@ def speak(
         return _speak_live(loaded, voice, audio, microphone, out, view, fps, seed, resolution, max_seconds, host,
                            port, data, backend, status)
     sound, playback, name = spoken_sound(audio, text, tts, tts_voice)
-    heard = "" if loudness == "own" else f"@{loudness}-loudness"  # beside the clip of the sound at its own level
-    target = out if out is not None or view else default_output(loaded, VIDEO_DIR, f"speak_{name}{heard}.mp4")
+    target = (out if out is not None or view else
+              default_output(loaded, VIDEO_DIR, f"speak_{name}{loudness_tag(loudness)}.mp4"))  # beside own's
     count, clip = speak_clip(loaded, voice, sound, playback, target, name if view else None, fps, seed, resolution,
                              data, backend, progress, threads)
     if target is not None:
@@ -196,7 +196,8 @@ def _speak_live(run, voice, audio, microphone, out, view, fps, seed, resolution,
     """--microphone or --audio --live: the live source into the browser and / or an mp4."""
     from geoavatar.apps.view import start_viewer
 
-    sound_input = MicrophoneSound() if microphone else RealTimeSound(read_sound(audio, RATE, what="--audio"))
+    sound, playback, _ = (None, None, None) if microphone else spoken_sound(audio)  # the mp4 carries the playback
+    sound_input = MicrophoneSound() if microphone else RealTimeSound(sound)
     viewer = None
     if view:
         callbacks = ({"on_audio": sound_input.on_audio, "on_microphone_error": sound_input.on_error}
@@ -210,7 +211,7 @@ def _speak_live(run, voice, audio, microphone, out, view, fps, seed, resolution,
                                                         if microphone else ""), flush=True)
     try:
         source = speak_live(run, voice, sound_input, fps, seed, viewer, out, resolution, data, backend, max_seconds,
-                            status, None if microphone else read_sound(audio, PLAYBACK_RATE, what="--audio"))
+                            status, playback)
     except KeyboardInterrupt:  # before the first frame (play keeps what a live source made once it began)
         return 0
     finally:

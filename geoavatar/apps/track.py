@@ -244,9 +244,7 @@ def track(
     from geoavatar.data.dataset import open_subject
     from geoavatar.prep.photometric import residual_report
 
-    if Path(out).resolve() == Path(dataset).resolve():
-        raise OptionError("--out must differ from DATASET (the dataset is copied, never changed in place)")
-    check_replaceable(out, dataset=dataset, run=avatar)
+    check_replaceable(out, dataset=dataset, run=avatar)  # DATASET is copied, never changed or replaced
     if Path(out).exists() and not overwrite:
         raise TrackError(f"{out} exists; pass --overwrite to replace it")
     if avatar is not None and fit_shape:

@@ -136,12 +136,13 @@ def evaluate_speech(run: LoadedRun, voice: VoiceModel, data: Path | None = None,
     test = sorted(run.info.timesteps.get("test", []), key=lambda t: sound.frame_times.get(t, t))
     if len(test) < 3:
         raise RunError(f"{run.info.run_dir}: {len(test)} held-out frames; --speech needs at least 3")
-    silent = int(np.sum(sound.times(test) >= sound.sound.seconds))  # the last frames of a track a little short: heard
-    if silent > 0.05 * len(test):  # as a clip's end is (the windows padded); beyond that, the scores would be silence
+    times = sound.times(test)  # [N'] seconds
+    silent = int(np.sum(times >= sound.sound.seconds))  # the last frames of a track a little short: heard as a
+    if silent > 0.05 * len(test):  # clip's end is (the windows padded); beyond that, the scores would be silence
         raise RunError(f"{root}: {silent} of the {len(test)} held-out frames lie after the end of its sound track; "
                        "--speech scores frames with their sound")
     trained = [t for t in run.info.timesteps.get("train", []) if t in sound.frame_times]
-    if trained and min(sound.times(test)) < max(sound.times(trained)):  # the voice heard all sound before its last
+    if trained and times.min() < sound.times(trained).max():  # the voice heard all sound before its last
         raise RunError(f"{run.info.run_dir}: its held-out frames lie among its training frames (a dataset's own "
                        "split files), so the voice heard their sound; --speech scores held-out frames after them")
     copy = data is not None and not frames.is_own_dataset(root)  # the run's own folder given again is no copy

@@ -40,6 +40,7 @@ from geoavatar.voice.model import VoiceModel, VoiceModelError
 
 STATS_SECONDS = (5.0, 20.0)  # the stretch of sound a step's normalisation statistics come from
 LEVEL_STRETCH = 5.0  # seconds: the stretches (every half of it) over which the mean face is fitted to the speech level
+MIN_TRAINING_SPEECH = 0.5  # seconds of speech in the training frames below which there is no word to learn from
 
 
 @dataclass
@@ -79,8 +80,6 @@ def voice_data(run, frames, sound: DatasetSound, expr_dims: int) -> VoiceData:
     return VoiceData(power, torch.from_numpy(np.round(times * FRAME_RATE).astype(np.int64)), targets,
                      {k: v.numpy() for k, v in values.items()}, fps, int(values["expr"].shape[1]), float(speech))
 
-
-MIN_TRAINING_SPEECH = 0.5  # seconds of speech in the training frames below which there is no word to learn from
 
 JACOBIAN_STEP = 1e-3  # central differences: expression coefficients are O(1), jaw angles O(0.1) rad
 
