@@ -217,3 +217,26 @@ def test_speech_in_a_real_talking_video(name):
     sound = read_sound(video).segment(0.0, 6.0)
     activity = speech_activity(sound)
     assert 3.0 < activity.speech_seconds <= 6.0
+
+
+def test_sound_and_picture_stay_together_over_minutes(tmp_path):
+    """Three minutes at 29.97 fps (a rate that rounds) with 24 kHz sound, as speak writes them: the frame count is
+    video_frames' and the sound ends with the last frame; clicks at 5 s and 175 s are still where they were written."""
+    from geoavatar.io.video import Mp4Writer
+    from geoavatar.sound import video_frames
+
+    rate, fps, seconds = 24000, 30000 / 1001, 180.0
+    samples = np.zeros(int(seconds * rate), np.float32)
+    for at in (5.0, 175.0):
+        samples[int(at * rate):int(at * rate) + 120] = np.hanning(120)
+    count = video_frames(seconds, fps)
+    path = tmp_path / "long.mp4"
+    with Mp4Writer(path, fps=fps, audio=Sound(samples, rate), preset="ultrafast") as video:
+        for _ in range(count):
+            video.write(np.zeros((16, 16, 3), np.uint8))
+    assert count == 5395 and video.frames == count
+    back = read_sound(path)
+    assert abs(back.seconds - count / fps) < 0.07  # the sound ends with the last frame (one AAC block)
+    clicks = np.flatnonzero(np.abs(back.samples) > 0.3) / RATE + back.start
+    for at in (5.0, 175.0):
+        assert np.min(np.abs(clicks - at - 60 / rate)) < 0.002  # the click's peak, within 2 ms after three minutes
